@@ -1,0 +1,70 @@
+"""The SemanticKITTI label space: raw ids, the 20 train ids, names and colours.
+
+Raw ids are what `.label` files store (lower 16 bits); train ids are the 20 classes
+the network predicts and the map stores (0 = unlabeled / ignored). The two are kept
+apart in every name in tisem: `raw_label` vs `train_id`.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+NUM_CLASSES = 20  # train ids 0..19, 0 = unlabeled
+
+# semantic-kitti.yaml `learning_map` (raw id -> train id)
+LEARNING_MAP: dict[int, int] = {
+    0: 0, 1: 0, 10: 1, 11: 2, 13: 5, 15: 3, 16: 5, 18: 4, 20: 5, 30: 6, 31: 7, 32: 8,
+    40: 9, 44: 10, 48: 11, 49: 12, 50: 13, 51: 14, 52: 0, 60: 9, 70: 15, 71: 16, 72: 17,
+    80: 18, 81: 19, 99: 0, 252: 1, 253: 7, 254: 6, 255: 8, 256: 5, 257: 5, 258: 4, 259: 5,
+}
+
+# semantic-kitti.yaml `learning_map_inv` (train id -> raw id)
+LEARNING_MAP_INV = np.array([0, 10, 11, 15, 18, 20, 30, 31, 32, 40, 44, 48, 49, 50, 51,
+                             70, 71, 72, 80, 81], dtype=np.uint32)
+
+CLASS_NAMES: tuple[str, ...] = (
+    "unlabeled", "car", "bicycle", "motorcycle", "truck", "other-vehicle", "person",
+    "bicyclist", "motorcyclist", "road", "parking", "sidewalk", "other-ground", "building",
+    "fence", "vegetation", "trunk", "terrain", "pole", "traffic-sign",
+)
+
+# semantic-kitti.yaml `color_map` is BGR; these are the same colours as RGB, per train id.
+CLASS_COLORS_RGB = np.array([
+    [0, 0, 0], [100, 150, 245], [100, 230, 245], [30, 60, 150], [80, 30, 180],
+    [255, 0, 0], [255, 30, 30], [255, 40, 200], [150, 30, 90], [255, 0, 255],
+    [255, 150, 255], [75, 0, 75], [175, 0, 75], [255, 200, 0], [255, 120, 50],
+    [0, 175, 0], [135, 60, 0], [150, 240, 80], [255, 240, 150], [255, 0, 0],
+], dtype=np.uint8)
+
+# Lookup table over the whole 16-bit raw space; ids not in LEARNING_MAP map to 0 and are
+# flagged by `raw_known` so readers can count and report them.
+_RAW_TO_TRAIN = np.zeros(1 << 16, dtype=np.int32)
+_RAW_KNOWN = np.zeros(1 << 16, dtype=bool)
+for _raw, _train in LEARNING_MAP.items():
+    _RAW_TO_TRAIN[_raw] = _train
+    _RAW_KNOWN[_raw] = True
+
+
+def raw_to_train(raw_label: np.ndarray) -> tuple[np.ndarray, int]:
+    """Map raw SemanticKITTI labels (instance bits allowed) to train ids.
+
+    Returns (train_id int32, number of points whose raw id is unknown -> 0).
+    """
+    semantic = np.asarray(raw_label).astype(np.uint32) & 0xFFFF
+    train_id = _RAW_TO_TRAIN[semantic]
+    unknown = int(np.count_nonzero(~_RAW_KNOWN[semantic]))
+    return train_id, unknown
+
+
+def train_to_raw(train_id: np.ndarray) -> np.ndarray:
+    """Map train ids (0..19) to raw ids (uint32), as SemanticKITTI predictions store them."""
+    train_id = np.asarray(train_id)
+    if train_id.size and (train_id.min() < 0 or train_id.max() >= NUM_CLASSES):
+        raise ValueError(f"train ids must lie in [0, {NUM_CLASSES}), got "
+                         f"[{train_id.min()}, {train_id.max()}]")
+    return LEARNING_MAP_INV[train_id]
+
+
+def class_table() -> list[dict]:
+    """The class table as plain records (for metadata in exported files)."""
+    return [{"train_id": i, "raw_id": int(LEARNING_MAP_INV[i]), "name": CLASS_NAMES[i],
+             "rgb": [int(c) for c in CLASS_COLORS_RGB[i]]} for i in range(NUM_CLASSES)]

@@ -1,0 +1,68 @@
+"""`Scan`: the one thing every reader produces and the mapper consumes."""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+
+@dataclass
+class Scan:
+    """One labelled LiDAR scan.
+
+    points_sensor: (N, 3) float32, metres, in the sensor frame.
+    labels: (N,) int32 train ids (0 = unlabeled, adds no evidence), or None when `probs` is given.
+    probs: (N, C) float32 per-point class probabilities, or None.
+    T_world_sensor: (4, 4) float64 pose of the sensor in the world (map) frame.
+    stamp_s: acquisition time in seconds.
+    gt_labels: (N,) int32 ground-truth train ids, when known (evaluation only).
+    index: position in the sequence (scan number); name: a human-readable source (file, topic).
+    """
+
+    points_sensor: np.ndarray
+    T_world_sensor: np.ndarray
+    stamp_s: float
+    labels: np.ndarray | None = None
+    probs: np.ndarray | None = None
+    gt_labels: np.ndarray | None = None
+    index: int = 0
+    name: str = ""
+    meta: dict = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        self.points_sensor = np.asarray(self.points_sensor, dtype=np.float32)
+        self.T_world_sensor = np.asarray(self.T_world_sensor, dtype=np.float64)
+        n = self.points_sensor.shape[0] if self.points_sensor.ndim == 2 else -1
+        where = f"scan {self.index}" + (f" ({self.name})" if self.name else "")
+        if self.points_sensor.ndim != 2 or self.points_sensor.shape[1] != 3:
+            raise ValueError(f"{where}: points must be (N, 3), got {self.points_sensor.shape}")
+        if self.T_world_sensor.shape != (4, 4):
+            raise ValueError(f"{where}: T_world_sensor must be 4x4, got {self.T_world_sensor.shape}")
+        if not np.all(np.isfinite(self.T_world_sensor)):
+            raise ValueError(f"{where}: pose has NaN/inf entries")
+        if (self.labels is None) == (self.probs is None):
+            raise ValueError(f"{where}: give exactly one of labels or probs")
+        if self.labels is not None:
+            self.labels = np.asarray(self.labels, dtype=np.int32)
+            if self.labels.shape != (n,):
+                raise ValueError(f"{where}: {self.labels.shape[0] if self.labels.ndim else 0} labels "
+                                 f"for {n} points")
+        if self.probs is not None:
+            self.probs = np.asarray(self.probs, dtype=np.float32)
+            if self.probs.ndim != 2 or self.probs.shape[0] != n:
+                raise ValueError(f"{where}: probabilities must be (N, C) with N={n}, "
+                                 f"got {self.probs.shape}")
+        if self.gt_labels is not None:
+            self.gt_labels = np.asarray(self.gt_labels, dtype=np.int32)
+            if self.gt_labels.shape != (n,):
+                raise ValueError(f"{where}: {self.gt_labels.shape} ground-truth labels for {n} points")
+
+    @property
+    def num_points(self) -> int:
+        return int(self.points_sensor.shape[0])
+
+    def points_world(self) -> np.ndarray:
+        """(N, 3) float64 points in the world frame."""
+        R = self.T_world_sensor[:3, :3]
+        t = self.T_world_sensor[:3, 3]
+        return self.points_sensor.astype(np.float64) @ R.T + t
