@@ -1,0 +1,97 @@
+"""The one module that knows the SNode tree.
+
+Two sparse trees of the same shape, indexed by *storage* voxel index u in [0, N):
+
+    root.pointer(top cells) -> pointer(8^3 leaf blocks) -> bitmasked(4^3 voxels) -> dense(l, C)
+
+* the map layer: semantic counters sigma[u, c], last-update time t_last[u], kernel length ell[u];
+* the scan layer (cleared after every scan): the scan's class histogram, point count and
+  coordinate sums per voxel, and the kernel-weighted evidence delta[u, c] of the scan.
+
+Why this shape (measured in shared/notes/taichi-sparse.md): a small two-level pointer top keeps
+struct-fors cheap, 4^3 bitmasked leaves suit surface-like LiDAR data, and the class axis as an
+inner dense(l, C) of a 4-D scalar field needs one atomic per label (and avoids the 1.7.x crash of
+vector-component atomics). Struct-fors run over the 3-D fields placed on the leaf, never the 4-D.
+
+Storage is toroidal: world voxel w (int32, relative to the mapper's origin) lives at
+u = w & (N - 1). The mapper keeps every live block inside a window smaller than N/2 around the
+sensor, so two live world voxels never share a storage cell, and a storage index is turned back
+into its world index by unwrapping around the window centre (`unwrap`).
+"""
+from __future__ import annotations
+
+import taichi as ti
+
+LEAF = 4   # voxels per leaf block edge
+MID = 8    # leaf blocks per top cell edge
+TOP = LEAF * MID
+
+
+def _pow2_at_least(n: int) -> int:
+    p = TOP
+    while p < n:
+        p *= 2
+    return p
+
+
+def storage_extent(window_half_vox: tuple[int, int, int]) -> tuple[int, int, int]:
+    """Power-of-two storage extent per axis that holds a window of the given half-size
+    plus one top cell of slack on each side without aliasing."""
+    return tuple(_pow2_at_least(2 * (h + 2 * TOP) + 1) for h in window_half_vox)
+
+
+@ti.data_oriented
+class MapFields:
+    """The Taichi fields of one map. Create after `ti.init`; never share across inits."""
+
+    def __init__(self, num_classes: int, extent: tuple[int, int, int]):
+        for n in extent:
+            if n % TOP or n & (n - 1):
+                raise ValueError(f"storage extent {extent} must be powers of two >= {TOP}")
+        self.C = int(num_classes)
+        self.N = tuple(int(n) for n in extent)
+        self.mask = tuple(n - 1 for n in self.N)
+        self.N_blk = tuple(n // LEAF for n in self.N)    # extent in leaf blocks
+        self.N_top = tuple(n // TOP for n in self.N)     # extent in top cells
+        top_shape = tuple(n // TOP for n in self.N)
+
+        # map layer: ~88 B per active voxel (20 x f32 counters, t_last, ell) + bitmask
+        self.counts = ti.field(ti.f32)
+        self.t_last = ti.field(ti.f32)
+        self.ell = ti.field(ti.f32)     # > 0 for every active voxel: doubles as the activity test
+        self.top = ti.root.pointer(ti.ijk, top_shape)
+        self.blk = self.top.pointer(ti.ijk, MID)
+        self.vox = self.blk.bitmasked(ti.ijk, LEAF)
+        self.vox.dense(ti.l, self.C).place(self.counts)
+        self.vox.place(self.t_last, self.ell)
+
+        # scan layer
+        self.s_hist = ti.field(ti.f32)
+        self.s_delta = ti.field(ti.f32)
+        self.s_sum = ti.field(ti.f32)
+        self.s_npts = ti.field(ti.i32)
+        self.s_top = ti.root.pointer(ti.ijk, top_shape)
+        self.s_blk = self.s_top.pointer(ti.ijk, MID)
+        self.s_vox = self.s_blk.bitmasked(ti.ijk, LEAF)
+        self.s_vox.dense(ti.l, self.C).place(self.s_hist)
+        self.s_vox.dense(ti.l, self.C).place(self.s_delta)
+        self.s_vox.dense(ti.l, 3).place(self.s_sum)
+        self.s_vox.place(self.s_npts)
+
+        self.counter = ti.field(ti.i32, shape=())
+
+    @ti.func
+    def wrap(self, w):
+        """World voxel index -> storage index."""
+        return ti.Vector([w[0] & self.mask[0], w[1] & self.mask[1], w[2] & self.mask[2]])
+
+    @ti.func
+    def unwrap(self, u, center):
+        """Storage index -> the world index nearest `center` (valid within N/2 of it)."""
+        w = ti.Vector([0, 0, 0])
+        for a in ti.static(range(3)):
+            d = (u[a] - center[a]) & self.mask[a]
+            if d >= self.N[a] // 2:
+                d -= self.N[a]
+            w[a] = center[a] + d
+        return w

@@ -1,0 +1,77 @@
+"""Step 9 and the map's host interface: query, count, export, import, evict."""
+import taichi as ti
+
+
+@ti.kernel
+def query(m: ti.template(),
+          vox: ti.types.ndarray(dtype=ti.i32, ndim=2),        # (N, 3) world voxel index
+          inside: ti.types.ndarray(dtype=ti.i32, ndim=1),     # (N,) 1 where vox is in the window
+          out_label: ti.types.ndarray(dtype=ti.i32, ndim=1),  # (N,)
+          out_prob: ti.types.ndarray(dtype=ti.f32, ndim=2),   # (N, C) or (0, C): skipped
+          with_prob: ti.i32):
+    for p in range(out_label.shape[0]):
+        best = 0
+        if inside[p]:
+            u = m.wrap(ti.Vector([vox[p, 0], vox[p, 1], vox[p, 2]]))
+            best_v = 0.0
+            total = 0.0
+            for c in ti.static(range(m.C)):
+                v = m.counts[u, c]
+                total += v
+                if v > best_v:
+                    best_v = v
+                    best = c
+            if with_prob:
+                for c in ti.static(range(m.C)):
+                    out_prob[p, c] = m.counts[u, c] / total if total > 0 else 0.0
+        out_label[p] = best
+
+
+@ti.kernel
+def count_voxels(m: ti.template()) -> ti.i32:
+    n = 0
+    for I in ti.grouped(m.ell):
+        n += 1
+    return n
+
+
+@ti.kernel
+def count_blocks(m: ti.template()) -> ti.i32:
+    n = 0
+    for I in ti.grouped(m.blk):
+        n += 1
+    return n
+
+
+@ti.kernel
+def export_voxels(m: ti.template(), center: ti.types.vector(3, ti.i32),
+                  keys: ti.types.ndarray(dtype=ti.i32, ndim=2),      # (M, 3) world voxel
+                  counts: ti.types.ndarray(dtype=ti.f32, ndim=2),    # (M, C)
+                  t_last: ti.types.ndarray(dtype=ti.f32, ndim=1),
+                  ell: ti.types.ndarray(dtype=ti.f32, ndim=1)) -> ti.i32:
+    m.counter[None] = 0
+    for I in ti.grouped(m.ell):
+        idx = ti.atomic_add(m.counter[None], 1)
+        if idx < keys.shape[0]:
+            w = m.unwrap(I, center)
+            for a in ti.static(range(3)):
+                keys[idx, a] = w[a]
+            for c in ti.static(range(m.C)):
+                counts[idx, c] = m.counts[I, c]
+            t_last[idx] = m.t_last[I]
+            ell[idx] = m.ell[I]
+    return m.counter[None]
+
+
+@ti.kernel
+def import_voxels(m: ti.template(),
+                  keys: ti.types.ndarray(dtype=ti.i32, ndim=2),
+                  counts: ti.types.ndarray(dtype=ti.f32, ndim=2),
+                  t_last: ti.types.ndarray(dtype=ti.f32, ndim=1),
+                  ell: ti.types.ndarray(dtype=ti.f32, ndim=1)):
+    for i in range(keys.shape[0]):
+        u = m.wrap(ti.Vector([keys[i, 0], keys[i, 1], keys[i, 2]]))
+        for c in ti.static(range(m.C)):
+            m.counts[u, c] = counts[i, c]
+        m.t_last[u] = t_last[i]
+        m.ell[u] = ell[i]

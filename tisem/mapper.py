@@ -1,0 +1,342 @@
+"""The mapper: the paper's steps, in order, over one live window plus a host store.
+
+    mapper = Mapper(MapperConfig(mode="st"))
+    mapper.integrate(scan)                      # a tisem.scan.Scan
+    labels, probs = mapper.query(points_world)  # (N,) train ids, (N, C) probabilities
+
+Python checks every input and every index range before a kernel sees it (Taichi does not check
+indices in release mode); the kernels in `kernels/` do the per-point and per-voxel work.
+"""
+from __future__ import annotations
+
+import logging
+import math
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import taichi as ti
+
+from kernels import bki, entropy, fusion, query as kquery, rasterize, window
+from kernels.layout import LEAF, TOP, MapFields, storage_extent
+from tisem.backend import ensure_initialized
+from tisem.config import MapperConfig
+from tisem.scan import Scan
+from tisem.snapshot import MapSnapshot
+from tisem.store import KEY_LIMIT, BlockStore
+
+log = logging.getLogger(__name__)
+
+STAGES = ("preprocess", "window", "rasterize", "entropy", "kernel", "fusion", "clear")
+
+
+@dataclass
+class IntegrationReport:
+    """What happened to one scan's points."""
+
+    points: int = 0
+    used: int = 0
+    dropped_nonfinite: int = 0
+    dropped_range: int = 0
+    dropped_window: int = 0
+    training_voxels: int = 0
+    evicted_voxels: int = 0
+    reloaded_voxels: int = 0
+
+
+@dataclass
+class _Buffers:
+    """Host buffers reused across scans (grown on demand) so the hot path allocates nothing."""
+
+    xyz: np.ndarray = field(default_factory=lambda: np.zeros((0, 3), np.float32))
+    hist: np.ndarray = field(default_factory=lambda: np.zeros((0, 0), np.float32))
+
+    def training(self, n: int, num_classes: int):
+        if self.xyz.shape[0] < n:
+            cap = max(n, int(self.xyz.shape[0] * 1.5))
+            self.xyz = np.zeros((cap, 3), np.float32)
+            self.hist = np.zeros((cap, num_classes), np.float32)
+        return self.xyz, self.hist
+
+
+class Mapper:
+    """A spatio-temporal semantic map (SPEC §1), in any of the modes of `MapperConfig`."""
+
+    def __init__(self, config: MapperConfig | None = None, *, profile: bool = False):
+        self.config = config or MapperConfig()
+        self.config.validate()
+        cfg = self.config
+        ensure_initialized()
+        self.C = cfg.num_classes
+        self.res = float(cfg.resolution_m)
+        reach = cfg.reach_m
+        self.radius_vox = int(math.ceil(reach / self.res + 0.5)) if cfg.uses_kernel else 0
+        # the live window, in voxels: every scan point plus its kernel reach must fit inside
+        need_xy = cfg.max_range_m + reach + LEAF * self.res
+        need_z = max(abs(cfg.min_z_m), abs(cfg.max_z_m)) + reach + LEAF * self.res
+        if cfg.window_xy_m < need_xy or cfg.window_z_m < need_z:
+            raise ValueError(
+                f"window_xy_m={cfg.window_xy_m} / window_z_m={cfg.window_z_m} must hold the scan "
+                f"(max_range + kernel reach): need >= {need_xy:.1f} m / {need_z:.1f} m")
+        self.half_vox = np.array([math.ceil(cfg.window_xy_m / self.res)] * 2
+                                 + [math.ceil(cfg.window_z_m / self.res)], np.int64)
+        self.half_blk = self.half_vox // LEAF + 1
+        if self.radius_vox >= TOP:
+            raise ValueError(f"kernel reach {reach} m is too long for {self.res} m voxels")
+        self.fields = MapFields(self.C, storage_extent(tuple(int(h) for h in self.half_vox)))
+        self.store = BlockStore(self.C)
+        self.origin_vox: np.ndarray | None = None   # global voxel index of local voxel 0
+        self.t0: float | None = None               # stamp of the first scan
+        self.center_vox: np.ndarray | None = None   # window centre, local voxels
+        self.scans = 0
+        self.last_stamp_s: float | None = None
+        self.profile = profile
+        self.stage_seconds = {s: 0.0 for s in STAGES}
+        self._buf = _Buffers()
+        if cfg.mode == "spatial":
+            self._inv_tau = -1.0
+        elif cfg.decay_tau_s == math.inf:
+            self._inv_tau = 0.0
+        else:
+            self._inv_tau = 1.0 / cfg.decay_tau_s
+
+    # ------------------------------------------------------------------ integrate
+    def integrate(self, scan: Scan) -> IntegrationReport:
+        """Fuse one scan into the map (steps 1-8 of SPEC §1)."""
+        cfg = self.config
+        rep = IntegrationReport(points=scan.num_points)
+        clock = self._clock()
+        vox, xyz, labels, probs, sensor_local = self._preprocess(scan, rep)
+        t_rel = float(scan.stamp_s - self.t0)
+        clock("preprocess")
+        self._move_window(np.floor(sensor_local / self.res).astype(np.int64), rep)
+        clock("window")
+        if len(vox) == 0:
+            self._finish(scan)
+            return rep
+        m = self.fields
+        if probs is None:
+            rasterize.rasterize_labels(m, vox, xyz, labels)
+        else:
+            rasterize.rasterize_probs(m, vox, xyz, probs)
+        clock("rasterize")
+        train_xyz, train_hist = self._buf.training(len(vox), self.C)
+        n = entropy.select_training(
+            m, ti.Vector(self.center_vox.astype(np.int32).tolist()), t_rel, self._inv_tau,
+            cfg.min_points, int(cfg.point_weight == "unit"), cfg.prior,
+            cfg.ell_min_m if cfg.adaptive else cfg.ell_fixed_vox * self.res,
+            cfg.ell_max_m, int(cfg.adaptive), int(not cfg.uses_kernel), train_xyz, train_hist)
+        rep.training_voxels = int(n)
+        clock("entropy")
+        if cfg.uses_kernel and n:
+            bki.scatter(m, train_xyz, train_hist, n, self.res, cfg.reach_m, cfg.sigma0,
+                        self.radius_vox)
+        clock("kernel")
+        fusion.fuse(m, t_rel, self._inv_tau)
+        clock("fusion")
+        rasterize.clear_scan_layer(m)
+        rasterize.clear_scan_top(m)
+        clock("clear")
+        self._finish(scan)
+        return rep
+
+    def _finish(self, scan: Scan) -> None:
+        self.scans += 1
+        self.last_stamp_s = float(scan.stamp_s)
+
+    def _clock(self):
+        if not self.profile:
+            return lambda stage: None
+        last = [time.perf_counter()]
+
+        def tick(stage: str) -> None:
+            ti.sync()
+            now = time.perf_counter()
+            self.stage_seconds[stage] += now - last[0]
+            last[0] = now
+        return tick
+
+    def _preprocess(self, scan: Scan, rep: IntegrationReport):
+        """Step 1 plus every range check: returns int32 voxels, float32 local xyz and evidence."""
+        cfg = self.config
+        where = f"scan {scan.index}" + (f" ({scan.name})" if scan.name else "")
+        pts = scan.points_sensor
+        keep = np.all(np.isfinite(pts), axis=1)
+        rep.dropped_nonfinite = int(pts.shape[0] - np.count_nonzero(keep))
+        rng = np.linalg.norm(pts, axis=1)
+        in_range = (keep & (rng >= cfg.min_range_m) & (rng <= cfg.max_range_m)
+                    & (pts[:, 2] >= cfg.min_z_m) & (pts[:, 2] <= cfg.max_z_m))
+        rep.dropped_range = int(np.count_nonzero(keep) - np.count_nonzero(in_range))
+        labels = probs = None
+        if scan.labels is not None:
+            labels = scan.labels[in_range]
+            if labels.size and (labels.min() < 0 or labels.max() >= self.C):
+                raise ValueError(f"{where}: train ids must lie in [0, {self.C}), got "
+                                 f"[{labels.min()}, {labels.max()}]")
+        else:
+            if scan.probs.shape[1] != self.C:
+                raise ValueError(f"{where}: {scan.probs.shape[1]} probability columns, "
+                                 f"the map has {self.C} classes")
+            probs = scan.probs[in_range]
+            if not np.all(np.isfinite(probs)) or (probs.size and probs.min() < 0):
+                raise ValueError(f"{where}: probabilities must be finite and >= 0")
+        T = scan.T_world_sensor
+        if self.origin_vox is None:
+            # the origin is block-aligned at the first sensor position, so local coordinates stay
+            # small (float32 keeps mm precision within ~10 km of it)
+            self.origin_vox = (np.floor(T[:3, 3] / self.res).astype(np.int64) // TOP) * TOP
+            self.t0 = float(scan.stamp_s)
+        origin_m = self.origin_vox * self.res
+        sensor_local = T[:3, 3] - origin_m
+        sensor_vox = np.floor(sensor_local / self.res).astype(np.int64)
+        if np.any(np.abs(sensor_vox) + self.half_vox > KEY_LIMIT):
+            raise ValueError(f"{where}: the sensor is {np.abs(sensor_local).max() / 1000:.0f} km from "
+                             f"the map origin; tisem maps within {KEY_LIMIT * self.res / 1000:.0f} km")
+        local = pts[in_range].astype(np.float64) @ T[:3, :3].T + (T[:3, 3] - origin_m)
+        vox = np.floor(local / self.res).astype(np.int64)
+        inside = np.all(np.abs(vox - sensor_vox) <= self.half_vox - self.radius_vox - 1, axis=1)
+        rep.dropped_window = int(len(vox) - np.count_nonzero(inside))
+        if rep.dropped_window:
+            vox, local = vox[inside], local[inside]
+            labels = labels[inside] if labels is not None else None
+            probs = probs[inside] if probs is not None else None
+        rep.used = int(len(vox))
+        return (np.ascontiguousarray(vox, dtype=np.int32), np.ascontiguousarray(local, np.float32),
+                labels if labels is None else np.ascontiguousarray(labels),
+                probs if probs is None else np.ascontiguousarray(probs), sensor_local)
+
+    # ------------------------------------------------------------------ window and store
+    def _move_window(self, new_center: np.ndarray, rep: IntegrationReport | None = None) -> None:
+        """Evict blocks that fall outside the window around `new_center`, reload stored ones."""
+        m = self.fields
+        new_blk = np.floor_divide(new_center, LEAF)
+        if self.center_vox is not None:
+            old_blk = np.floor_divide(self.center_vox, LEAF)
+            if np.any(np.abs(new_blk - old_blk) > 0):
+                evicted = self._evict(old_blk, new_blk)
+                if rep is not None:
+                    rep.evicted_voxels = evicted
+        self.center_vox = new_center
+        back = self.store.take_inside(new_blk, self.half_blk)
+        if back is not None:
+            keys, counts, t_last, ell = back
+            kquery.import_voxels(m, np.ascontiguousarray(keys, np.int32), counts, t_last, ell)
+            if rep is not None:
+                rep.reloaded_voxels = len(keys)
+
+    def _evict(self, old_blk: np.ndarray, new_blk: np.ndarray) -> int:
+        m = self.fields
+        nblocks = kquery.count_blocks(m)
+        blocks = np.zeros((max(nblocks, 1), 3), np.int32)
+        vec = lambda a: ti.Vector([int(x) for x in a])
+        n = window.find_far_blocks(m, vec(old_blk), vec(new_blk), vec(self.half_blk), blocks)
+        if n == 0:
+            return 0
+        cap = n * LEAF ** 3
+        keys = np.zeros((cap, 3), np.int32)
+        counts = np.zeros((cap, self.C), np.float32)
+        t_last = np.zeros(cap, np.float32)
+        ell = np.zeros(cap, np.float32)
+        nv = window.export_blocks(m, vec(self.center_vox), blocks, n, keys, counts, t_last, ell)
+        self.store.put(keys[:nv], counts[:nv], t_last[:nv], ell[:nv])
+        window.free_blocks(m, blocks, n)
+        window.free_far_top_cells(m, vec(np.floor_divide(old_blk, TOP // LEAF)), vec(new_blk),
+                                  vec(self.half_blk))
+        return int(nv)
+
+    # ------------------------------------------------------------------ query and export
+    def query(self, points_world: np.ndarray, with_probs: bool = True):
+        """Labels (N,) int32 train ids and probabilities (N, C) float32 of world points.
+
+        A point in no voxel gets label 0 and all-zero probabilities.
+        """
+        pts = np.asarray(points_world, dtype=np.float64)
+        if pts.ndim != 2 or pts.shape[1] != 3:
+            raise ValueError(f"query points must be (N, 3), got {pts.shape}")
+        n = len(pts)
+        labels = np.zeros(n, np.int32)
+        probs = np.zeros((n, self.C), np.float32) if with_probs else None
+        if self.origin_vox is None or n == 0:
+            return labels, probs
+        finite = np.all(np.isfinite(pts), axis=1)
+        vox = np.floor(pts / self.res).astype(np.int64) - self.origin_vox
+        vox[~finite] = 0
+        live = finite & np.all(np.abs(vox - self.center_vox) <= self.half_vox, axis=1)
+        vox32 = np.ascontiguousarray(np.where(live[:, None], vox, 0), np.int32)
+        out_prob = probs if with_probs else np.zeros((0, self.C), np.float32)
+        kquery.query(self.fields, vox32, live.astype(np.int32), labels, out_prob, int(with_probs))
+        rest = finite & ~live & np.all(np.abs(vox) <= KEY_LIMIT, axis=1)
+        if len(self.store) and rest.any():
+            counts, found = self.store.lookup(vox[rest])
+            snap = MapSnapshot(np.zeros((len(counts), 3), np.int64), counts,
+                               np.zeros(len(counts)), np.zeros(len(counts), np.float32), self.res)
+            labels[rest] = snap.labels()
+            if with_probs:
+                probs[rest] = snap.probabilities()
+        return labels, probs
+
+    def _live_arrays(self):
+        m = self.fields
+        n = kquery.count_voxels(m)
+        keys = np.zeros((n, 3), np.int32)
+        counts = np.zeros((n, self.C), np.float32)
+        t_last = np.zeros(n, np.float32)
+        ell = np.zeros(n, np.float32)
+        if n:
+            center = ti.Vector([int(x) for x in self.center_vox])
+            got = kquery.export_voxels(m, center, keys, counts, t_last, ell)
+            assert got == n, f"export found {got} voxels, count found {n}"
+        return keys, counts, t_last, ell
+
+    @property
+    def live_voxels(self) -> int:
+        return int(kquery.count_voxels(self.fields))
+
+    @property
+    def live_blocks(self) -> int:
+        return int(kquery.count_blocks(self.fields))
+
+    @property
+    def stored_voxels(self) -> int:
+        return len(self.store)
+
+    def snapshot(self) -> MapSnapshot:
+        """The whole map (live window and store) as host arrays, sorted by key."""
+        if self.origin_vox is None:
+            C = self.C
+            return MapSnapshot(np.zeros((0, 3), np.int64), np.zeros((0, C), np.float32),
+                               np.zeros(0), np.zeros(0, np.float32), self.res)
+        parts = [self._live_arrays(), self.store.arrays()]
+        keys = np.concatenate([p[0] for p in parts]).astype(np.int64) + self.origin_vox
+        counts = np.concatenate([p[1] for p in parts])
+        t_last = np.concatenate([p[2] for p in parts]).astype(np.float64) + self.t0
+        ell = np.concatenate([p[3] for p in parts])
+        order = MapSnapshot.sort_order(keys)
+        return MapSnapshot(keys[order], counts[order], t_last[order], ell[order], self.res)
+
+    def state(self) -> dict:
+        """Scalars that, with `snapshot()`, rebuild this mapper exactly (for checkpoints)."""
+        return {"origin_vox": None if self.origin_vox is None else self.origin_vox.tolist(),
+                "t0": self.t0, "center_vox": None if self.center_vox is None else self.center_vox.tolist(),
+                "scans": self.scans, "last_stamp_s": self.last_stamp_s}
+
+    def restore(self, snapshot: MapSnapshot, state: dict) -> None:
+        """Load a snapshot written by `snapshot()` (with `state()`), into an empty mapper."""
+        if self.origin_vox is not None:
+            raise RuntimeError("restore() needs a fresh mapper")
+        if abs(snapshot.resolution_m - self.res) > 1e-9:
+            raise ValueError(f"snapshot resolution {snapshot.resolution_m} m != mapper {self.res} m")
+        if snapshot.counts.shape[1] != self.C:
+            raise ValueError(f"snapshot has {snapshot.counts.shape[1]} classes, mapper {self.C}")
+        if state.get("origin_vox") is None:
+            return
+        self.origin_vox = np.asarray(state["origin_vox"], np.int64)
+        self.t0 = float(state["t0"])
+        self.scans = int(state.get("scans", 0))
+        self.last_stamp_s = state.get("last_stamp_s")
+        keys = snapshot.keys - self.origin_vox
+        # everything goes to the store first; the window then pulls in what it covers
+        self.store.put(keys, snapshot.counts.astype(np.float32),
+                       (snapshot.t_last - self.t0).astype(np.float32), snapshot.ell_m.astype(np.float32))
+        center = state.get("center_vox")
+        self._move_window(np.asarray(center if center is not None else [0, 0, 0], np.int64))
