@@ -1,0 +1,419 @@
+"""Reader (and prediction writer) for SemanticKITTI sequence folders (SPEC §2).
+
+Layout of one sequence folder::
+
+    velodyne/NNNNNN.bin      float32 x y z remission
+    labels/NNNNNN.label      uint32 ground truth: raw semantic id (lower 16 bits) + instance
+    predictions/NNNNNN.label uint32 network labels, same encoding
+    poses.txt                one 3x4 row-major pose per scan, in the LEFT CAMERA frame
+    calib.txt                with a `Tr:` line (velodyne -> camera, 3x4 row-major)
+    times.txt                optional, seconds per scan (absent -> 0.1 s spacing)
+
+The LiDAR pose of scan i is ``T_world_lidar = Tr^-1 . pose_i . Tr``.
+
+Errors: a problem with the sequence as a whole (no `velodyne/`, no `Tr:`, no or malformed
+`poses.txt`, missing input label folder, empty frame range) raises `DatasetError` from the
+constructor; a problem with one scan (truncated `.bin`, missing label file, label count !=
+point count, no pose for it, 0 points, all points non-finite) raises `ScanError` from
+``seq[k]`` and becomes a `SkippedScan` when iterating. Every message names the file.
+"""
+from __future__ import annotations
+
+import os
+import re
+from pathlib import Path
+from typing import Iterator
+
+import numpy as np
+
+from tisem.errors import DatasetError, ScanError, SkippedScan
+from tisem.labels import raw_to_train, train_to_raw
+from tisem.scan import Scan
+
+__all__ = [
+    "SemanticKittiSequence",
+    "write_predictions",
+    "read_calib_tr",
+    "read_poses",
+    "read_times",
+    "camera_poses_to_lidar",
+    "DEFAULT_SCAN_PERIOD_S",
+]
+
+DEFAULT_SCAN_PERIOD_S = 0.1  # 10 Hz, used when there is no times.txt
+INPUTS = ("predictions", "labels")
+_BIN_RE = re.compile(r"^(\d+)\.bin$")
+
+
+# --------------------------------------------------------------------------- pose helpers
+
+def _row_to_4x4(values: np.ndarray) -> np.ndarray:
+    T = np.eye(4, dtype=np.float64)
+    T[:3, :4] = np.asarray(values, dtype=np.float64).reshape(3, 4)
+    return T
+
+
+def read_calib_tr(path: str | os.PathLike) -> np.ndarray:
+    """The `Tr:` line of a SemanticKITTI calib.txt as a (4, 4) float64 velodyne -> camera matrix.
+
+    Raises DatasetError (naming the file) when the file is missing, has no `Tr:` line, or the
+    line is not 12 finite numbers forming an invertible transform.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise DatasetError(f"{path}: calibration file not found (needs a 'Tr:' line, "
+                           f"velodyne -> camera)")
+    try:
+        text = path.read_text()
+    except (OSError, UnicodeDecodeError) as exc:
+        raise DatasetError(f"{path}: cannot read calibration file: {exc}") from exc
+    for lineno, line in enumerate(text.splitlines(), start=1):
+        key, sep, rest = line.partition(":")
+        if not sep or key.strip() != "Tr":
+            continue
+        fields = rest.split()
+        try:
+            values = np.array([float(v) for v in fields], dtype=np.float64)
+        except ValueError:
+            raise DatasetError(f"{path}:{lineno}: malformed 'Tr:' line, non-numeric value "
+                               f"in {rest.strip()!r}") from None
+        if values.size != 12:
+            raise DatasetError(f"{path}:{lineno}: malformed 'Tr:' line, expected 12 numbers "
+                               f"(3x4 row-major), got {values.size}")
+        if not np.all(np.isfinite(values)):
+            raise DatasetError(f"{path}:{lineno}: 'Tr:' line has NaN/inf values")
+        T = _row_to_4x4(values)
+        if abs(np.linalg.det(T[:3, :3])) < 1e-6:
+            raise DatasetError(f"{path}:{lineno}: 'Tr:' rotation is singular, cannot invert")
+        return T
+    raise DatasetError(f"{path}: no 'Tr:' line (velodyne -> camera calibration) in the file")
+
+
+def read_poses(path: str | os.PathLike) -> np.ndarray:
+    """poses.txt (one 3x4 row-major pose per line) as (M, 4, 4) float64.
+
+    Trailing blank lines are ignored; any other line that is not 12 finite numbers raises
+    DatasetError naming the file and line. The poses are in the frame they are stored in
+    (the left camera for SemanticKITTI): see `camera_poses_to_lidar`.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise DatasetError(f"{path}: poses file not found (one 3x4 pose per scan)")
+    try:
+        lines = path.read_text().rstrip().splitlines()
+    except (OSError, UnicodeDecodeError) as exc:
+        raise DatasetError(f"{path}: cannot read poses file: {exc}") from exc
+    poses = np.empty((len(lines), 4, 4), dtype=np.float64)
+    for i, line in enumerate(lines):
+        fields = line.split()
+        try:
+            values = np.array([float(v) for v in fields], dtype=np.float64)
+        except ValueError:
+            raise DatasetError(f"{path}:{i + 1}: malformed pose line (pose {i}), non-numeric "
+                               f"value in {line.strip()[:80]!r}") from None
+        if values.size != 12:
+            raise DatasetError(f"{path}:{i + 1}: malformed pose line (pose {i}), expected 12 "
+                               f"numbers (3x4 row-major), got {values.size}")
+        if not np.all(np.isfinite(values)):
+            raise DatasetError(f"{path}:{i + 1}: pose {i} has NaN/inf values")
+        poses[i] = _row_to_4x4(values)
+    return poses
+
+
+def read_times(path: str | os.PathLike) -> np.ndarray:
+    """times.txt (one time in seconds per line) as (M,) float64; DatasetError when malformed."""
+    path = Path(path)
+    try:
+        lines = path.read_text().rstrip().splitlines()
+    except (OSError, UnicodeDecodeError) as exc:
+        raise DatasetError(f"{path}: cannot read times file: {exc}") from exc
+    times = np.empty(len(lines), dtype=np.float64)
+    for i, line in enumerate(lines):
+        fields = line.split()
+        try:
+            if len(fields) != 1:
+                raise ValueError
+            times[i] = float(fields[0])
+        except ValueError:
+            raise DatasetError(f"{path}:{i + 1}: malformed time line, expected one number, "
+                               f"got {line.strip()[:80]!r}") from None
+        if not np.isfinite(times[i]):
+            raise DatasetError(f"{path}:{i + 1}: time is NaN/inf")
+    return times
+
+
+def camera_poses_to_lidar(poses: np.ndarray, Tr: np.ndarray) -> np.ndarray:
+    """Camera-frame poses -> LiDAR poses: ``T_world_lidar = Tr^-1 . pose . Tr``.
+
+    `poses` is (4, 4) or (M, 4, 4) (3x4 rows are accepted too); `Tr` is velodyne -> camera.
+    The world frame stays the first camera frame, as in SemanticKITTI.
+    """
+    poses = np.asarray(poses, dtype=np.float64)
+    Tr = np.asarray(Tr, dtype=np.float64)
+    if Tr.shape == (3, 4):
+        Tr = _row_to_4x4(Tr)
+    if poses.shape[-2:] == (3, 4):
+        full = np.zeros(poses.shape[:-2] + (4, 4))
+        full[..., :3, :] = poses
+        full[..., 3, 3] = 1.0
+        poses = full
+    if Tr.shape != (4, 4) or poses.shape[-2:] != (4, 4):
+        raise ValueError(f"need Tr (4, 4) and poses (..., 4, 4), got {Tr.shape} and {poses.shape}")
+    Tr_inv = np.linalg.inv(Tr)
+    return Tr_inv @ poses @ Tr
+
+
+# --------------------------------------------------------------------------- writer
+
+def write_predictions(out_root: str | os.PathLike, sequence_name: str | int, scan_id: int,
+                      train_labels: np.ndarray) -> Path:
+    """Write `out_root/sequences/NN/predictions/NNNNNN.label` (uint32 raw ids) and return its path.
+
+    `train_labels` are train ids 0..19; they are stored as raw ids (`train_to_raw`) so that the
+    standard SemanticKITTI tools can score them. Folders are created; the file is written to a
+    temporary name first and renamed, so a reader never sees a half-written file.
+    """
+    raw = train_to_raw(np.asarray(train_labels).ravel()).astype("<u4", copy=False)
+    folder = Path(out_root) / "sequences" / _normalise_sequence(sequence_name) / "predictions"
+    folder.mkdir(parents=True, exist_ok=True)
+    path = folder / f"{int(scan_id):06d}.label"
+    tmp = path.with_name(path.name + ".tmp")
+    raw.tofile(tmp)
+    os.replace(tmp, path)
+    return path
+
+
+# --------------------------------------------------------------------------- reader
+
+def _normalise_sequence(sequence: str | int) -> str:
+    s = str(sequence).strip()
+    return s.zfill(2) if s.isdigit() else s
+
+
+def _list_sequences(root: Path) -> list[str]:
+    seq_root = root / "sequences"
+    if not seq_root.is_dir():
+        return []
+    return sorted(p.name for p in seq_root.iterdir() if (p / "velodyne").is_dir())
+
+
+class SemanticKittiSequence:
+    """One SemanticKITTI sequence as a list of `Scan`s.
+
+    Parameters
+    ----------
+    path: a sequence folder (with `velodyne/`) or a dataset root with `sequences/NN/`
+        (then `sequence` is required).
+    sequence: the sequence name ("08" or 8) under a dataset root; for a bare sequence folder it
+        only sets `sequence_name` (default: the folder name when it is two digits, else "00").
+    input: "predictions" (the network's labels feed the map) or "labels" (ground truth as input).
+    first, last: inclusive range of scan ids (the numbers of the `velodyne/*.bin` files).
+
+    Attributes
+    ----------
+    sequence_dir, sequence_name, scan_ids (sorted ints in range), Tr (4x4 velodyne -> camera),
+    poses_lidar ((len, 4, 4) float64 T_world_lidar aligned with `scan_ids`; NaN where
+    poses.txt has no pose for that scan, see `has_pose`), times ((len,) float64 seconds aligned
+    with `scan_ids`; NaN where times.txt is too short), has_ground_truth (a `labels/` folder),
+    input_dir (the folder the input labels come from), num_poses (poses in poses.txt).
+
+    ``seq[k]`` is the k-th scan of the selected range (not the scan id) and raises `ScanError`
+    for a bad scan; iteration yields `Scan` or `SkippedScan` and never stops on a bad scan.
+    """
+
+    def __init__(self, path: str | os.PathLike, sequence: str | int | None = None,
+                 input: str = "predictions", first: int = 0, last: int | None = None):
+        if input not in INPUTS:
+            raise ValueError(f"input must be one of {INPUTS}, got {input!r}")
+        self.input = input
+        root = Path(path)
+        if not root.exists():
+            raise DatasetError(f"{root}: folder does not exist")
+        if not root.is_dir():
+            raise DatasetError(f"{root}: not a folder (expected a SemanticKITTI sequence folder "
+                               f"with velodyne/, or a dataset root with sequences/NN/)")
+
+        if (root / "velodyne").is_dir():
+            self.sequence_dir = root
+            if sequence is not None:
+                self.sequence_name = _normalise_sequence(sequence)
+            else:
+                name = root.resolve().name
+                self.sequence_name = name if re.fullmatch(r"\d\d", name) else "00"
+        elif (root / "sequences").is_dir():
+            found = _list_sequences(root)
+            if sequence is None:
+                raise DatasetError(f"{root}: is a dataset root; choose a sequence "
+                                   f"(sequence= / --sequence), found: {', '.join(found) or 'none'}")
+            name = _normalise_sequence(sequence)
+            seq_dir = root / "sequences" / name
+            if not (seq_dir / "velodyne").is_dir():
+                raise DatasetError(f"{seq_dir}: no such sequence with a velodyne/ folder; "
+                                   f"sequences found: {', '.join(found) or 'none'}")
+            self.sequence_dir = seq_dir
+            self.sequence_name = name
+        else:
+            raise DatasetError(f"{root}: no velodyne/ folder (not a SemanticKITTI sequence) and "
+                               f"no sequences/ folder (not a dataset root)")
+
+        d = self.sequence_dir
+        self.velodyne_dir = d / "velodyne"
+        self.labels_dir = d / "labels"
+        self.predictions_dir = d / "predictions"
+        self.has_ground_truth = self.labels_dir.is_dir()
+        self.input_dir = d / input
+        if not self.input_dir.is_dir():
+            raise DatasetError(f"{self.input_dir}: input label folder missing (input={input!r}); "
+                               f"folders present: "
+                               f"{', '.join(sorted(p.name for p in d.iterdir() if p.is_dir()))}")
+
+        bin_names: dict[int, str] = {}
+        for p in sorted(self.velodyne_dir.iterdir()):
+            m = _BIN_RE.match(p.name)
+            if m:
+                bin_names.setdefault(int(m.group(1)), p.name)
+        if not bin_names:
+            raise DatasetError(f"{self.velodyne_dir}: no NNNNNN.bin scans")
+        all_ids = sorted(bin_names)
+        self.scan_ids = [i for i in all_ids if i >= first and (last is None or i <= last)]
+        if not self.scan_ids:
+            raise DatasetError(f"{self.velodyne_dir}: empty frame range first={first} last={last}; "
+                               f"scans present: {all_ids[0]}..{all_ids[-1]} ({len(all_ids)} files)")
+        self._bin_names = {i: bin_names[i] for i in self.scan_ids}
+
+        self.Tr = read_calib_tr(d / "calib.txt")
+        self.poses_file = d / "poses.txt"
+        poses_cam = read_poses(self.poses_file)
+        self.num_poses = int(poses_cam.shape[0])
+        lidar_all = camera_poses_to_lidar(poses_cam, self.Tr) if self.num_poses else \
+            np.empty((0, 4, 4))
+        ids = np.asarray(self.scan_ids, dtype=np.int64)
+        self.has_pose = ids < self.num_poses
+        self.poses_lidar = np.full((len(ids), 4, 4), np.nan)
+        self.poses_lidar[self.has_pose] = lidar_all[ids[self.has_pose]]
+
+        self.times_file = d / "times.txt"
+        if self.times_file.is_file():
+            all_times = read_times(self.times_file)
+            self.times = np.full(len(ids), np.nan)
+            ok = ids < all_times.size
+            self.times[ok] = all_times[ids[ok]]
+            self._num_times = int(all_times.size)
+        else:
+            self.times = ids.astype(np.float64) * DEFAULT_SCAN_PERIOD_S
+            self._num_times = None
+
+    # ------------------------------------------------------------------ paths
+    def scan_path(self, k: int) -> Path:
+        sid = self.scan_ids[k]
+        return self.velodyne_dir / self._bin_names[sid]
+
+    def _label_path(self, folder: Path, sid: int) -> Path:
+        stem = self._bin_names[sid][:-len(".bin")]
+        return folder / f"{stem}.label"
+
+    # ------------------------------------------------------------------ access
+    def __len__(self) -> int:
+        return len(self.scan_ids)
+
+    def __repr__(self) -> str:
+        return (f"SemanticKittiSequence({str(self.sequence_dir)!r}, sequence={self.sequence_name!r}, "
+                f"input={self.input!r}, scans {self.scan_ids[0]}..{self.scan_ids[-1]} "
+                f"({len(self)}), ground truth: {self.has_ground_truth})")
+
+    def __getitem__(self, k: int) -> Scan:
+        if not isinstance(k, (int, np.integer)):
+            raise TypeError(f"scan position must be an int, got {type(k).__name__}")
+        n = len(self.scan_ids)
+        if k < 0:
+            k += n
+        if not 0 <= k < n:
+            raise IndexError(f"scan position {k} out of range for {n} scans")
+        return self._load(int(k))
+
+    def __iter__(self) -> Iterator[Scan | SkippedScan]:
+        for k in range(len(self.scan_ids)):
+            try:
+                yield self._load(k)
+            except ScanError as exc:
+                yield SkippedScan(index=self.scan_ids[k], name=str(self.scan_path(k)),
+                                  reason=str(exc))
+
+    def _read_labels(self, path: Path, sid: int, what: str) -> np.ndarray:
+        if not path.is_file():
+            raise ScanError(f"{path}: {what} label file missing for scan {sid}", sid, str(path))
+        size = path.stat().st_size
+        if size % 4:
+            raise ScanError(f"{path}: truncated label file ({size} bytes, not a multiple of 4)",
+                            sid, str(path))
+        return np.fromfile(path, dtype="<u4")
+
+    def _load(self, k: int) -> Scan:
+        sid = self.scan_ids[k]
+        bin_path = self.scan_path(k)
+        name = str(bin_path)
+        try:
+            size = bin_path.stat().st_size
+            if size % 16:
+                raise ScanError(f"{bin_path}: truncated scan file ({size} bytes is not a multiple "
+                                f"of 16 = 4 float32 x y z remission)", sid, name)
+            if size == 0:
+                raise ScanError(f"{bin_path}: empty scan (0 points)", sid, name)
+            if not self.has_pose[k]:
+                raise ScanError(f"{self.poses_file}: no pose for scan {sid} ({bin_path.name}); "
+                                f"poses.txt has {self.num_poses} poses (scans 0.."
+                                f"{self.num_poses - 1})", sid, name)
+            if not np.isfinite(self.times[k]):
+                raise ScanError(f"{self.times_file}: no time for scan {sid}; times.txt has "
+                                f"{self._num_times} entries", sid, name)
+            data = np.fromfile(bin_path, dtype="<f4").reshape(-1, 4)
+            n = data.shape[0]
+            in_path = self._label_path(self.input_dir, sid)
+            raw_in = self._read_labels(in_path, sid, self.input)
+            if raw_in.size != n:
+                raise ScanError(f"{in_path}: label count differs from point count: {raw_in.size} "
+                                f"labels for {n} points in {bin_path.name}", sid, name)
+            raw_gt = None
+            if self.has_ground_truth:
+                gt_path = self._label_path(self.labels_dir, sid)
+                if self.input == "labels":
+                    raw_gt = raw_in
+                else:
+                    raw_gt = self._read_labels(gt_path, sid, "ground-truth")
+                    if raw_gt.size != n:
+                        raise ScanError(f"{gt_path}: label count differs from point count: "
+                                        f"{raw_gt.size} labels for {n} points in "
+                                        f"{bin_path.name}", sid, name)
+            finite = np.isfinite(data[:, :3]).all(axis=1)
+            dropped = int(n - np.count_nonzero(finite))
+            if dropped == n:
+                raise ScanError(f"{bin_path}: all {n} points are non-finite (NaN/inf)", sid, name)
+            if dropped:
+                data = data[finite]
+                raw_in = raw_in[finite]
+                if raw_gt is not None:
+                    raw_gt = raw_in if self.input == "labels" else raw_gt[finite]
+            labels, unknown = raw_to_train(raw_in)
+            gt = None
+            unknown_gt = 0
+            if raw_gt is not None:
+                if self.input == "labels":
+                    gt, unknown_gt = labels, unknown
+                else:
+                    gt, unknown_gt = raw_to_train(raw_gt)
+            return Scan(
+                points_sensor=data[:, :3],
+                T_world_sensor=self.poses_lidar[k],
+                stamp_s=float(self.times[k]),
+                labels=labels,
+                gt_labels=gt,
+                index=sid,
+                name=name,
+                meta={"unknown_raw_ids": unknown, "unknown_raw_ids_gt": unknown_gt,
+                      "dropped_nonfinite": dropped, "input": self.input,
+                      "sequence": self.sequence_name},
+            )
+        except ScanError:
+            raise
+        except (OSError, ValueError) as exc:
+            raise ScanError(f"{bin_path}: cannot read scan {sid}: {exc}", sid, name) from exc
