@@ -1,0 +1,156 @@
+"""A stream of scans through the mapper: progress, evaluation, results folder.
+
+    result = run_pipeline(SemanticKittiSequence(path), load_config(), "results/run")
+
+Writes `config.yaml`, `run.json`, `metrics.json`, per-point predictions in SemanticKITTI layout
+(`sequences/NN/predictions/NNNNNN.label`, final-map protocol) and the map files, and prints a
+table of the metrics. Bad scans arrive as `SkippedScan`s: they are reported, the rest is mapped.
+"""
+from __future__ import annotations
+
+import json
+import logging
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Iterable
+
+import numpy as np
+import taichi as ti
+from tqdm import tqdm
+
+from tisem.config import RunConfig, save_config, to_dict
+from tisem.errors import ScanError, SkippedScan
+from tisem.evaluate import Confusion, format_table
+from tisem.io.semantickitti import write_predictions
+from tisem.mapper import Mapper
+from tisem.scan import Scan
+
+log = logging.getLogger(__name__)
+
+METRIC_KEYS = ("miou", "miou_all", "accuracy", "wiou", "oa_paper", "per_class_iou", "points")
+
+
+@dataclass
+class RunResult:
+    metrics: dict
+    mapper: Mapper
+    out_dir: Path
+    skipped: list[SkippedScan] = field(default_factory=list)
+    trajectory: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+
+
+def _input_labels(scan: Scan) -> np.ndarray:
+    """The network's own per-point answer, scored like the map (probabilities -> argmax)."""
+    if scan.labels is not None:
+        return scan.labels
+    lab = np.argmax(scan.probs, axis=1).astype(np.int32)
+    lab[scan.probs.sum(axis=1) <= 0] = 0
+    return lab
+
+
+def _reiterable(scans: Iterable) -> bool:
+    return iter(scans) is not scans
+
+
+def _summary(conf: Confusion) -> dict:
+    m = conf.metrics()
+    return {k: m[k] for k in METRIC_KEYS}
+
+
+def run_pipeline(scans: Iterable[Scan | SkippedScan], cfg: RunConfig, out_dir: str | Path, *,
+                 sequence_name: str = "00", total: int | None = None, progress: bool = True,
+                 source_info: dict | None = None, mapper: Mapper | None = None,
+                 on_scan=None, write_outputs: bool = True) -> RunResult:
+    """Map every scan, then score and write everything (see module docstring).
+
+    `scans` may be any iterable; when it can be iterated twice (a sequence object), the
+    final-map pass reads the scans again instead of keeping them in memory.
+    `on_scan(mapper, scan, k)` is called after each integrated scan (checkpoints use it).
+    """
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    save_config(cfg, out_dir / "config.yaml")
+    info = dict(source_info or {}, sequence=sequence_name)
+    (out_dir / "run.json").write_text(json.dumps(info, indent=2, default=str))
+
+    mapper = mapper or Mapper(cfg.mapper)
+    online, input_conf = Confusion(mapper.C), Confusion(mapper.C)
+    seconds, skipped, trajectory, kept = [], [], [], []
+    keep_in_memory = not _reiterable(scans)
+    bar = tqdm(scans, total=total, unit="scan", desc=f"mapping ({cfg.mapper.mode})",
+               disable=not progress)
+    for k, item in enumerate(bar):
+        if isinstance(item, SkippedScan):
+            skipped.append(item)
+            log.warning("skipped scan %s (%s): %s", item.index, item.name, item.reason)
+            continue
+        try:
+            ti.sync()
+            start = time.perf_counter()
+            mapper.integrate(item)
+            ti.sync()
+            seconds.append(time.perf_counter() - start)
+        except ValueError as exc:   # a scan the mapper refuses (bad labels, pose far away, ...)
+            skipped.append(SkippedScan(item.index, item.name, str(exc)))
+            log.warning("skipped scan %s: %s", item.index, exc)
+            continue
+        trajectory.append(item.T_world_sensor[:3, 3])
+        if item.gt_labels is not None:
+            input_conf.add(item.gt_labels, _input_labels(item))
+            if cfg.online_eval:
+                labels, _ = mapper.query(item.points_world(), with_probs=False)
+                online.add(item.gt_labels, labels)
+        if keep_in_memory:
+            kept.append(item)
+        if on_scan is not None:
+            on_scan(mapper, item, k)
+        bar.set_postfix(voxels=f"{mapper.live_voxels / 1e3:.0f}k", refresh=False)
+
+    # final-map protocol: every scan looked up in the finished map
+    final = Confusion(mapper.C)
+    pred_root = out_dir
+    for item in (kept if keep_in_memory else scans):
+        if isinstance(item, SkippedScan):
+            continue
+        labels, _ = mapper.query(item.points_world(), with_probs=False)
+        write_predictions(pred_root, sequence_name, item.index, labels)
+        if item.gt_labels is not None:
+            final.add(item.gt_labels, labels)
+
+    mapped = len(seconds)
+    metrics = {
+        "mode": cfg.mapper.mode,
+        "scans": mapped,
+        "skipped": [vars(s) for s in skipped],
+        "seconds_per_scan": float(np.median(seconds)) if seconds else None,
+        "seconds_total": float(np.sum(seconds)),
+        "active_voxels": mapper.live_voxels + mapper.stored_voxels,
+        "live_voxels": mapper.live_voxels,
+        "stored_voxels": mapper.stored_voxels,
+        "evaluated": final.metrics()["points"] > 0,
+        "final": _summary(final),
+        "online": _summary(online),
+        "input": _summary(input_conf),
+        "config": to_dict(cfg),
+    }
+    (out_dir / "metrics.json").write_text(json.dumps(metrics, indent=2))
+    result = RunResult(metrics, mapper, out_dir, skipped, np.array(trajectory).reshape(-1, 3))
+    if write_outputs:
+        from tisem.outputs import write_map_files
+        write_map_files(result, cfg)
+    return result
+
+
+def results_table(metrics: dict) -> str:
+    """The end-of-run table: input vs map, both protocols."""
+    rows = []
+    if metrics["evaluated"]:
+        rows = [("network input", metrics["input"]), (f"map, final ({metrics['mode']})", metrics["final"]),
+                (f"map, online ({metrics['mode']})", metrics["online"])]
+    text = format_table(rows) if rows else "(no ground truth: nothing to score)"
+    sps = metrics["seconds_per_scan"]
+    text += (f"\n\n{metrics['scans']} scans mapped, {len(metrics['skipped'])} skipped; "
+             f"{sps * 1000 if sps else float('nan'):.1f} ms per scan (median); "
+             f"{metrics['active_voxels']:,} voxels")
+    return text
