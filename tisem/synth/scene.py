@@ -1,0 +1,538 @@
+"""The procedural street world: a route, the scene along it in 50 m tiles, and two actors.
+
+Everything is laid out in *route coordinates* — `s` metres along the road centreline and `u`
+metres to its left — and turned into world coordinates once, when a tile is built. The route
+is a chain of straight and circular segments, so points can be projected back onto it
+analytically (the ground's class is a function of `u`).
+
+A tile's content is seeded by (seed, tile id) only, so tiles are built lazily, kept in a small
+LRU cache (memory stays bounded however long the drive) and look exactly the same when the
+route comes back to them. Ground truth uses SemanticKITTI raw ids.
+"""
+from __future__ import annotations
+
+import math
+import zlib
+from collections import OrderedDict
+from dataclasses import dataclass, fields
+
+import numpy as np
+
+# SemanticKITTI raw ids of what the world contains
+CAR, MOVING_CAR, PERSON = 10, 252, 30
+ROAD, PARKING, SIDEWALK, TERRAIN = 40, 44, 48, 72
+BUILDING, FENCE, VEGETATION, TRUNK = 50, 51, 70, 71
+POLE, TRAFFIC_SIGN = 80, 81
+
+# instance ids (upper 16 bits of a .label); parked cars get 3.. per (tile, slot)
+MOVING_CAR_INSTANCE, PERSON_INSTANCE, FIRST_PARKED_INSTANCE = 1, 2, 3
+
+TILE_M = 50.0            # scene tiles along the route
+ROAD_HALF_M = 4.0        # two 3.5 m lanes plus a shoulder
+PARKING_W_M = 2.5        # a parking lane, present per tile and side
+EGO_LANE_U = -1.75       # right-hand traffic: the ego drives in the right lane
+OTHER_LANE_U = 1.75
+SPEED_MPS = 10.0         # ~1 m per scan at 10 Hz
+LOOP_TURN_RADIUS_M = 150.0
+PERSON_RESPAWN_S = 8.0
+LOOP_PASS_M = 100.0      # how far the loop drive goes past its start at the end
+MIN_LOOP_M = 1000.0
+
+
+# ----------------------------------------------------------------------------- randomness
+
+def make_rng(seed: int, *keys: int | str) -> np.random.Generator:
+    """A generator seeded by (seed, *keys): each tile, scan and purpose gets its own stream,
+    so any one of them can be regenerated without replaying the others."""
+    return np.random.default_rng(np.random.SeedSequence([_word(seed)] + [_word(k) for k in keys]))
+
+
+def _word(key: int | str) -> int:
+    if isinstance(key, str):
+        return zlib.crc32(key.encode())
+    key = int(key)
+    return 2 * key if key >= 0 else -2 * key - 1      # negative tile ids (behind the start)
+
+
+# ----------------------------------------------------------------------------- shapes
+
+@dataclass
+class _Shapes:
+    """Struct-of-arrays of one primitive kind; `label` is the raw id, `instance` 0 for stuff."""
+
+    label: np.ndarray      # (n,) uint32
+    instance: np.ndarray   # (n,) uint32
+
+    def __len__(self) -> int:
+        return len(self.label)
+
+    @classmethod
+    def concat(cls, parts):
+        return cls(**{f.name: np.concatenate([getattr(p, f.name) for p in parts])
+                      for f in fields(cls)})
+
+    def footprint(self):
+        """Bounding vertical cylinder: (centre_xy (n,2), radius (n,), z_min (n,), z_max (n,)).
+        The LiDAR culls against it by azimuth and elevation before any exact intersection."""
+        raise NotImplementedError
+
+
+@dataclass
+class Boxes(_Shapes):
+    center: np.ndarray     # (n, 3)
+    half: np.ndarray       # (n, 3) half extents along the box's own x (yaw direction), y, z
+    yaw: np.ndarray        # (n,) radians about world z
+
+    def footprint(self):
+        return (self.center[:, :2], np.hypot(self.half[:, 0], self.half[:, 1]),
+                self.center[:, 2] - self.half[:, 2], self.center[:, 2] + self.half[:, 2])
+
+
+@dataclass
+class Cylinders(_Shapes):
+    """Vertical cylinders (poles, trunks, a person's body)."""
+
+    center: np.ndarray     # (n, 2) xy of the axis
+    radius: np.ndarray     # (n,)
+    z0: np.ndarray         # (n,) bottom
+    z1: np.ndarray         # (n,) top
+
+    def footprint(self):
+        return self.center, self.radius, self.z0, self.z1
+
+
+@dataclass
+class Ellipsoids(_Shapes):
+    """Axis-aligned ellipsoids (foliage, bushes, a head)."""
+
+    center: np.ndarray     # (n, 3)
+    radii: np.ndarray      # (n, 3)
+
+    def footprint(self):
+        return (self.center[:, :2], self.radii[:, :2].max(axis=1),
+                self.center[:, 2] - self.radii[:, 2], self.center[:, 2] + self.radii[:, 2])
+
+
+SHAPE_KINDS = (Boxes, Cylinders, Ellipsoids)
+
+
+@dataclass
+class ShapeSet:
+    """All primitives of a piece of the world, one struct-of-arrays per kind."""
+
+    parts: dict  # kind -> _Shapes
+
+    @classmethod
+    def concat(cls, sets) -> "ShapeSet":
+        sets = list(sets)
+        return cls({k: k.concat([s.parts[k] for s in sets]) for k in SHAPE_KINDS})
+
+    def __len__(self) -> int:
+        return sum(len(p) for p in self.parts.values())
+
+
+class _Builder:
+    """Collects primitives in route coordinates (s, u, z); `build` places them in the world."""
+
+    def __init__(self) -> None:
+        self.rows: dict = {k: [] for k in SHAPE_KINDS}
+
+    def box(self, s, u, z, half_along, half_across, half_z, label, instance=0, yaw=0.0):
+        self.rows[Boxes].append((s, u, z, half_along, half_across, half_z, yaw, label, instance))
+
+    def cylinder(self, s, u, radius, z0, z1, label, instance=0):
+        self.rows[Cylinders].append((s, u, radius, z0, z1, label, instance))
+
+    def ellipsoid(self, s, u, z, r_xy, r_z, label, instance=0):
+        self.rows[Ellipsoids].append((s, u, z, r_xy, r_z, label, instance))
+
+    def build(self, route: "Route") -> ShapeSet:
+        parts = {}
+        for kind, rows in self.rows.items():
+            a = np.array(rows, dtype=np.float64).reshape(len(rows), -1 if rows else 9)
+            xy, heading = route.place(a[:, 0], a[:, 1]) if rows else (np.zeros((0, 2)), np.zeros(0))
+            ids = dict(label=a[:, -2].astype(np.uint32), instance=a[:, -1].astype(np.uint32))
+            if kind is Boxes:
+                parts[kind] = Boxes(center=np.column_stack([xy, a[:, 2]]), half=a[:, 3:6],
+                                    yaw=a[:, 6] + heading, **ids)
+            elif kind is Cylinders:
+                parts[kind] = Cylinders(center=xy, radius=a[:, 2], z0=a[:, 3], z1=a[:, 4], **ids)
+            else:
+                parts[kind] = Ellipsoids(center=np.column_stack([xy, a[:, 2]]),
+                                         radii=np.column_stack([a[:, 3], a[:, 3], a[:, 4]]), **ids)
+        return ShapeSet(parts)
+
+
+def add_car(b: _Builder, s: float, u: float, yaw: float, label: int, instance: int) -> None:
+    """A car: a body box and a smaller cabin box set back a little (roughly car shaped)."""
+    b.box(s, u, 0.65, 2.25, 0.9, 0.5, label, instance, yaw)                          # z 0.15-1.15
+    b.box(s - 0.25 * math.cos(yaw), u - 0.25 * math.sin(yaw), 1.43, 1.2, 0.78, 0.28,
+          label, instance, yaw)                                                       # z 1.15-1.71
+
+
+def add_tree(b: _Builder, s: float, u: float, rng: np.random.Generator) -> None:
+    """A tree: a trunk cylinder up into a foliage ellipsoid whose bottom is 1.4-3 m high
+    (low enough that the beams, which look at most 2 degrees up, see the crowns)."""
+    z, r_z = rng.uniform(3.2, 4.5), rng.uniform(1.2, 1.8)
+    b.cylinder(s, u, rng.uniform(0.15, 0.28), 0.0, z, TRUNK)
+    b.ellipsoid(s, u, z, rng.uniform(1.5, 2.6), r_z, VEGETATION)
+
+
+# ----------------------------------------------------------------------------- route
+
+@dataclass
+class Route:
+    """A chain of straight (kappa 0) and circular segments, parametrised by arc length s.
+
+    An open route (the street) extends its first and last segments beyond its ends; a
+    closed one (the loop) wraps s modulo its length.
+    """
+
+    s0: np.ndarray         # (k,) arc length at each segment start
+    length: np.ndarray     # (k,)
+    start: np.ndarray      # (k, 2) xy at each segment start
+    heading0: np.ndarray   # (k,)
+    kappa: np.ndarray      # (k,) signed curvature, > 0 turns left
+    closed: bool
+
+    @classmethod
+    def from_segments(cls, segments, closed: bool) -> "Route":
+        """segments: [(length, kappa)], starting at the origin heading along +x."""
+        s0, xy, h = [], [np.zeros(2)], [0.0]
+        s = 0.0
+        for length, kappa in segments:
+            s0.append(s)
+            end, hend = _segment_point(xy[-1], h[-1], kappa, length)
+            xy.append(end)
+            h.append(hend)
+            s += length
+        return cls(np.array(s0), np.array([l for l, _ in segments], dtype=np.float64),
+                   np.array(xy[:-1]), np.array(h[:-1]), np.array([k for _, k in segments],
+                                                                 dtype=np.float64), closed)
+
+    @property
+    def total_m(self) -> float:
+        return float(self.s0[-1] + self.length[-1])
+
+    def wrap(self, s):
+        return np.mod(s, self.total_m) if self.closed else np.asarray(s, dtype=np.float64)
+
+    def frame(self, s):
+        """Centreline xy (n, 2) and heading (n,) at arc lengths s."""
+        s = self.wrap(np.atleast_1d(np.asarray(s, dtype=np.float64)))
+        i = np.clip(np.searchsorted(self.s0, s, side="right") - 1, 0, len(self.s0) - 1)
+        return _segment_point(self.start[i], self.heading0[i], self.kappa[i], s - self.s0[i])
+
+    def place(self, s, u):
+        """World xy (n, 2) and heading (n,) of route coordinates (s, u)."""
+        xy, h = self.frame(s)
+        return xy + np.asarray(u)[:, None] * np.column_stack([-np.sin(h), np.cos(h)]), h
+
+    def project(self, xy: np.ndarray, s_hint: float, reach_m: float = 250.0):
+        """Route coordinates (s, u) of world points near arc length `s_hint`.
+
+        Each candidate segment gives its own (s, u); the one whose foot point is closest wins.
+        Headings are continuous across segment joints, so every point (closer than a turn
+        radius) lies in the span of some segment.
+        """
+        if self.closed:
+            cand = np.arange(len(self.s0))
+        else:
+            cand = np.flatnonzero((self.s0 + self.length > s_hint - reach_m)
+                                  & (self.s0 < s_hint + reach_m))
+            if cand.size == 0:
+                cand = np.array([0 if s_hint < 0 else len(self.s0) - 1])
+        best = np.full(len(xy), np.inf)
+        s_out = np.zeros(len(xy))
+        u_out = np.zeros(len(xy))
+        last = len(self.s0) - 1
+        for j in cand:
+            t, u = _segment_local(xy, self.start[j], self.heading0[j], self.kappa[j], self.length[j])
+            lo = -np.inf if (j == 0 and not self.closed) else 0.0
+            hi = np.inf if (j == last and not self.closed) else self.length[j]
+            dist = np.hypot(t - np.clip(t, lo, hi), u)
+            better = dist < best
+            best[better] = dist[better]
+            s_out[better] = self.s0[j] + t[better]
+            u_out[better] = u[better]
+        return self.wrap(s_out), u_out
+
+
+def _segment_point(start, heading0, kappa, t):
+    """Position and heading after arc length t along a segment (vectorised)."""
+    kappa = np.asarray(kappa, dtype=np.float64)
+    h = heading0 + kappa * t
+    straight = kappa == 0
+    k = np.where(straight, 1.0, kappa)
+    dx = np.where(straight, t * np.cos(heading0), (np.sin(h) - np.sin(heading0)) / k)
+    dy = np.where(straight, t * np.sin(heading0), (np.cos(heading0) - np.cos(h)) / k)
+    return np.asarray(start) + np.stack([dx, dy], axis=-1), h
+
+
+def _segment_local(xy, start, heading0, kappa, length):
+    """(t along, u left) of points relative to one segment, t unclamped."""
+    if kappa == 0:
+        rel = xy - start
+        c, s = math.cos(heading0), math.sin(heading0)
+        return rel[:, 0] * c + rel[:, 1] * s, -rel[:, 0] * s + rel[:, 1] * c
+    # the centre of the arc is on the left for kappa > 0; the foot point's normal points
+    # from the query point to the centre (times sign(kappa))
+    centre = start + np.array([-math.sin(heading0), math.cos(heading0)]) / kappa
+    w = centre - xy
+    rho = np.hypot(w[:, 0], w[:, 1])
+    n = math.copysign(1.0, kappa) * w / np.maximum(rho, 1e-9)[:, None]
+    h = np.arctan2(-n[:, 0], n[:, 1])
+    # pick the branch of the angle nearest the segment's middle
+    half = 0.5 * length
+    dh = np.mod(h - heading0 - kappa * half + np.pi, 2 * np.pi) - np.pi
+    return half + dh / kappa, math.copysign(1.0, kappa) * (1.0 / abs(kappa) - rho)
+
+
+def street_route(seed: int, length_m: float) -> Route:
+    """A straight-ish street: straights of 80-250 m joined by gentle 6-18 degree bends.
+
+    Segment k's parameters are the k-th draws of one stream, so a longer street has the
+    shorter one as its prefix (scan i does not depend on the number of scans)."""
+    rng = make_rng(seed, "street-route")
+    segments = [(150.0, 0.0)]
+    total = 150.0
+    while total < length_m + 300.0:
+        radius, angle = rng.uniform(300.0, 900.0), math.radians(rng.uniform(6.0, 18.0))
+        sign = 1.0 if rng.random() < 0.5 else -1.0
+        straight = rng.uniform(80.0, 250.0)
+        segments += [(radius * angle, sign / radius), (straight, 0.0)]
+        total += radius * angle + straight
+    return Route.from_segments(segments, closed=False)
+
+
+def loop_length_m(num_scans: int) -> float:
+    """Loop perimeter for a drive of num_scans: it ends LOOP_PASS_M past its start (a whole
+    number of tiles, so tile ids wrap cleanly), never shorter than MIN_LOOP_M."""
+    drive = num_scans * SPEED_MPS * 0.1 - LOOP_PASS_M
+    return max(MIN_LOOP_M, math.floor(drive / TILE_M) * TILE_M)
+
+
+def loop_route(length_m: float) -> Route:
+    """A stadium loop starting halfway along its bottom straight: out along a long straight,
+    a 180 degree turn, back along the other straight (300 m away, out of sensor range), a
+    second turn and home past the start."""
+    r = LOOP_TURN_RADIUS_M
+    straight = (length_m - 2 * math.pi * r) / 2
+    if straight <= 0:
+        raise ValueError(f"a loop of {length_m} m is shorter than its two turns")
+    turn = (math.pi * r, 1.0 / r)
+    return Route.from_segments([(straight / 2, 0.0), turn, (straight, 0.0), turn,
+                                (straight / 2, 0.0)], closed=True)
+
+
+def make_route(kind: str, num_scans: int, seed: int) -> Route:
+    if kind == "street":
+        return street_route(seed, num_scans * SPEED_MPS * 0.1)
+    if kind == "loop":
+        return loop_route(loop_length_m(num_scans))
+    raise ValueError(f"route must be 'street' or 'loop', got {kind!r}")
+
+
+# ----------------------------------------------------------------------------- tiles
+
+# ground classes across the road, from the centreline out, between a tile's edges
+_GROUND_BANDS = (ROAD, PARKING, TERRAIN, SIDEWALK, TERRAIN)
+
+
+@dataclass
+class Tile:
+    """One 50 m stretch: its primitives and its ground cross-section per side (0 left, 1 right)."""
+
+    tile_id: int
+    shapes: ShapeSet
+    # (2, 4) |u| where each ground band ends, per side: road, parking lane (empty when the
+    # side has none), grass verge (empty when none), sidewalk; terrain beyond
+    edges: np.ndarray
+
+
+def build_tile(route: Route, seed: int, tile_id: int) -> Tile:
+    """The content of one tile, from (seed, tile id) alone.
+
+    Across the road, per side: road | parking lane (some tiles) | grass verge (some tiles) |
+    sidewalk | fence line | front yard (terrain, bushes, hedges) | buildings, or a park of
+    trees. Street lights, signs and street trees stand near the curb (in the verge if there
+    is one). Each tile has at least one parking lane, sign and fence, so every class appears
+    within a few scans.
+    """
+    rng = make_rng(seed, "tile", tile_id)
+    s0 = tile_id * TILE_M
+    b = _Builder()
+    parking = rng.random(2) < 0.35
+    if not parking.any():
+        parking[rng.integers(2)] = True
+    fence_side, sign_side = rng.integers(2), rng.integers(2)
+    curb = np.where(parking, ROAD_HALF_M + PARKING_W_M, ROAD_HALF_M)
+    verge = np.where(rng.random(2) < 0.5, rng.uniform(1.5, 3.0, 2), 0.0)
+    sidewalk_out = curb + verge + rng.uniform(2.5, 4.0, 2)
+    edges = np.column_stack([np.full(2, ROAD_HALF_M), curb, curb + verge, sidewalk_out])
+    for side, sigma in enumerate((1.0, -1.0)):
+        setback = rng.uniform(3.0, 10.0)           # sidewalk -> building line
+        line = sidewalk_out[side] + setback
+        park = rng.random() < 0.4
+        if parking[side]:
+            _parked_cars(b, rng, tile_id, side, s0, sigma * (ROAD_HALF_M + PARKING_W_M / 2))
+        # street furniture stands 0.4 m in from the curb; trees in the verge or in pits
+        furniture_u = sigma * (curb[side] + 0.4)
+        tree_u = sigma * (curb[side] + max(verge[side] / 2, 0.9))
+        # a street light per side, staggered so the two sides alternate
+        light_s = s0 + (5.0 if side == 0 else 30.0) + rng.uniform(-2, 2)
+        b.cylinder(light_s, furniture_u, 0.1, 0.0, rng.uniform(6.0, 8.0), POLE)
+        sign_s = s0 + rng.uniform(15.0, 22.0)
+        if side == sign_side or rng.random() < 0.3:  # a sign: a thin pole, a plate facing traffic
+            b.cylinder(sign_s, furniture_u, 0.04, 0.0, 2.5, POLE)
+            b.box(sign_s, furniture_u, 2.15, 0.02, 0.32, 0.32, TRAFFIC_SIGN)
+        s = s0 + rng.uniform(2.0, 8.0)
+        while s < s0 + TILE_M - 1.0:
+            if rng.random() < 0.7 and min(abs(s - light_s), abs(s - sign_s)) > 2.0:
+                add_tree(b, s, tree_u, rng)
+            s += rng.uniform(8.0, 13.0)
+        _fence(b, rng, s0, sigma * (sidewalk_out[side] + 0.2), force=side == fence_side)
+        if setback > 3.5 and rng.random() < 0.6:       # a hedge along the front of the yard
+            length, h = rng.uniform(8.0, 30.0), rng.uniform(0.9, 1.6)
+            b.box(s0 + rng.uniform(length / 2, TILE_M - length / 2),
+                  sigma * (sidewalk_out[side] + 1.2), h / 2, length / 2, 0.45, h / 2, VEGETATION)
+        for _ in range(rng.integers(1, 5)):            # bushes in the yard
+            b.ellipsoid(s0 + rng.uniform(0, TILE_M),
+                        sigma * (sidewalk_out[side] + rng.uniform(1.0, max(setback - 1.0, 1.5))),
+                        rng.uniform(0.3, 0.7), rng.uniform(0.6, 1.4), rng.uniform(0.5, 0.9),
+                        VEGETATION)
+        if park:
+            for _ in range(rng.integers(4, 9)):
+                add_tree(b, s0 + rng.uniform(0, TILE_M), sigma * (line + rng.uniform(0, 25)), rng)
+        else:
+            _buildings(b, rng, s0, sigma, line)
+    return Tile(tile_id, b.build(route), edges)
+
+
+def _parked_cars(b, rng, tile_id, side, s0, u):
+    s, slot = s0 + rng.uniform(0.0, 3.0), 0
+    while s + 4.8 < s0 + TILE_M:
+        length = rng.uniform(4.0, 4.8)
+        if rng.random() < 0.55:
+            instance = FIRST_PARKED_INSTANCE + (tile_id * 32 + side * 16 + slot) % 65000
+            add_car(b, s + length / 2, u + rng.uniform(-0.15, 0.15), rng.uniform(-0.05, 0.05),
+                    CAR, instance)
+        s += length + rng.uniform(0.8, 3.0)
+        slot += 1
+
+
+def _fence(b, rng, s0, u, force):
+    """Fence runs along the back of the sidewalk, in 10 m chunks."""
+    chunks = rng.random(5) < 0.3
+    if force and not chunks.any():
+        chunks[rng.integers(5)] = True
+    for k in np.flatnonzero(chunks):
+        h = rng.uniform(1.0, 1.8)
+        b.box(s0 + 10.0 * k + 5.0, u, h / 2, 4.9, 0.03, h / 2, FENCE)
+
+
+def _buildings(b, rng, s0, sigma, line):
+    """Buildings shoulder to shoulder behind the front yards, with gaps (and trees in some)."""
+    s = s0 + rng.uniform(0.0, 3.0)
+    while s < s0 + TILE_M - 4.0:
+        length = min(rng.uniform(10.0, 25.0), s0 + TILE_M - s)
+        depth, height = rng.uniform(8.0, 16.0), rng.uniform(5.0, 18.0)
+        b.box(s + length / 2, sigma * (line + depth / 2), height / 2, length / 2, depth / 2,
+              height / 2, BUILDING)
+        gap = rng.uniform(2.0, 8.0)
+        if gap > 5.0:
+            add_tree(b, s + length + gap / 2, sigma * (line + 3.0), rng)
+        s += length + gap
+
+
+# ----------------------------------------------------------------------------- world
+
+class World:
+    """The route, its lazily built tiles (LRU cache) and the two actors, at a given time."""
+
+    def __init__(self, seed: int, route: Route, cache_tiles: int = 12) -> None:
+        self.seed = seed
+        self.route = route
+        self.cache_tiles = cache_tiles
+        self._tiles: OrderedDict[int, Tile] = OrderedDict()
+        self._window: tuple = ((), None)     # last (tile ids, concatenated shapes)
+
+    # --- tiles
+    def tile_id(self, s: float) -> int:
+        tid = math.floor(float(self.route.wrap(s)) / TILE_M)
+        return tid % self.num_tiles if self.route.closed else tid
+
+    @property
+    def num_tiles(self) -> int:
+        return round(self.route.total_m / TILE_M)
+
+    def tile(self, tile_id: int) -> Tile:
+        tile = self._tiles.pop(tile_id, None)
+        if tile is None:
+            tile = build_tile(self.route, self.seed, tile_id)
+        self._tiles[tile_id] = tile
+        while len(self._tiles) > self.cache_tiles:
+            self._tiles.popitem(last=False)
+        return tile
+
+    def static_shapes(self, s: float, reach_m: float) -> ShapeSet:
+        """Primitives of every tile within reach_m (along the route) of arc length s."""
+        first, last = math.floor((s - reach_m) / TILE_M), math.floor((s + reach_m) / TILE_M)
+        ids = range(first, last + 1)
+        if self.route.closed:
+            ids = dict.fromkeys(i % self.num_tiles for i in ids)
+        ids = tuple(ids)
+        if self._window[0] != ids:        # consecutive scans mostly share their tiles
+            self._window = (ids, ShapeSet.concat(self.tile(i).shapes for i in ids))
+        return self._window[1]
+
+    def ground_label(self, xy: np.ndarray, s_hint: float) -> np.ndarray:
+        """Raw ground class of world points on the ground plane, from their lateral offset."""
+        s, u = self.route.project(xy, s_hint)
+        tid = np.floor(s / TILE_M).astype(np.int64)
+        if self.route.closed:
+            tid %= self.num_tiles
+        edges = np.empty((len(xy), 4))
+        side = (u < 0).astype(np.int64)
+        for t in np.unique(tid):
+            m = tid == t
+            edges[m] = self.tile(int(t)).edges[side[m]]
+        band = (np.abs(u)[:, None] >= edges).sum(axis=1)     # 0 road ... 4 beyond the sidewalk
+        return np.array(_GROUND_BANDS, dtype=np.uint32)[band]
+
+    # --- motion
+    @staticmethod
+    def ego_s(t: float) -> float:
+        return SPEED_MPS * t
+
+    def vehicle_pose(self, t) -> np.ndarray:
+        """(n, 4, 4) poses of the ego vehicle (on the ground, x forward) at times t."""
+        t = np.atleast_1d(np.asarray(t, dtype=np.float64))
+        xy, h = self.route.place(SPEED_MPS * t, np.full(len(t), EGO_LANE_U))
+        T = np.zeros((len(t), 4, 4))
+        T[:, 0, 0], T[:, 0, 1], T[:, 1, 0], T[:, 1, 1] = np.cos(h), -np.sin(h), np.sin(h), np.cos(h)
+        T[:, 2, 2] = T[:, 3, 3] = 1.0
+        T[:, :2, 3] = xy
+        return T
+
+    def actors(self, t: float) -> ShapeSet:
+        """The moving car and the walking person at time t.
+
+        The car keeps pace in the other lane, 10-26 m ahead, surging and dropping back (so it
+        moves in the world and relative to the ego). The person walks towards the ego along a
+        sidewalk (one without parked cars in front of it, where there is one); every 8 s they
+        start again 25 m ahead, so the drive meets them however long it is (one person at any
+        time).
+        """
+        b = _Builder()
+        s_car = self.ego_s(t) + 18.0 + 8.0 * math.sin(2 * math.pi * t / 16.0)
+        add_car(b, s_car, OTHER_LANE_U, 0.0, MOVING_CAR, MOVING_CAR_INSTANCE)
+        t0 = math.floor(t / PERSON_RESPAWN_S) * PERSON_RESPAWN_S
+        s_spawn = self.ego_s(t0) + 25.0
+        edges = self.tile(self.tile_id(s_spawn)).edges
+        side = 0 if edges[1, 1] > ROAD_HALF_M and edges[0, 1] == ROAD_HALF_M else 1
+        u_person = (1.0, -1.0)[side] * (edges[side, 2] + 1.3)    # 1.3 m into the sidewalk
+        s_person = s_spawn - 1.3 * (t - t0)
+        b.cylinder(s_person, u_person, 0.2, 0.0, 1.48, PERSON, PERSON_INSTANCE)
+        b.ellipsoid(s_person, u_person, 1.62, 0.11, 0.13, PERSON, PERSON_INSTANCE)
+        return b.build(self.route)
