@@ -1,44 +1,72 @@
-"""Steps 6-7: the compact-support sparse kernel and the Bayesian kernel update.
+"""Steps 6-8: the compact-support sparse kernel, the Bayesian kernel update and its fusion.
 
-Every training point adds k(v, p) * h(p) to each live map voxel v whose centre lies within
-that voxel's own kernel length L(v); contributions are summed with atomic adds into the scan
-layer's delta, which fusion then folds into the map.
+Gather form: each live map voxel v near the scan sums k(v, p) * h(p) over the training points
+within its own kernel length L(v), then folds the sum into its counters. The work per voxel
+grows with L(v)^3, so low-entropy voxels (short kernels) are cheap: the adaptive kernel pays
+only where the map is uncertain. No atomics: each voxel is written by one thread.
 """
 import math
 
 import taichi as ti
+
+from kernels.fusion import fuse_voxel
+from kernels.layout import LEAF
+
+# Evidence below this is float noise at the kernel's edge (g -> 0 as d -> L), not an update:
+# counting it would reset t_last and, with alpha = 0, wipe the voxel's history.
+MIN_UPDATE = 1e-6
 
 
 @ti.func
 def sparse_kernel(r):
     """Melkumyan-Ramos g(r) for r = d / L in [0, 1): 1 at r = 0, 0 with zero slope at r = 1."""
     two_pi_r = 2.0 * math.pi * r
-    return (2.0 + ti.cos(two_pi_r)) / 3.0 * (1.0 - r) + ti.sin(two_pi_r) / (2.0 * math.pi)
+    g = (2.0 + ti.cos(two_pi_r)) / 3.0 * (1.0 - r) + ti.sin(two_pi_r) / (2.0 * math.pi)
+    return ti.max(g, 0.0)    # the two terms cancel near r = 1: never let rounding go negative
 
 
 @ti.kernel
-def scatter(m: ti.template(),
-            xyz: ti.types.ndarray(dtype=ti.f32, ndim=2),     # (K, 3) training points, local m
-            hist: ti.types.ndarray(dtype=ti.f32, ndim=2),    # (K, C) their class evidence
-            n: ti.i32, resolution: ti.f32, reach: ti.f32, sigma0: ti.f32, radius_vox: ti.i32):
-    inv_res = 1.0 / resolution
-    reach2 = reach * reach
-    for p in range(n):
-        pos = ti.Vector([xyz[p, 0], xyz[p, 1], xyz[p, 2]])
-        h = ti.Vector([0.0] * m.C)
-        for c in ti.static(range(m.C)):
-            h[c] = hist[p, c]
-        base = ti.floor(pos * inv_res, ti.i32)
-        for dx, dy, dz in ti.ndrange((-radius_vox, radius_vox + 1), (-radius_vox, radius_vox + 1),
-                                     (-radius_vox, radius_vox + 1)):
-            w = base + ti.Vector([dx, dy, dz])
-            d = (w.cast(ti.f32) + 0.5) * resolution - pos
-            d2 = d.dot(d)
-            if d2 < reach2:
-                u = m.wrap(w)
-                ell = m.ell[u]               # 0 where no map voxel lives
-                if ell > 0 and d2 < ell * ell:
-                    k = sigma0 * sparse_kernel(ti.sqrt(d2) / ell)
-                    for c in ti.static(range(1, m.C)):
-                        if h[c] > 0:
-                            m.s_delta[u, c] += k * h[c]
+def mark_receivers(m: ti.template(), stamp: ti.i32, reach_blk: ti.i32):
+    """Stamp every live map block within `reach_blk` blocks of a block holding training points."""
+    for B in ti.grouped(m.s_bcount):
+        if m.s_bcount[B] > 0:
+            for dx, dy, dz in ti.ndrange((-reach_blk, reach_blk + 1), (-reach_blk, reach_blk + 1),
+                                         (-reach_blk, reach_blk + 1)):
+                nb = m.wrap_blk(B + ti.Vector([dx, dy, dz]))
+                if ti.is_active(m.blk, nb):
+                    m.blk_stamp[nb] = stamp
+
+
+@ti.kernel
+def gather_update(m: ti.template(), center: ti.types.vector(3, ti.i32), stamp: ti.i32,
+                  t: ti.f32, inv_tau: ti.f32, resolution: ti.f32, sigma0: ti.f32,
+                  xyz: ti.types.ndarray(dtype=ti.f32, ndim=2),     # (K, 3) training points
+                  hist: ti.types.ndarray(dtype=ti.f32, ndim=2)):   # (K, C) block-sorted
+    inv_blk = 1.0 / (LEAF * resolution)
+    for B in ti.grouped(m.blk_stamp):
+        if m.blk_stamp[B] == stamp:
+            for q in range(LEAF * LEAF * LEAF):
+                u = B * LEAF + ti.Vector([q // (LEAF * LEAF), (q // LEAF) % LEAF, q % LEAF])
+                ell = m.ell[u]
+                if ell > 0:
+                    w = m.unwrap(u, center)
+                    centre = (w.cast(ti.f32) + 0.5) * resolution
+                    lo = ti.floor((centre - ell) * inv_blk, ti.i32)
+                    hi = ti.floor((centre + ell) * inv_blk, ti.i32)
+                    ell2 = ell * ell
+                    acc = ti.Vector([0.0] * m.C)
+                    for bx, by, bz in ti.ndrange((lo[0], hi[0] + 1), (lo[1], hi[1] + 1),
+                                                 (lo[2], hi[2] + 1)):
+                        sb = m.wrap_blk(ti.Vector([bx, by, bz]))
+                        n = m.s_bcount[sb]          # 0 (and no activation) where no training point
+                        if n > 0:
+                            start = m.s_bstart[sb]
+                            for p in range(start, start + n):
+                                d = ti.Vector([xyz[p, 0], xyz[p, 1], xyz[p, 2]]) - centre
+                                d2 = d.dot(d)
+                                if d2 < ell2:
+                                    k = sigma0 * sparse_kernel(ti.sqrt(d2) / ell)
+                                    for c in ti.static(range(1, m.C)):
+                                        acc[c] += k * hist[p, c]
+                    if acc.sum() > MIN_UPDATE:
+                        fuse_voxel(m, u, acc, t, inv_tau)

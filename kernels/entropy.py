@@ -1,12 +1,5 @@
-"""Steps 3-5: redundant-voxel filtering, semantic entropy and the adaptive kernel length.
-
-One pass over the scan layer: every voxel that survives the filter becomes a training point
-(its centroid and class histogram, compacted into arrays) and gets its kernel length from the
-entropy of p(c|v) = normalize(prior + decayed map counter + h(v)).
-"""
+"""Steps 4-5: semantic entropy and the adaptive kernel length."""
 import taichi as ti
-
-from kernels.fusion import decay_factor
 
 
 @ti.func
@@ -27,44 +20,7 @@ def normalized_entropy(p, num_real: ti.template()):
     return h / ti.log(ti.cast(num_real, ti.f32))
 
 
-@ti.kernel
-def select_training(m: ti.template(),
-                    center: ti.types.vector(3, ti.i32),     # window centre (world voxel)
-                    t: ti.f32, inv_tau: ti.f32,             # scan time; 1/tau (<0: alpha = 0)
-                    min_points: ti.i32, unit_weight: ti.i32, prior: ti.f32,
-                    ell_min: ti.f32, ell_max: ti.f32, adaptive: ti.i32, counting: ti.i32,
-                    out_xyz: ti.types.ndarray(dtype=ti.f32, ndim=2),    # (K, 3) centroid, local m
-                    out_hist: ti.types.ndarray(dtype=ti.f32, ndim=2)    # (K, C) class evidence
-                    ) -> ti.i32:
-    m.counter[None] = 0
-    for I in ti.grouped(m.s_npts):
-        n = m.s_npts[I]
-        total = 0.0
-        for c in ti.static(range(m.C)):
-            total += m.s_hist[I, c]
-        # filter: too few points, or no class evidence at all (only unlabeled points)
-        if n >= min_points and total > 0:
-            scale = 1.0
-            if unit_weight:
-                scale = 1.0 / total
-            idx = ti.atomic_add(m.counter[None], 1)
-            if idx < out_xyz.shape[0]:
-                for a in ti.static(range(3)):
-                    out_xyz[idx, a] = m.s_sum[I, a] / n
-                for c in ti.static(range(m.C)):
-                    out_hist[idx, c] = m.s_hist[I, c] * scale
-            if counting:
-                # csm: the voxel's own histogram is the whole update
-                for c in ti.static(range(m.C)):
-                    m.s_delta[I, c] = m.s_hist[I, c] * scale
-                m.ell[I] = ell_min            # any positive value marks the voxel live
-            else:
-                length = ell_min
-                if adaptive:
-                    alpha = decay_factor(t - m.t_last[I], inv_tau)
-                    p = ti.Vector([0.0] * m.C)
-                    for c in ti.static(range(m.C)):
-                        p[c] = prior + alpha * m.counts[I, c] + m.s_hist[I, c] * scale
-                    length = ell_min + (ell_max - ell_min) * normalized_entropy(p, m.C - 1)
-                m.ell[I] = length             # writing activates the map voxel
-    return m.counter[None]
+@ti.func
+def adaptive_length(p, ell_min, ell_max, num_real: ti.template()):
+    """L(v) = L_min + (L_max - L_min) * normalised entropy of p(c|v)."""
+    return ell_min + (ell_max - ell_min) * normalized_entropy(p, num_real)

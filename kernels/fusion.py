@@ -16,15 +16,10 @@ def decay_factor(dt, inv_tau):
     return alpha
 
 
-@ti.kernel
-def fuse(m: ti.template(), t: ti.f32, inv_tau: ti.f32):
-    for I in ti.grouped(m.s_npts):
-        if m.ell[I] > 0:                      # a live map voxel (reading never activates)
-            total = 0.0
-            for c in ti.static(range(m.C)):
-                total += m.s_delta[I, c]
-            if total > 0:
-                alpha = decay_factor(t - m.t_last[I], inv_tau)
-                for c in ti.static(range(m.C)):
-                    m.counts[I, c] = alpha * m.counts[I, c] + m.s_delta[I, c]
-                m.t_last[I] = t
+@ti.func
+def fuse_voxel(m: ti.template(), u, delta, t, inv_tau):
+    """Fold one voxel's new evidence into its counters (only the voxel's own thread calls this)."""
+    alpha = decay_factor(t - m.t_last[u], inv_tau)
+    for c in ti.static(range(m.C)):
+        m.counts[u, c] = alpha * m.counts[u, c] + delta[c]
+    m.t_last[u] = t

@@ -54,36 +54,57 @@ class MapFields:
         self.N_blk = tuple(n // LEAF for n in self.N)    # extent in leaf blocks
         self.N_top = tuple(n // TOP for n in self.N)     # extent in top cells
         top_shape = tuple(n // TOP for n in self.N)
+        # one SNode tree per map, built and finalised here, so several maps can live in one
+        # Taichi runtime and each can be freed (`destroy`) without touching the others
+        fb = ti.FieldsBuilder()
 
         # map layer: ~88 B per active voxel (20 x f32 counters, t_last, ell) + bitmask
         self.counts = ti.field(ti.f32)
         self.t_last = ti.field(ti.f32)
         self.ell = ti.field(ti.f32)     # > 0 for every active voxel: doubles as the activity test
-        self.top = ti.root.pointer(ti.ijk, top_shape)
+        self.top = fb.pointer(ti.ijk, top_shape)
         self.blk = self.top.pointer(ti.ijk, MID)
         self.vox = self.blk.bitmasked(ti.ijk, LEAF)
         self.vox.dense(ti.l, self.C).place(self.counts)
         self.vox.place(self.t_last, self.ell)
+        self.blk_stamp = ti.field(ti.i32)   # per leaf block: the last scan whose kernel reaches it
+        self.blk.place(self.blk_stamp)
 
-        # scan layer
+        # scan layer: per voxel the scan's histogram, coordinate sum and point count; per leaf
+        # block where its training points start in the (block-sorted) training arrays, and how many
         self.s_hist = ti.field(ti.f32)
-        self.s_delta = ti.field(ti.f32)
         self.s_sum = ti.field(ti.f32)
         self.s_npts = ti.field(ti.i32)
-        self.s_top = ti.root.pointer(ti.ijk, top_shape)
+        self.s_bcount = ti.field(ti.i32)
+        self.s_bstart = ti.field(ti.i32)
+        self.s_top = fb.pointer(ti.ijk, top_shape)
         self.s_blk = self.s_top.pointer(ti.ijk, MID)
+        self.s_blk.place(self.s_bcount, self.s_bstart)
         self.s_vox = self.s_blk.bitmasked(ti.ijk, LEAF)
         self.s_vox.dense(ti.l, self.C).place(self.s_hist)
-        self.s_vox.dense(ti.l, self.C).place(self.s_delta)
         self.s_vox.dense(ti.l, 3).place(self.s_sum)
         self.s_vox.place(self.s_npts)
 
-        self.counter = ti.field(ti.i32, shape=())
+        self.counter = ti.field(ti.i32)
+        fb.place(self.counter)
+        self._tree = fb.finalize()
+
+    def destroy(self) -> None:
+        """Free the map's memory pool back to Taichi (the fields are unusable afterwards)."""
+        if self._tree is not None:
+            self._tree.destroy()
+            self._tree = None
 
     @ti.func
     def wrap(self, w):
         """World voxel index -> storage index."""
         return ti.Vector([w[0] & self.mask[0], w[1] & self.mask[1], w[2] & self.mask[2]])
+
+    @ti.func
+    def wrap_blk(self, b):
+        """World leaf-block index -> storage leaf-block index."""
+        return ti.Vector([b[0] & (self.N_blk[0] - 1), b[1] & (self.N_blk[1] - 1),
+                          b[2] & (self.N_blk[2] - 1)])
 
     @ti.func
     def unwrap(self, u, center):

@@ -8,6 +8,35 @@ import taichi as ti
 log = logging.getLogger(__name__)
 _ARCHS = {"cpu": ti.cpu, "cuda": ti.cuda}
 
+# Every ti.init starts a new "generation": fields of an older one must never be touched again
+# (taichi aborts the process), so each map remembers the generation it was built in.
+_generation = 0
+_map_owner: int | None = None   # generation that already holds a map
+
+
+def generation() -> int:
+    return _generation
+
+
+def claim_map_slot() -> int:
+    """Reserve this runtime for one map and return its generation.
+
+    taichi 1.7.4's CPU allocator corrupts memory once its sparse node pools need a second
+    1 GiB chunk (shared/notes/taichi-sparse.md §4.1), and each map's sparse trees reserve
+    several hundred MB of pool on creation that are never given back, even when the tree is
+    destroyed. Two maps in one runtime therefore risk a heap corruption; one map per
+    `init_taichi()` keeps every map in the first chunk. Refuse clearly instead of crashing.
+    """
+    global _map_owner
+    ensure_initialized()
+    if _map_owner == _generation:
+        raise RuntimeError(
+            "a tisem map already lives in this Taichi runtime; taichi 1.7.4 cannot hold two "
+            "sparse maps safely. Call tisem.init_taichi() to start a fresh runtime (the old map "
+            "becomes unusable), or run the second map in another process.")
+    _map_owner = _generation
+    return _generation
+
 
 def is_initialized() -> bool:
     return ti.lang.impl.get_runtime().prog is not None
@@ -28,7 +57,9 @@ def init_taichi(arch: str = "cpu", threads: int | None = 2, debug: bool = False,
         kwargs["cpu_max_num_threads"] = int(threads)
     if arch == "cuda":
         kwargs["device_memory_GB"] = float(device_memory_gb)
+    global _generation
     ti.init(**kwargs)
+    _generation += 1
     running = ti.lang.impl.current_cfg().arch.name
     if running != _ARCHS[arch].name:
         raise RuntimeError(f"asked for --arch {arch} but Taichi started on {running} "
@@ -37,8 +68,11 @@ def init_taichi(arch: str = "cpu", threads: int | None = 2, debug: bool = False,
 
 
 def ensure_initialized() -> None:
+    global _generation
     if not is_initialized():
         init_taichi("cpu", threads=None)
+    elif _generation == 0:        # initialised by the user with ti.init directly
+        _generation = 1
 
 
 def describe() -> str:

@@ -17,17 +17,18 @@ from dataclasses import dataclass, field
 import numpy as np
 import taichi as ti
 
-from kernels import bki, entropy, fusion, query as kquery, rasterize, window
+from kernels import bki, query as kquery, rasterize, training, window
 from kernels.layout import LEAF, TOP, MapFields, storage_extent
-from tisem.backend import ensure_initialized
+from tisem import backend
 from tisem.config import MapperConfig
+from tisem.preprocess import select_points, to_frame
 from tisem.scan import Scan
 from tisem.snapshot import MapSnapshot
 from tisem.store import KEY_LIMIT, BlockStore
 
 log = logging.getLogger(__name__)
 
-STAGES = ("preprocess", "window", "rasterize", "entropy", "kernel", "fusion", "clear")
+STAGES = ("preprocess", "window", "rasterize", "filter", "entropy", "kernel", "clear")
 
 
 @dataclass
@@ -66,11 +67,12 @@ class Mapper:
         self.config = config or MapperConfig()
         self.config.validate()
         cfg = self.config
-        ensure_initialized()
+        self._generation = backend.claim_map_slot()
         self.C = cfg.num_classes
         self.res = float(cfg.resolution_m)
         reach = cfg.reach_m
         self.radius_vox = int(math.ceil(reach / self.res + 0.5)) if cfg.uses_kernel else 0
+        self._reach_blk = int(math.ceil(reach / (LEAF * self.res)))
         # the live window, in voxels: every scan point plus its kernel reach must fit inside
         need_xy = cfg.max_range_m + reach + LEAF * self.res
         need_z = max(abs(cfg.min_z_m), abs(cfg.max_z_m)) + reach + LEAF * self.res
@@ -103,6 +105,7 @@ class Mapper:
     # ------------------------------------------------------------------ integrate
     def integrate(self, scan: Scan) -> IntegrationReport:
         """Fuse one scan into the map (steps 1-8 of SPEC §1)."""
+        self._check_alive()
         cfg = self.config
         rep = IntegrationReport(points=scan.num_points)
         clock = self._clock()
@@ -120,25 +123,32 @@ class Mapper:
         else:
             rasterize.rasterize_probs(m, vox, xyz, probs)
         clock("rasterize")
-        train_xyz, train_hist = self._buf.training(len(vox), self.C)
-        n = entropy.select_training(
-            m, ti.Vector(self.center_vox.astype(np.int32).tolist()), t_rel, self._inv_tau,
-            cfg.min_points, int(cfg.point_weight == "unit"), cfg.prior,
-            cfg.ell_min_m if cfg.adaptive else cfg.ell_fixed_vox * self.res,
-            cfg.ell_max_m, int(cfg.adaptive), int(not cfg.uses_kernel), train_xyz, train_hist)
+        training.count_training(m, cfg.min_points)
+        n = training.assign_slots(m)
+        clock("filter")
+        train_xyz, train_hist = self._buf.training(max(n, 1), self.C)
+        training.write_training(
+            m, t_rel, self._inv_tau, cfg.min_points, int(cfg.point_weight == "unit"), cfg.prior,
+            cfg.ell_min_m if cfg.adaptive else cfg.ell_fixed_vox * self.res, cfg.ell_max_m,
+            int(cfg.adaptive), int(not cfg.uses_kernel), train_xyz, train_hist)
         rep.training_voxels = int(n)
         clock("entropy")
         if cfg.uses_kernel and n:
-            bki.scatter(m, train_xyz, train_hist, n, self.res, cfg.reach_m, cfg.sigma0,
-                        self.radius_vox)
+            stamp = self.scans + 1
+            bki.mark_receivers(m, stamp, self._reach_blk)
+            bki.gather_update(m, ti.Vector(self.center_vox.astype(np.int32).tolist()), stamp,
+                              t_rel, self._inv_tau, self.res, cfg.sigma0, train_xyz, train_hist)
         clock("kernel")
-        fusion.fuse(m, t_rel, self._inv_tau)
-        clock("fusion")
         rasterize.clear_scan_layer(m)
         rasterize.clear_scan_top(m)
         clock("clear")
         self._finish(scan)
         return rep
+
+    def _check_alive(self) -> None:
+        if self._generation != backend.generation():
+            raise RuntimeError("this map belonged to a Taichi runtime that has since been "
+                               "re-initialised (init_taichi); its fields are gone")
 
     def _finish(self, scan: Scan) -> None:
         self.scans += 1
@@ -160,26 +170,9 @@ class Mapper:
         """Step 1 plus every range check: returns int32 voxels, float32 local xyz and evidence."""
         cfg = self.config
         where = f"scan {scan.index}" + (f" ({scan.name})" if scan.name else "")
-        pts = scan.points_sensor
-        keep = np.all(np.isfinite(pts), axis=1)
-        rep.dropped_nonfinite = int(pts.shape[0] - np.count_nonzero(keep))
-        rng = np.linalg.norm(pts, axis=1)
-        in_range = (keep & (rng >= cfg.min_range_m) & (rng <= cfg.max_range_m)
-                    & (pts[:, 2] >= cfg.min_z_m) & (pts[:, 2] <= cfg.max_z_m))
-        rep.dropped_range = int(np.count_nonzero(keep) - np.count_nonzero(in_range))
-        labels = probs = None
-        if scan.labels is not None:
-            labels = scan.labels[in_range]
-            if labels.size and (labels.min() < 0 or labels.max() >= self.C):
-                raise ValueError(f"{where}: train ids must lie in [0, {self.C}), got "
-                                 f"[{labels.min()}, {labels.max()}]")
-        else:
-            if scan.probs.shape[1] != self.C:
-                raise ValueError(f"{where}: {scan.probs.shape[1]} probability columns, "
-                                 f"the map has {self.C} classes")
-            probs = scan.probs[in_range]
-            if not np.all(np.isfinite(probs)) or (probs.size and probs.min() < 0):
-                raise ValueError(f"{where}: probabilities must be finite and >= 0")
+        sel = select_points(scan, cfg)
+        rep.dropped_nonfinite, rep.dropped_range = sel.dropped_nonfinite, sel.dropped_range
+        labels, probs = sel.labels, sel.probs
         T = scan.T_world_sensor
         if self.origin_vox is None:
             # the origin is block-aligned at the first sensor position, so local coordinates stay
@@ -192,7 +185,7 @@ class Mapper:
         if np.any(np.abs(sensor_vox) + self.half_vox > KEY_LIMIT):
             raise ValueError(f"{where}: the sensor is {np.abs(sensor_local).max() / 1000:.0f} km from "
                              f"the map origin; tisem maps within {KEY_LIMIT * self.res / 1000:.0f} km")
-        local = pts[in_range].astype(np.float64) @ T[:3, :3].T + (T[:3, 3] - origin_m)
+        local = to_frame(sel.points_sensor, T, origin_m)
         vox = np.floor(local / self.res).astype(np.int64)
         inside = np.all(np.abs(vox - sensor_vox) <= self.half_vox - self.radius_vox - 1, axis=1)
         rep.dropped_window = int(len(vox) - np.count_nonzero(inside))
@@ -250,6 +243,7 @@ class Mapper:
 
         A point in no voxel gets label 0 and all-zero probabilities.
         """
+        self._check_alive()
         pts = np.asarray(points_world, dtype=np.float64)
         if pts.ndim != 2 or pts.shape[1] != 3:
             raise ValueError(f"query points must be (N, 3), got {pts.shape}")
@@ -276,6 +270,7 @@ class Mapper:
         return labels, probs
 
     def _live_arrays(self):
+        self._check_alive()
         m = self.fields
         n = kquery.count_voxels(m)
         keys = np.zeros((n, 3), np.int32)

@@ -1,0 +1,75 @@
+"""Step 3 and the training points: filter the scan's voxels, give each kept voxel its kernel
+length, and write the training points (centroid + class evidence) sorted by leaf block.
+
+Sorting by block lets the kernel update visit only the training points of the few blocks
+around a voxel instead of every voxel cell within its kernel length. Three passes: count
+per block, hand out each block's slice of the arrays, fill the slices.
+"""
+import taichi as ti
+
+from kernels.entropy import adaptive_length
+from kernels.fusion import decay_factor, fuse_voxel
+from kernels.layout import LEAF
+
+
+@ti.func
+def evidence_total(m: ti.template(), I, min_points):
+    """Class evidence of scan voxel I, or 0 when the filter drops it (too few points)."""
+    total = 0.0
+    if m.s_npts[I] >= min_points:
+        for c in ti.static(range(m.C)):
+            total += m.s_hist[I, c]
+    return total
+
+
+@ti.kernel
+def count_training(m: ti.template(), min_points: ti.i32):
+    for I in ti.grouped(m.s_npts):
+        if evidence_total(m, I, min_points) > 0:
+            m.s_bcount[I // LEAF] += 1
+
+
+@ti.kernel
+def assign_slots(m: ti.template()) -> ti.i32:
+    m.counter[None] = 0
+    for B in ti.grouped(m.s_bcount):
+        n = m.s_bcount[B]
+        if n > 0:
+            m.s_bstart[B] = ti.atomic_add(m.counter[None], n)
+            m.s_bcount[B] = 0    # reused as the fill cursor; write_training counts it back up
+    return m.counter[None]
+
+
+@ti.kernel
+def write_training(m: ti.template(),
+                   t: ti.f32, inv_tau: ti.f32, min_points: ti.i32, unit_weight: ti.i32,
+                   prior: ti.f32, ell_min: ti.f32, ell_max: ti.f32, adaptive: ti.i32,
+                   counting: ti.i32,
+                   out_xyz: ti.types.ndarray(dtype=ti.f32, ndim=2),    # (K, 3) centroid, local m
+                   out_hist: ti.types.ndarray(dtype=ti.f32, ndim=2)):  # (K, C) class evidence
+    for I in ti.grouped(m.s_npts):
+        total = evidence_total(m, I, min_points)
+        if total > 0:
+            B = I // LEAF
+            slot = m.s_bstart[B] + ti.atomic_add(m.s_bcount[B], 1)
+            scale = 1.0 / total if unit_weight else 1.0
+            h = ti.Vector([0.0] * m.C)
+            for c in ti.static(range(m.C)):
+                h[c] = m.s_hist[I, c] * scale
+                out_hist[slot, c] = h[c]
+            n = ti.cast(m.s_npts[I], ti.f32)
+            for a in ti.static(range(3)):
+                out_xyz[slot, a] = m.s_sum[I, a] / n
+            if counting:
+                # csm: the voxel's own histogram is the whole update, accumulated without decay
+                m.ell[I] = ell_min                  # any positive value marks the voxel live
+                fuse_voxel(m, I, h, t, 0.0)
+            else:
+                length = ell_min
+                if adaptive:
+                    alpha = decay_factor(t - m.t_last[I], inv_tau)
+                    p = ti.Vector([0.0] * m.C)
+                    for c in ti.static(range(m.C)):
+                        p[c] = prior + alpha * m.counts[I, c] + h[c]
+                    length = adaptive_length(p, ell_min, ell_max, m.C - 1)
+                m.ell[I] = length                   # writing activates the map voxel

@@ -1,0 +1,163 @@
+"""A plain numpy implementation of the method (SPEC §1): the oracle the kernels are tested
+against, and the baseline the throughput benchmark measures its speedup over.
+
+It follows the same rules as `tisem.mapper.Mapper` with none of its machinery: a dict of voxels,
+`np.unique` rasterisation, a k-d tree for the kernel neighbourhoods, float64 throughout.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from tisem.config import MapperConfig
+from tisem.preprocess import select_points, to_frame
+from tisem.scan import Scan
+from kernels.bki import MIN_UPDATE
+from kernels.layout import TOP
+
+
+def sparse_kernel(r: np.ndarray) -> np.ndarray:
+    """Melkumyan-Ramos g(r), 0 for r >= 1."""
+    r = np.asarray(r, dtype=np.float64)
+    g = (2 + np.cos(2 * np.pi * r)) / 3 * (1 - r) + np.sin(2 * np.pi * r) / (2 * np.pi)
+    return np.where(r < 1, np.maximum(g, 0.0), 0.0)
+
+
+def normalized_entropy(p: np.ndarray) -> np.ndarray:
+    """Row-wise entropy over classes 1..C-1 of unnormalised p, divided by log(C-1)."""
+    q = p[:, 1:] / p[:, 1:].sum(axis=1, keepdims=True)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        h = -np.where(q > 0, q * np.log(q), 0.0).sum(axis=1)
+    return h / math.log(p.shape[1] - 1)
+
+
+def decay(dt: np.ndarray, cfg: MapperConfig) -> np.ndarray:
+    tau = cfg.decay_tau_s
+    if tau == 0:
+        return np.zeros_like(dt)
+    return np.exp(-np.maximum(dt, 0) / tau)
+
+
+class ReferenceMapper:
+    """Same interface as `Mapper` for integrate/query/snapshot-like access (no window)."""
+
+    def __init__(self, config: MapperConfig | None = None):
+        self.config = config or MapperConfig()
+        self.config.validate()
+        self.C = self.config.num_classes
+        self.res = self.config.resolution_m
+        self.index: dict[tuple, int] = {}
+        self.keys = np.zeros((0, 3), np.int64)      # local voxel keys
+        self.counts = np.zeros((0, self.C))
+        self.t_last = np.zeros(0)
+        self.ell = np.zeros(0)
+        self.origin_vox = None
+        self.t0 = None
+
+    def _voxel_ids(self, keys: np.ndarray) -> np.ndarray:
+        """Indices of the given voxels, creating the missing ones."""
+        ids = np.empty(len(keys), np.int64)
+        new = []
+        for i, k in enumerate(map(tuple, keys)):
+            j = self.index.get(k)
+            if j is None:
+                j = len(self.index)
+                self.index[k] = j
+                new.append(k)
+            ids[i] = j
+        if new:
+            n = len(new)
+            self.keys = np.vstack([self.keys, np.array(new, np.int64)])
+            self.counts = np.vstack([self.counts, np.zeros((n, self.C))])
+            self.t_last = np.concatenate([self.t_last, np.zeros(n)])
+            self.ell = np.concatenate([self.ell, np.zeros(n)])
+        return ids
+
+    def rasterize(self, scan: Scan):
+        """Steps 1-3: the kept voxels' keys, centroids and (weighted) class evidence."""
+        cfg = self.config
+        sel = select_points(scan, cfg)
+        T = scan.T_world_sensor
+        if self.origin_vox is None:
+            self.origin_vox = (np.floor(T[:3, 3] / self.res).astype(np.int64) // TOP) * TOP
+            self.t0 = float(scan.stamp_s)
+        local = to_frame(sel.points_sensor, T, self.origin_vox * self.res)
+        vox = np.floor(local / self.res).astype(np.int64)
+        keys, inv = np.unique(vox, axis=0, return_inverse=True)
+        inv = inv.reshape(-1)
+        nv = len(keys)
+        npts = np.bincount(inv, minlength=nv)
+        centroid = np.stack([np.bincount(inv, local[:, a], nv) for a in range(3)], 1) / npts[:, None]
+        hist = np.zeros((nv, self.C))
+        if sel.labels is not None:
+            ok = sel.labels > 0
+            np.add.at(hist, (inv[ok], sel.labels[ok]), 1.0)
+        else:
+            p = sel.probs.astype(np.float64).copy()
+            p[:, 0] = 0
+            np.add.at(hist, inv, p)
+        total = hist.sum(axis=1)
+        keep = (npts >= cfg.min_points) & (total > 0)
+        h = hist[keep]
+        if cfg.point_weight == "unit":
+            h = h / total[keep, None]
+        return keys[keep], centroid[keep], h
+
+    def integrate(self, scan: Scan) -> None:
+        cfg = self.config
+        keys, centroid, h = self.rasterize(scan)
+        t = float(scan.stamp_s) - self.t0
+        ids = self._voxel_ids(keys)
+        if not cfg.uses_kernel:                     # csm: plain per-voxel counting
+            self.counts[ids] += h
+            self.t_last[ids] = t
+            self.ell[ids] = cfg.ell_min_m if cfg.adaptive else cfg.ell_fixed_vox * self.res
+            return
+        if cfg.adaptive:
+            alpha = decay(t - self.t_last[ids], cfg)
+            p = cfg.prior + alpha[:, None] * self.counts[ids] + h
+            self.ell[ids] = cfg.ell_min_m + (cfg.ell_max_m - cfg.ell_min_m) * normalized_entropy(p)
+        else:
+            self.ell[ids] = cfg.ell_fixed_vox * self.res
+        # every map voxel with a training point within its own kernel length gets an update
+        centres = (self.keys + 0.5) * self.res
+        tree = cKDTree(centroid)
+        near = tree.query_ball_point(centres, r=self.ell)
+        v_idx = np.repeat(np.arange(len(centres)), [len(n) for n in near])
+        if len(v_idx) == 0:
+            return
+        p_idx = np.concatenate([np.asarray(n, np.int64) for n in near])
+        d = np.linalg.norm(centroid[p_idx] - centres[v_idx], axis=1)
+        inside = d < self.ell[v_idx]
+        v_idx, p_idx, d = v_idx[inside], p_idx[inside], d[inside]
+        w = cfg.sigma0 * sparse_kernel(d / self.ell[v_idx])
+        delta = np.zeros((len(centres), self.C))
+        for c in range(1, self.C):
+            delta[:, c] = np.bincount(v_idx, w * h[p_idx, c], len(centres))
+        upd = delta.sum(axis=1) > MIN_UPDATE
+        alpha = decay(t - self.t_last[upd], cfg)
+        self.counts[upd] = alpha[:, None] * self.counts[upd] + delta[upd]
+        self.t_last[upd] = t
+
+    def query(self, points_world: np.ndarray):
+        """(labels, probabilities) of world points; 0 / zeros outside the map."""
+        pts = np.asarray(points_world, np.float64)
+        labels = np.zeros(len(pts), np.int32)
+        probs = np.zeros((len(pts), self.C))
+        if self.origin_vox is None:
+            return labels, probs
+        keys = np.floor(pts / self.res).astype(np.int64) - self.origin_vox
+        for i, k in enumerate(map(tuple, keys)):
+            j = self.index.get(k)
+            if j is not None and self.counts[j].sum() > 0:
+                labels[i] = int(np.argmax(self.counts[j]))
+                probs[i] = self.counts[j] / self.counts[j].sum()
+        return labels, probs
+
+    def voxels(self):
+        """(global keys, counts, t_last, ell) sorted by key, like `Mapper.snapshot()`."""
+        g = self.keys + self.origin_vox
+        order = np.lexsort((g[:, 2], g[:, 1], g[:, 0]))
+        return g[order], self.counts[order], self.t_last[order] + self.t0, self.ell[order]
