@@ -1,0 +1,262 @@
+"""McapScanReader on whole recordings: poses, labels, topics, pose sources, foxglove logs."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from tisem.errors import DatasetError, SkippedScan
+from tisem.io.mcap_reader import McapOptions, McapScanReader
+from tisem.io.mcap_writer import (T_BASE_LIDAR, Ros2McapWriter, pose_msg, stamp_msg,
+                                  synthetic_points, synthetic_pose, write_synthetic_log)
+from tisem.labels import raw_to_train
+
+T0 = 100_000_000_000
+
+
+def scans_of(path, **options) -> list:
+    return list(McapScanReader(path, McapOptions(**options)))
+
+
+@pytest.mark.parametrize("compression", ["zstd", "lz4", "none"])
+def test_scans_carry_header_stamp_poses_labels_and_names(tmp_path, compression):
+    path = tmp_path / "log.mcap"
+    truth = write_synthetic_log(path, n_scans=4, n_points=500, compression=compression)
+    reader = McapScanReader(path)
+    assert (reader.topic, reader.frame_id, reader.total) == ("/velodyne_points", "velodyne", 4)
+    scans = list(reader)
+    assert [s.index for s in scans] == [0, 1, 2, 3]
+    for s, stamp, T, pts in zip(scans, truth["stamps_ns"], truth["T_world_sensor"], truth["points"]):
+        # the pose is the tf chain at the header stamp, interpolated between 50 Hz samples; at
+        # the log time (35 ms later, 5 m/s) it would be 0.175 m off
+        assert np.abs(s.T_world_sensor - T).max() < 1e-9
+        assert s.stamp_s == stamp / 1e9 and s.meta["log_time_ns"] - stamp == 35_000_000
+        assert s.name == f"/velodyne_points@{stamp // 10**9}.{stamp % 10**9:09d}"
+        assert np.array_equal(s.points_sensor[:, 1], pts["y"])
+        assert np.array_equal(s.labels, raw_to_train(pts["label"])[0])
+        assert s.gt_labels is None and s.probs is None
+    assert reader.report.lines() == [] and not reader.report.to_dict()["damaged"]
+    # iterating again gives the same scans (the pipeline reads twice for the final map)
+    assert [s.name for s in reader] == [s.name for s in scans]
+
+
+def test_first_last_select_by_message_order(tmp_path):
+    write_synthetic_log(tmp_path / "log.mcap", n_scans=5, n_points=50)
+    reader = McapScanReader(tmp_path / "log.mcap", McapOptions(first=1, last=3))
+    assert reader.total == 3 and [s.index for s in reader] == [1, 2, 3]
+
+
+def write_fields_log(path, arr_fields, label_dtype="<u2", n=64, frames=2):
+    """Clouds with extra fields (probabilities, gt) on a static map -> velodyne chain."""
+    rng = np.random.default_rng(0)
+    with Ros2McapWriter(path) as w:
+        w.write_transforms([("map", "velodyne", 0, T_BASE_LIDAR)], 0, static=True)
+        arrays = []
+        for i in range(frames):
+            arr = synthetic_points(n, rng, label_dtype, extra_fields=arr_fields)
+            arrays.append(arr)
+            w.write_cloud("/points", arr, "velodyne", (i + 1) * 10**8, (i + 1) * 10**8)
+    return arrays
+
+
+def test_train_label_space_probabilities_and_ground_truth(tmp_path):
+    path = tmp_path / "f.mcap"
+    arrays = write_fields_log(path, (("gt", "<u4"), ("train", "u1"), ("probs", "<f4", (20,))))
+    rng = np.random.default_rng(1)
+    # rewrite with known contents: train ids with two out-of-range values, GT raw with instances
+    for arr in arrays:
+        arr["train"] = rng.integers(0, 20, len(arr))
+        arr["train"][:2] = [20, 255]
+        arr["gt"] = arr["label"].astype(np.uint32) | (7 << 16)
+        arr["gt"][0] = 1234                                   # not a SemanticKITTI id
+        arr["probs"] = rng.random((len(arr), 20))
+    with Ros2McapWriter(path) as w:
+        w.write_transforms([("map", "velodyne", 0, np.eye(4))], 0, static=True)
+        for i, arr in enumerate(arrays):
+            w.write_cloud("/points", arr, "velodyne", (i + 1) * 10**8, (i + 1) * 10**8)
+
+    reader = McapScanReader(path, McapOptions(label_field="train", label_space="train",
+                                              gt_field="gt"))
+    scans = list(reader)
+    # the GT field follows the label space: here train ids, so raw GT values are out of range
+    assert reader.report.unknown_labels == 4
+    assert np.array_equal(scans[0].labels[2:], arrays[0]["train"][2:]) and scans[0].labels[0] == 0
+
+    raw = McapScanReader(path, McapOptions(gt_field="gt"))
+    s = list(raw)[0]
+    assert np.array_equal(s.gt_labels[1:], raw_to_train(arrays[0]["label"][1:])[0])
+    assert raw.report.unknown_gt_labels == 2 and "unknown ground-truth" in raw.report.lines()[-1]
+
+    p = list(McapScanReader(path, McapOptions(prob_field="probs")))[1]
+    assert p.labels is None and np.array_equal(p.probs, arrays[1]["probs"].astype(np.float32))
+
+
+def test_a_probability_field_of_the_wrong_width_skips_with_a_reason(tmp_path):
+    write_fields_log(tmp_path / "f.mcap", (("probs", "<f4", (3,)),), frames=1)
+    (item,) = scans_of(tmp_path / "f.mcap", prob_field="probs")
+    assert isinstance(item, SkippedScan) and "3 value(s) per point" in item.reason
+
+
+def test_missing_label_field_lists_the_fields_the_cloud_has(tmp_path):
+    write_synthetic_log(tmp_path / "log.mcap", n_scans=2, n_points=10)
+    with pytest.raises(DatasetError, match=r"no 'class' label field \(--label-field\); their "
+                       r"fields are: x:float32, y:float32, z:float32, intensity:float32, "
+                       r"label:uint16"):
+        McapScanReader(tmp_path / "log.mcap", McapOptions(label_field="class"))
+    with pytest.raises(DatasetError, match="no 'gt' ground-truth field"):
+        McapScanReader(tmp_path / "log.mcap", McapOptions(gt_field="gt"))
+
+
+def test_topic_choice(tmp_path):
+    path = tmp_path / "two.mcap"
+    rng = np.random.default_rng(0)
+    with Ros2McapWriter(path) as w:
+        w.write_transforms([("map", "a", 0, np.eye(4)), ("map", "b", 0, np.eye(4))], 0, static=True)
+        for topic, frame in (("/front/points", "a"), ("/rear/points", "b")):
+            w.write_cloud(topic, synthetic_points(10, rng), frame, 5, 5)
+    with pytest.raises(DatasetError, match=r"several point-cloud topics, choose one with --topic: "
+                       r"/front/points \(sensor_msgs/msg/PointCloud2, 1 msgs\), /rear/points"):
+        McapScanReader(path)
+    assert McapScanReader(path, McapOptions(topic="/rear/points")).frame_id == "b"
+    with pytest.raises(DatasetError, match="no topic '/lidar'; point-cloud topics: /front"):
+        McapScanReader(path, McapOptions(topic="/lidar"))
+    with pytest.raises(DatasetError, match="carries tf2_msgs/msg/TFMessage, not a point cloud"):
+        McapScanReader(path, McapOptions(topic="/tf_static"))
+
+
+def test_no_cloud_topic(tmp_path):
+    path = tmp_path / "tf_only.mcap"
+    with Ros2McapWriter(path) as w:
+        w.write_transforms([("map", "a", 0, np.eye(4))], 0)
+    with pytest.raises(DatasetError, match=r"no point-cloud messages found; topics: /tf "
+                       r"\(tf2_msgs/msg/TFMessage, 1 msgs\)"):
+        McapScanReader(path)
+
+
+def test_no_transform_path_to_the_map_frame(tmp_path):
+    write_synthetic_log(tmp_path / "log.mcap", n_scans=2, n_points=10)
+    with pytest.raises(DatasetError, match=r"no transform from the map frame 'world' to the "
+                       r"cloud frame 'velodyne'.*known frames: base_link, map, velodyne"):
+        McapScanReader(tmp_path / "log.mcap", McapOptions(map_frame="world"))
+    # base_link works as a map frame: the static mount only
+    s = scans_of(tmp_path / "log.mcap", map_frame="base_link")[0]
+    assert np.allclose(s.T_world_sensor, T_BASE_LIDAR)
+
+
+def test_scans_outside_the_tf_range_are_skipped_with_the_reason(tmp_path):
+    path = tmp_path / "log.mcap"
+    truth = write_synthetic_log(path, n_scans=5, n_points=20, tf_end_s=0.25)
+    items = scans_of(path)
+    assert [type(i).__name__ for i in items] == ["Scan"] * 3 + ["SkippedScan"] * 2
+    assert "map -> base_link" in items[3].reason and "after its last sample" in items[3].reason
+    assert np.abs(items[2].T_world_sensor - truth["T_world_sensor"][2]).max() < 1e-9
+    # a tolerance accepts a stamp just past the last sample (0.24 s; scan 3 is at 0.313 s)
+    items = scans_of(path, tf_tolerance_s=0.08)
+    assert [type(i).__name__ for i in items] == ["Scan"] * 4 + ["SkippedScan"]
+
+
+def _odometry(T, stamp, child="base_link"):
+    zeros = {"x": 0.0, "y": 0.0, "z": 0.0}
+    return {"header": {"stamp": stamp_msg(stamp), "frame_id": "map"}, "child_frame_id": child,
+            "pose": {"pose": pose_msg(T), "covariance": [0.0] * 36},
+            "twist": {"twist": {"linear": zeros, "angular": zeros}, "covariance": [0.0] * 36}}
+
+
+@pytest.mark.parametrize("kind", ["odometry", "pose_stamped"])
+def test_pose_topic_instead_of_tf(tmp_path, kind):
+    path = tmp_path / "odom.mcap"
+    rng = np.random.default_rng(0)
+    stamps = [T0 + k * 20_000_000 for k in range(30)]
+    with Ros2McapWriter(path) as w:
+        w.write_transforms([("base_link", "velodyne", T0, T_BASE_LIDAR)], T0, static=True)
+        w.write_transforms([("map", "base_link", T0, np.eye(4))], T0)        # ignored
+        for t in stamps:
+            T = synthetic_pose((t - T0) / 1e9)
+            if kind == "odometry":
+                w.write("/odom", "nav_msgs/msg/Odometry", _odometry(T, t), t)
+            else:   # no child frame in the message: the top of the sensor's static mount
+                w.write("/pose", "geometry_msgs/msg/PoseStamped",
+                        {"header": {"stamp": stamp_msg(t), "frame_id": "map"},
+                         "pose": pose_msg(T)}, t)
+        w.write_cloud("/points", synthetic_points(10, rng), "velodyne", T0 + 123_000_000,
+                      T0 + 150_000_000)
+    topic = "/odom" if kind == "odometry" else "/pose"
+    reader = McapScanReader(path, McapOptions(pose_topic=topic))
+    (s,) = list(reader)
+    assert np.abs(s.T_world_sensor - synthetic_pose(0.123) @ T_BASE_LIDAR).max() < 1e-9
+    with pytest.raises(DatasetError, match="no topic '/gps'"):
+        McapScanReader(path, McapOptions(pose_topic="/gps"))
+    with pytest.raises(DatasetError, match="carries tf2_msgs/msg/TFMessage; supported"):
+        McapScanReader(path, McapOptions(pose_topic="/tf"))
+
+
+def test_foxglove_point_cloud_and_frame_transforms(tmp_path):
+    from foxglove_schemas_protobuf.FrameTransform_pb2 import FrameTransform
+    from foxglove_schemas_protobuf.Quaternion_pb2 import Quaternion
+    from foxglove_schemas_protobuf.Vector3_pb2 import Vector3
+    from google.protobuf.timestamp_pb2 import Timestamp
+    from mcap_protobuf.writer import Writer
+
+    from tisem.io.pointcloud2 import array_to_foxglove_cloud
+    from tisem.io.tf import matrix_to_quat
+
+    def frame_transform(parent, child, t, T):
+        q = matrix_to_quat(T[:3, :3])
+        return FrameTransform(timestamp=Timestamp(seconds=t // 10**9, nanos=t % 10**9),
+                              parent_frame_id=parent, child_frame_id=child,
+                              translation=Vector3(x=T[0, 3], y=T[1, 3], z=T[2, 3]),
+                              rotation=Quaternion(x=q[0], y=q[1], z=q[2], w=q[3]))
+
+    path = tmp_path / "fox.mcap"
+    rng = np.random.default_rng(0)
+    T_cloud = np.eye(4)
+    T_cloud[:3, 3] = [0.0, 0.0, 0.25]                      # the cloud's own `pose` field
+    arr = synthetic_points(40, rng)
+    with open(path, "wb") as f, Writer(f) as w:
+        # the mount is logged once: no static flag in foxglove, promoted because it never changes
+        w.write_message("/tf", frame_transform("base_link", "lidar_top", T0, T_BASE_LIDAR),
+                        log_time=T0, publish_time=T0)
+        for k in range(20):
+            t = T0 + k * 20_000_000
+            w.write_message("/tf", frame_transform("map", "base_link", t,
+                                                   synthetic_pose((t - T0) / 1e9)),
+                            log_time=t, publish_time=t)
+        t = T0 + 210_000_000
+        w.write_message("/lidar_top", array_to_foxglove_cloud(arr, "lidar_top", t, T_cloud),
+                        log_time=t, publish_time=t)
+    reader = McapScanReader(path)
+    (s,) = list(reader)
+    expect = synthetic_pose(0.21) @ T_BASE_LIDAR @ T_cloud
+    assert np.abs(s.T_world_sensor - expect).max() < 1e-9
+    assert np.array_equal(s.labels, raw_to_train(arr["label"])[0])
+    assert any("taken as static: lidar_top" in n for n in reader.report.notes)
+
+
+def test_pose_stamped_of_the_sensor_itself(tmp_path):
+    """Without a static mount the PoseStamped is the cloud frame's own pose."""
+    path = tmp_path / "pose.mcap"
+    with Ros2McapWriter(path) as w:
+        for k in range(3):
+            t = T0 + k * 50_000_000
+            w.write("/pose", "geometry_msgs/msg/PoseStamped",
+                    {"header": {"stamp": stamp_msg(t), "frame_id": ""},     # empty: the map
+                     "pose": pose_msg(synthetic_pose(k * 0.05))}, t)
+        w.write_cloud("/points", synthetic_points(10, np.random.default_rng(0)), "velodyne",
+                      T0 + 75_000_000, T0 + 75_000_000)
+    (s,) = scans_of(path, pose_topic="/pose")
+    assert np.abs(s.T_world_sensor - synthetic_pose(0.075)).max() < 1e-9
+
+
+@pytest.mark.parametrize("variant", [dict(), dict(indexed=False), dict(chunked=False)])
+def test_stopping_early_leaves_nothing_behind(tmp_path, monkeypatch, variant):
+    """A consumer may stop mid-way (an error, Ctrl-C): closing the generators must be clean."""
+    import gc
+    import sys
+    unraisable = []
+    monkeypatch.setattr(sys, "unraisablehook", unraisable.append)
+    write_synthetic_log(tmp_path / "log.mcap", n_scans=3, n_points=20, **variant)
+    reader = McapScanReader(tmp_path / "log.mcap")
+    it = iter(reader)
+    next(it)
+    del it
+    gc.collect()
+    assert unraisable == []

@@ -1,0 +1,345 @@
+"""Writing MCAP: the semantic map for Foxglove, and ROS 2 recordings the way rosbag2 writes them.
+
+`write_map_mcap` puts the map as one `foxglove.PointCloud` (protobuf) of voxel centres in the map
+frame, with `red green blue alpha` uint8 fields (Foxglove then colours by "RGBA (separate
+fields)" on its own), the train id `label` and its `probability`; the class table goes in a
+metadata record. With `scans`, each input scan follows on its own topic, its points in the
+sensor frame and its pose in the message's `pose` field, so it overlays the map without /tf.
+
+`Ros2McapWriter` writes `cdr` messages with rosbag2's schema texts (rosbag2 spells
+dependencies `MSG: std_msgs/Header`; Rerun resolves only that spelling) and exposes the choices
+rosbag2 presets make: compression, chunk CRCs, chunking, indexes/summary. Tests use the last
+ones to produce the unindexed and CRC-less files found in the wild.
+"""
+from __future__ import annotations
+
+import itertools
+import json
+from pathlib import Path
+from typing import Iterable
+
+import numpy as np
+from mcap.well_known import SchemaEncoding
+from mcap.writer import CompressionType, IndexType
+from mcap.writer import Writer as McapWriter
+# The encoder generator of mcap-ros2-support; its own Writer hard-codes the MCAP options
+# (always indexed, always chunked), which rosbag2 presets and our damage tests need to vary.
+from mcap_ros2._dynamic import serialize_dynamic
+
+from tisem.io.pointcloud2 import array_to_foxglove_cloud, array_to_ros_cloud
+from tisem.io.tf import matrix_to_quat
+from tisem.labels import CLASS_COLORS_RGB, class_table
+from tisem.scan import Scan
+from tisem.snapshot import MapSnapshot
+
+COMPRESSION = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4,
+               "none": CompressionType.NONE}
+
+MAP_TOPIC = "/semantic_map"
+SCANS_TOPIC = "/semantic_scans"
+
+# ---- ROS 2 message definitions, as rosbag2 stores them -------------------------------------
+
+_SEPARATOR = "=" * 80 + "\n"
+_DEPENDENCIES = {
+    "std_msgs/Header": "builtin_interfaces/Time stamp\nstring frame_id\n",
+    "builtin_interfaces/Time": "int32 sec\nuint32 nanosec\n",
+    "sensor_msgs/PointField": (
+        "uint8 INT8    = 1\nuint8 UINT8   = 2\nuint8 INT16   = 3\nuint8 UINT16  = 4\n"
+        "uint8 INT32   = 5\nuint8 UINT32  = 6\nuint8 FLOAT32 = 7\nuint8 FLOAT64 = 8\n"
+        "string name\nuint32 offset\nuint8  datatype\nuint32 count\n"),
+    "geometry_msgs/TransformStamped": (
+        "std_msgs/Header header\nstring child_frame_id\nTransform transform\n"),
+    "geometry_msgs/Transform": "Vector3 translation\nQuaternion rotation\n",
+    "geometry_msgs/Vector3": "float64 x\nfloat64 y\nfloat64 z\n",
+    "geometry_msgs/Point": "float64 x\nfloat64 y\nfloat64 z\n",
+    "geometry_msgs/Quaternion": "float64 x 0\nfloat64 y 0\nfloat64 z 0\nfloat64 w 1\n",
+    "geometry_msgs/Pose": "Point position\nQuaternion orientation\n",
+    "geometry_msgs/PoseWithCovariance": "Pose pose\nfloat64[36] covariance\n",
+    "geometry_msgs/Twist": "Vector3  linear\nVector3  angular\n",
+    "geometry_msgs/TwistWithCovariance": "Twist twist\nfloat64[36] covariance\n",
+}
+_MESSAGES = {
+    "sensor_msgs/msg/PointCloud2": (
+        "std_msgs/Header header\nuint32 height\nuint32 width\nPointField[] fields\n"
+        "bool    is_bigendian\nuint32  point_step\nuint32  row_step\nuint8[] data\nbool is_dense\n",
+        ["std_msgs/Header", "builtin_interfaces/Time", "sensor_msgs/PointField"]),
+    "tf2_msgs/msg/TFMessage": (
+        "geometry_msgs/TransformStamped[] transforms\n",
+        ["geometry_msgs/TransformStamped", "std_msgs/Header", "builtin_interfaces/Time",
+         "geometry_msgs/Transform", "geometry_msgs/Vector3", "geometry_msgs/Quaternion"]),
+    "nav_msgs/msg/Odometry": (
+        "std_msgs/Header header\nstring child_frame_id\n"
+        "geometry_msgs/PoseWithCovariance pose\ngeometry_msgs/TwistWithCovariance twist\n",
+        ["std_msgs/Header", "builtin_interfaces/Time", "geometry_msgs/PoseWithCovariance",
+         "geometry_msgs/Pose", "geometry_msgs/Point", "geometry_msgs/Quaternion",
+         "geometry_msgs/TwistWithCovariance", "geometry_msgs/Twist", "geometry_msgs/Vector3"]),
+    "geometry_msgs/msg/PoseStamped": (
+        "std_msgs/Header header\nPose pose\n",
+        ["std_msgs/Header", "builtin_interfaces/Time", "geometry_msgs/Pose",
+         "geometry_msgs/Point", "geometry_msgs/Quaternion"]),
+}
+
+
+def ros2_msgdef(type_name: str) -> str:
+    """The concatenated `ros2msg` schema text of a message type, rosbag2 style."""
+    text, deps = _MESSAGES[type_name]
+    return text + "".join(f"{_SEPARATOR}MSG: {d}\n{_DEPENDENCIES[d]}" for d in deps)
+
+
+def stamp_msg(stamp_ns: int) -> dict:
+    sec, nanosec = divmod(int(stamp_ns), 1_000_000_000)
+    return {"sec": sec, "nanosec": nanosec}
+
+
+def transform_stamped(parent: str, child: str, stamp_ns: int, T_parent_child: np.ndarray) -> dict:
+    T = np.asarray(T_parent_child, dtype=np.float64)
+    q = matrix_to_quat(T[:3, :3])
+    return {"header": {"stamp": stamp_msg(stamp_ns), "frame_id": parent},
+            "child_frame_id": child,
+            "transform": {"translation": dict(zip("xyz", map(float, T[:3, 3]))),
+                          "rotation": dict(zip("xyzw", map(float, q)))}}
+
+
+def pose_msg(T: np.ndarray) -> dict:
+    q = matrix_to_quat(np.asarray(T)[:3, :3])
+    return {"position": dict(zip("xyz", map(float, np.asarray(T)[:3, 3]))),
+            "orientation": dict(zip("xyzw", map(float, q)))}
+
+
+class Ros2McapWriter:
+    """A ROS 2 (profile `ros2`, `cdr`) MCAP writer with rosbag2's schema texts.
+
+    compression: zstd | lz4 | none. crcs=False, chunked=False and indexed=False reproduce
+    rosbag2's presets (no chunk CRC; `fastwrite`: no chunks; no summary at all).
+    """
+
+    def __init__(self, output, *, compression: str = "zstd", chunk_size: int = 1 << 20,
+                 crcs: bool = True, chunked: bool = True, indexed: bool = True):
+        if compression not in COMPRESSION:
+            raise ValueError(f"compression must be one of {sorted(COMPRESSION)}, got {compression!r}")
+        self._file = open(output, "wb") if isinstance(output, (str, Path)) else None
+        self._writer = McapWriter(
+            self._file or output, chunk_size=chunk_size, compression=COMPRESSION[compression],
+            enable_crcs=crcs, use_chunking=chunked,
+            index_types=IndexType.ALL if indexed else IndexType.NONE,
+            repeat_channels=indexed, repeat_schemas=indexed, use_statistics=indexed,
+            use_summary_offsets=indexed)
+        self._writer.start(profile="ros2", library="tisem")
+        self._schemas: dict[str, tuple[int, object]] = {}    # type -> (schema id, encoder)
+        self._channels: dict[str, int] = {}
+
+    def write(self, topic: str, type_name: str, message: dict, log_time_ns: int,
+              publish_time_ns: int | None = None, sequence: int = 0) -> None:
+        if type_name not in self._schemas:
+            text = ros2_msgdef(type_name)
+            schema_id = self._writer.register_schema(type_name, SchemaEncoding.ROS2, text.encode())
+            self._schemas[type_name] = (schema_id, serialize_dynamic(type_name, text)[type_name])
+        schema_id, encode = self._schemas[type_name]
+        if topic not in self._channels:
+            self._channels[topic] = self._writer.register_channel(topic, "cdr", schema_id)
+        self._writer.add_message(self._channels[topic], log_time=int(log_time_ns),
+                                 publish_time=int(log_time_ns if publish_time_ns is None
+                                                  else publish_time_ns),
+                                 sequence=sequence, data=encode(message))
+
+    def write_cloud(self, topic: str, points: np.ndarray, frame_id: str, stamp_ns: int,
+                    log_time_ns: int, sequence: int = 0) -> None:
+        """`points`: a 1-D structured array (its dtype fixes fields, padding and byte order)."""
+        self.write(topic, "sensor_msgs/msg/PointCloud2",
+                   array_to_ros_cloud(points, frame_id, stamp_ns), log_time_ns, sequence=sequence)
+
+    def write_transforms(self, transforms: list[tuple[str, str, int, np.ndarray]],
+                         log_time_ns: int, static: bool = False) -> None:
+        """(parent, child, stamp_ns, T_parent_child) tuples as one TFMessage on /tf(_static)."""
+        self.write("/tf_static" if static else "/tf", "tf2_msgs/msg/TFMessage",
+                   {"transforms": [transform_stamped(*t) for t in transforms]}, log_time_ns)
+
+    def add_metadata(self, name: str, data: dict[str, str]) -> None:
+        self._writer.add_metadata(name, data)
+
+    def finish(self) -> None:
+        self._writer.finish()
+        if self._file is not None:
+            self._file.close()
+            self._file = None
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.finish()
+
+
+# ---- the map ---------------------------------------------------------------------------------
+
+def _rgba(labels: np.ndarray) -> np.ndarray:
+    rgba = np.full((len(labels), 4), 255, dtype=np.uint8)
+    rgba[:, :3] = CLASS_COLORS_RGB[labels]
+    return rgba
+
+
+def map_points(snapshot: MapSnapshot) -> np.ndarray:
+    """The map as a structured array: voxel centres, colour, label (train id), probability."""
+    dtype = np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("red", "u1"), ("green", "u1"),
+                      ("blue", "u1"), ("alpha", "u1"), ("label", "<u2"), ("probability", "<f4")])
+    labels = snapshot.labels()
+    out = np.empty(len(snapshot), dtype)
+    centres = snapshot.centers()
+    for i, name in enumerate("xyz"):
+        out[name] = centres[:, i]
+    for i, name in enumerate(("red", "green", "blue", "alpha")):
+        out[name] = _rgba(labels)[:, i]
+    out["label"] = labels
+    out["probability"] = snapshot.confidence()
+    return out
+
+
+def scan_points(scan: Scan, mapped_labels: np.ndarray) -> np.ndarray:
+    """One scan in its sensor frame with its mapped labels (colour), input and GT labels."""
+    mapped_labels = np.asarray(mapped_labels)
+    if mapped_labels.shape != (scan.num_points,):
+        raise ValueError(f"scan {scan.index}: {mapped_labels.shape} mapped labels for "
+                         f"{scan.num_points} points")
+    fields = [("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("red", "u1"), ("green", "u1"),
+              ("blue", "u1"), ("alpha", "u1"), ("label", "<u2"), ("input_label", "<u2")]
+    if scan.gt_labels is not None:
+        fields.append(("gt_label", "<u2"))
+    out = np.empty(scan.num_points, np.dtype(fields))
+    for i, name in enumerate("xyz"):
+        out[name] = scan.points_sensor[:, i]
+    rgba = _rgba(mapped_labels)
+    for i, name in enumerate(("red", "green", "blue", "alpha")):
+        out[name] = rgba[:, i]
+    out["label"] = mapped_labels
+    out["input_label"] = scan.labels if scan.labels is not None else np.argmax(scan.probs, axis=1)
+    if scan.gt_labels is not None:
+        out["gt_label"] = scan.gt_labels
+    return out
+
+
+def write_map_mcap(path, snapshot: MapSnapshot, frame_id: str = "map",
+                   scans: Iterable[tuple[Scan, np.ndarray]] | None = None, *,
+                   compression: str = "zstd", stamp_ns: int | None = None) -> dict:
+    """Write the map (and optionally the scans with their mapped labels) as an MCAP file.
+
+    scans: (Scan, mapped train ids) pairs, e.g. re-read and queried after mapping; they may
+    be a generator, written as they come. The map message is logged at `stamp_ns`, by default
+    the first scan's stamp (Foxglove shows a message once playback reaches it, so the map is
+    there from the start), or the last voxel update when there are no scans.
+    Returns what was written: {"path", "voxels", "scans", "map_topic", "scans_topic"}.
+    """
+    from mcap_protobuf.writer import Writer
+
+    scans = iter(scans) if scans is not None else iter(())
+    first = next(scans, None)
+    if stamp_ns is None:
+        if first is not None:
+            stamp_ns = int(round(first[0].stamp_s * 1e9))
+        else:
+            stamp_ns = int(round(float(snapshot.t_last.max()) * 1e9)) if len(snapshot) else 0
+    stamp_ns = max(int(stamp_ns), 0)
+    n_scans = 0
+    with open(path, "wb") as f:
+        writer = Writer(f, compression=COMPRESSION[compression])
+        writer.add_metadata("semantic_classes",
+                            {str(r["train_id"]): json.dumps(r) for r in class_table()})
+        writer.add_metadata("tisem_map", {
+            "frame_id": frame_id, "resolution_m": repr(float(snapshot.resolution_m)),
+            "voxels": str(len(snapshot)), "map_topic": MAP_TOPIC,
+            "label": "train id (see semantic_classes)",
+            "probability": "normalised semantic counter of the label"})
+        writer.write_message(MAP_TOPIC, array_to_foxglove_cloud(map_points(snapshot), frame_id,
+                                                                stamp_ns),
+                             log_time=stamp_ns, publish_time=stamp_ns)
+        for scan, mapped in itertools.chain([first] if first is not None else [], scans):
+            t = max(int(round(scan.stamp_s * 1e9)), 0)
+            cloud = array_to_foxglove_cloud(scan_points(scan, mapped), frame_id, t,
+                                            T_frame_cloud=scan.T_world_sensor)
+            writer.write_message(SCANS_TOPIC, cloud, log_time=t, publish_time=t,
+                                 sequence=scan.index)
+            n_scans += 1
+        writer.finish()
+    return {"path": str(path), "voxels": len(snapshot), "scans": n_scans,
+            "map_topic": MAP_TOPIC, "scans_topic": SCANS_TOPIC}
+
+
+# ---- a synthetic recording (tests, the decode benchmark, trying the tools without data) ------
+
+# the sensor mount of the synthetic log: 1.2 m up, 0.3 m forward, yawed 90 degrees and tilted 2
+_MOUNT = np.array([[0.0, -1.0, 0.0, 0.3], [1.0, 0.0, 0.0, 0.0], [0.0, 0.0, 1.0, 1.2],
+                   [0.0, 0.0, 0.0, 1.0]])
+_TILT = np.array([[1.0, 0.0, 0.0, 0.0], [0.0, np.cos(0.035), -np.sin(0.035), 0.0],
+                  [0.0, np.sin(0.035), np.cos(0.035), 0.0], [0.0, 0.0, 0.0, 1.0]])
+T_BASE_LIDAR = _MOUNT @ _TILT
+
+
+def synthetic_pose(t_s: float, speed_mps: float = 5.0, yaw_rate: float = 0.2) -> np.ndarray:
+    """T_map_base_link: constant velocity along map x and a constant yaw rate (analytic, so
+    interpolated lookups can be checked exactly)."""
+    c, s = np.cos(yaw_rate * t_s), np.sin(yaw_rate * t_s)
+    return np.array([[c, -s, 0, speed_mps * t_s], [s, c, 0, 0.5], [0, 0, 1, 0], [0, 0, 0, 1.0]])
+
+
+def synthetic_points(n_points: int, rng: np.random.Generator, label_dtype="<u2",
+                     extra_fields: tuple = ()) -> np.ndarray:
+    """A ring-structured scan (64 beams) with raw SemanticKITTI labels derived from geometry:
+    road below the sensor, building far away, vegetation between, car nearby."""
+    fields = [("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("intensity", "<f4"),
+              ("label", label_dtype), *extra_fields]
+    arr = np.zeros(n_points, np.dtype(fields))
+    beam = np.arange(n_points) % 64
+    azimuth = np.linspace(0, 2 * np.pi, n_points, endpoint=False)
+    elevation = np.deg2rad(-25 + 28 * beam / 63)
+    rng_m = np.clip(1.7 / np.maximum(np.tan(-elevation), 0.03), 3, 60)
+    rng_m *= 1 + 0.01 * rng.standard_normal(n_points)
+    arr["x"] = rng_m * np.cos(elevation) * np.cos(azimuth)
+    arr["y"] = rng_m * np.cos(elevation) * np.sin(azimuth)
+    arr["z"] = rng_m * np.sin(elevation)
+    arr["intensity"] = rng.random(n_points)
+    # classes by geometry, with 5 % of the labels flipped (a network's noise)
+    raw = np.where(arr["z"] < -1.5, np.where(np.sin(azimuth * 3) > 0.6, 48, 40),
+                   np.where(rng_m > 40, 50, np.where(rng_m < 8, 10, 70)))
+    noise = rng.random(n_points) < 0.05
+    raw[noise] = rng.choice([10, 40, 48, 50, 70, 80], int(noise.sum()))
+    arr["label"] = raw
+    return arr
+
+
+def write_synthetic_log(path, n_scans: int = 5, n_points: int = 2000, *,
+                        compression: str = "zstd", crcs: bool = True, chunked: bool = True,
+                        indexed: bool = True, chunk_size: int = 1 << 20, seed: int = 0,
+                        label_dtype="<u2", tf_rate_hz: float = 50.0, t0_s: float = 100.0,
+                        tf_end_s: float | None = None, topic: str = "/velodyne_points",
+                        frame_id: str = "velodyne") -> dict:
+    """A small ROS 2 recording: /tf_static base_link->velodyne (non-identity), /tf
+    map->base_link at `tf_rate_hz` from `synthetic_pose`, clouds at 10 Hz whose header stamps
+    fall between tf samples and whose log times lag by 35 ms (a recorder's receive time).
+    `tf_end_s` (seconds after the start) stops /tf early: later scans have no pose.
+
+    Returns the truth: {"stamps_ns", "T_world_sensor" (K,4,4), "points" [structured arrays]}.
+    """
+    rng = np.random.default_rng(seed)
+    t0 = int(t0_s * 1e9)
+    scan_stamps = [t0 + 13_000_000 + i * 100_000_000 for i in range(n_scans)]   # off the tf grid
+    t_end = scan_stamps[-1] + 100_000_000 if n_scans else t0
+    if tf_end_s is not None:
+        t_end = min(t_end, t0 + int(tf_end_s * 1e9))
+    tf_stamps = list(range(t0, t_end + 1, int(1e9 / tf_rate_hz)))
+    events = [(t, 0, None) for t in tf_stamps] + [(t + 35_000_000, 1, i)
+                                                  for i, t in enumerate(scan_stamps)]
+    truth = {"stamps_ns": scan_stamps, "points": [],
+             "T_world_sensor": np.array([synthetic_pose((t - t0) / 1e9) @ T_BASE_LIDAR
+                                         for t in scan_stamps]).reshape(-1, 4, 4)}
+    with Ros2McapWriter(path, compression=compression, crcs=crcs, chunked=chunked,
+                        indexed=indexed, chunk_size=chunk_size) as w:
+        w.write_transforms([("base_link", frame_id, t0, T_BASE_LIDAR)], t0, static=True)
+        for log_time, kind, i in sorted(events, key=lambda e: e[:2]):
+            if kind == 0:
+                w.write_transforms([("map", "base_link", log_time,
+                                     synthetic_pose((log_time - t0) / 1e9))], log_time)
+            else:
+                arr = synthetic_points(n_points, rng, label_dtype)
+                truth["points"].append(arr)
+                w.write_cloud(topic, arr, frame_id, scan_stamps[i], log_time, sequence=i)
+    return truth
