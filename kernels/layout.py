@@ -86,7 +86,9 @@ class MapFields:
         self.s_vox.place(self.s_npts)
 
         self.counter = ti.field(ti.i32)
+        self.stats = ti.field(ti.i32)       # per-scan point statistics (kernels/rasterize.py)
         fb.place(self.counter)
+        fb.dense(ti.i, 3).place(self.stats)
         self._tree = fb.finalize()
 
     def destroy(self) -> None:

@@ -4,15 +4,20 @@ import taichi as ti
 
 @ti.kernel
 def query(m: ti.template(),
-          vox: ti.types.ndarray(dtype=ti.i32, ndim=2),        # (N, 3) world voxel index
-          inside: ti.types.ndarray(dtype=ti.i32, ndim=1),     # (N,) 1 where vox is in the window
-          out_label: ti.types.ndarray(dtype=ti.i32, ndim=1),  # (N,)
-          out_prob: ti.types.ndarray(dtype=ti.f32, ndim=2),   # (N, C) or (0, C): skipped
+          pts: ti.types.ndarray(dtype=ti.f32, ndim=2),        # (N, 3) local coordinates, m
+          center: ti.types.vector(3, ti.i32), half: ti.types.vector(3, ti.i32), inv_res: ti.f32,
+          out_label: ti.types.ndarray(dtype=ti.i32, ndim=1),  # (N,) train id, 0 = no evidence
+          out_inside: ti.types.ndarray(dtype=ti.i32, ndim=1), # (N,) 1 where the window covers it
+          out_prob: ti.types.ndarray(dtype=ti.f32, ndim=2),   # (N, C), or (0, C): not wanted
           with_prob: ti.i32):
     for p in range(out_label.shape[0]):
+        w = ti.floor(ti.Vector([pts[p, 0], pts[p, 1], pts[p, 2]]) * inv_res, ti.i32)
+        off = ti.abs(w - center)
         best = 0
-        if inside[p]:
-            u = m.wrap(ti.Vector([vox[p, 0], vox[p, 1], vox[p, 2]]))
+        inside = 0
+        if off[0] <= half[0] and off[1] <= half[1] and off[2] <= half[2]:
+            inside = 1
+            u = m.wrap(w)
             best_v = 0.0
             total = 0.0
             for c in ti.static(range(m.C)):
@@ -25,6 +30,7 @@ def query(m: ti.template(),
                 for c in ti.static(range(m.C)):
                     out_prob[p, c] = m.counts[u, c] / total if total > 0 else 0.0
         out_label[p] = best
+        out_inside[p] = inside
 
 
 @ti.kernel

@@ -1,44 +1,89 @@
-"""Step 2 of the method: rasterise a scan into the scan layer (histogram, count, coordinate sum)."""
+"""Steps 1-2 of the method: transform, range-check and rasterise a scan into the scan layer.
+
+Each point is moved to local map coordinates, dropped if outside the range / height band or the
+live window (checked *before* any field is indexed: Taichi does not check indices in release
+mode), and otherwise added to its voxel's histogram, count and coordinate sum. Non-finite points
+never get here: the mapper moves them out of range first (fast math makes NaN tests unreliable).
+"""
 import taichi as ti
+
+# slots of the per-scan point statistics (m.stats)
+USED, OUT_OF_RANGE, OUT_OF_WINDOW = 0, 1, 2
+
+
+@ti.func
+def locate(m: ti.template(), p, R, t, center, limit, min_r2, max_r2, min_z, max_z, inv_res):
+    """Whether sensor-frame point p may be used, its world voxel and its local coordinates."""
+    ok = 0
+    q = R @ p + t
+    w = ti.floor(q * inv_res, ti.i32)
+    r2 = p.dot(p)
+    if r2 < min_r2 or r2 > max_r2 or p[2] < min_z or p[2] > max_z:
+        ti.atomic_add(m.stats[OUT_OF_RANGE], 1)
+    else:
+        off = ti.abs(w - center)
+        if off[0] > limit[0] or off[1] > limit[1] or off[2] > limit[2]:
+            ti.atomic_add(m.stats[OUT_OF_WINDOW], 1)
+        else:
+            ok = 1
+            ti.atomic_add(m.stats[USED], 1)
+    return ok, w, q
+
+
+@ti.func
+def add_point(m: ti.template(), w, q):
+    u = m.wrap(w)
+    m.s_npts[u] += 1
+    for a in ti.static(range(3)):
+        m.s_sum[u, a] += q[a]
+    return u
 
 
 @ti.kernel
 def rasterize_labels(m: ti.template(),
-                     vox: ti.types.ndarray(dtype=ti.i32, ndim=2),      # (N, 3) world voxel index
-                     xyz: ti.types.ndarray(dtype=ti.f32, ndim=2),      # (N, 3) local coordinates, m
-                     label: ti.types.ndarray(dtype=ti.i32, ndim=1)):   # (N,) train id in [0, C)
-    for p in range(label.shape[0]):
-        u = m.wrap(ti.Vector([vox[p, 0], vox[p, 1], vox[p, 2]]))
-        m.s_npts[u] += 1
-        for a in ti.static(range(3)):
-            m.s_sum[u, a] += xyz[p, a]
-        if label[p] > 0:  # train id 0 (unlabeled) counts as a point but adds no class evidence
-            m.s_hist[u, label[p]] += 1.0
+                     pts: ti.types.ndarray(dtype=ti.f32, ndim=2),      # (N, 3) sensor frame
+                     label: ti.types.ndarray(dtype=ti.i32, ndim=1),    # (N,) train id in [0, C)
+                     R: ti.types.matrix(3, 3, ti.f32), t: ti.types.vector(3, ti.f32),
+                     center: ti.types.vector(3, ti.i32), limit: ti.types.vector(3, ti.i32),
+                     min_r2: ti.f32, max_r2: ti.f32, min_z: ti.f32, max_z: ti.f32, inv_res: ti.f32):
+    for i in ti.static(range(3)):
+        m.stats[i] = 0
+    for n in range(label.shape[0]):
+        p = ti.Vector([pts[n, 0], pts[n, 1], pts[n, 2]])
+        ok, w, q = locate(m, p, R, t, center, limit, min_r2, max_r2, min_z, max_z, inv_res)
+        if ok:
+            u = add_point(m, w, q)
+            if label[n] > 0:  # train id 0 (unlabeled) counts as a point but adds no evidence
+                m.s_hist[u, label[n]] += 1.0
 
 
 @ti.kernel
 def rasterize_probs(m: ti.template(),
-                    vox: ti.types.ndarray(dtype=ti.i32, ndim=2),       # (N, 3)
-                    xyz: ti.types.ndarray(dtype=ti.f32, ndim=2),       # (N, 3)
-                    prob: ti.types.ndarray(dtype=ti.f32, ndim=2)):     # (N, C), class 0 ignored
-    for p in range(prob.shape[0]):
-        u = m.wrap(ti.Vector([vox[p, 0], vox[p, 1], vox[p, 2]]))
-        m.s_npts[u] += 1
-        for a in ti.static(range(3)):
-            m.s_sum[u, a] += xyz[p, a]
-        for c in ti.static(range(1, m.C)):
-            if prob[p, c] > 0:
-                m.s_hist[u, c] += prob[p, c]
+                    pts: ti.types.ndarray(dtype=ti.f32, ndim=2),       # (N, 3) sensor frame
+                    prob: ti.types.ndarray(dtype=ti.f32, ndim=2),      # (N, C), class 0 ignored
+                    R: ti.types.matrix(3, 3, ti.f32), t: ti.types.vector(3, ti.f32),
+                    center: ti.types.vector(3, ti.i32), limit: ti.types.vector(3, ti.i32),
+                    min_r2: ti.f32, max_r2: ti.f32, min_z: ti.f32, max_z: ti.f32, inv_res: ti.f32):
+    for i in ti.static(range(3)):
+        m.stats[i] = 0
+    for n in range(prob.shape[0]):
+        p = ti.Vector([pts[n, 0], pts[n, 1], pts[n, 2]])
+        ok, w, q = locate(m, p, R, t, center, limit, min_r2, max_r2, min_z, max_z, inv_res)
+        if ok:
+            u = add_point(m, w, q)
+            for c in ti.static(range(1, m.C)):
+                if prob[n, c] > 0:
+                    m.s_hist[u, c] += prob[n, c]
 
 
 @ti.kernel
 def clear_scan_layer(m: ti.template()):
     """Free every scan-layer leaf block (its memory is recycled zero-filled), then the top cells."""
     for I in ti.grouped(m.s_blk):
-        ti.deactivate(m.s_blk, I)
+        ti.deactivate(m.s_blk, [I[0], I[1], I[2]])
 
 
 @ti.kernel
 def clear_scan_top(m: ti.template()):
     for I in ti.grouped(m.s_top):
-        ti.deactivate(m.s_top, I)
+        ti.deactivate(m.s_top, [I[0], I[1], I[2]])

@@ -46,7 +46,9 @@ def write_training(m: ti.template(),
                    prior: ti.f32, ell_min: ti.f32, ell_max: ti.f32, adaptive: ti.i32,
                    counting: ti.i32,
                    out_xyz: ti.types.ndarray(dtype=ti.f32, ndim=2),    # (K, 3) centroid, local m
-                   out_hist: ti.types.ndarray(dtype=ti.f32, ndim=2)):  # (K, C) class evidence
+                   out_hist: ti.types.ndarray(dtype=ti.f32, ndim=2),   # (K, C) class evidence
+                   out_classes: ti.types.ndarray(dtype=ti.i32, ndim=1)):  # (K,) bit c: evidence
+
     for I in ti.grouped(m.s_npts):
         total = evidence_total(m, I, min_points)
         if total > 0:
@@ -54,9 +56,13 @@ def write_training(m: ti.template(),
             slot = m.s_bstart[B] + ti.atomic_add(m.s_bcount[B], 1)
             scale = 1.0 / total if unit_weight else 1.0
             h = ti.Vector([0.0] * m.C)
+            mask = 0
             for c in ti.static(range(m.C)):
                 h[c] = m.s_hist[I, c] * scale
                 out_hist[slot, c] = h[c]
+                if h[c] > 0:
+                    mask |= 1 << c
+            out_classes[slot] = mask
             n = ti.cast(m.s_npts[I], ti.f32)
             for a in ti.static(range(3)):
                 out_xyz[slot, a] = m.s_sum[I, a] / n

@@ -21,13 +21,13 @@ from kernels import bki, query as kquery, rasterize, training, window
 from kernels.layout import LEAF, TOP, MapFields, storage_extent
 from tisem import backend
 from tisem.config import MapperConfig
-from tisem.preprocess import select_points, to_frame
 from tisem.scan import Scan
 from tisem.snapshot import MapSnapshot
 from tisem.store import KEY_LIMIT, BlockStore
 
 log = logging.getLogger(__name__)
 
+FAR_M = 1.0e6   # query coordinates are clamped to this (int32 voxel indices at any resolution)
 STAGES = ("preprocess", "window", "rasterize", "filter", "entropy", "kernel", "clear")
 
 
@@ -51,13 +51,15 @@ class _Buffers:
 
     xyz: np.ndarray = field(default_factory=lambda: np.zeros((0, 3), np.float32))
     hist: np.ndarray = field(default_factory=lambda: np.zeros((0, 0), np.float32))
+    classes: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int32))
 
     def training(self, n: int, num_classes: int):
         if self.xyz.shape[0] < n:
             cap = max(n, int(self.xyz.shape[0] * 1.5))
             self.xyz = np.zeros((cap, 3), np.float32)
             self.hist = np.zeros((cap, num_classes), np.float32)
-        return self.xyz, self.hist
+            self.classes = np.zeros(cap, np.int32)
+        return self.xyz, self.hist, self.classes
 
 
 class Mapper:
@@ -83,8 +85,12 @@ class Mapper:
         self.half_vox = np.array([math.ceil(cfg.window_xy_m / self.res)] * 2
                                  + [math.ceil(cfg.window_z_m / self.res)], np.int64)
         self.half_blk = self.half_vox // LEAF + 1
-        if self.radius_vox >= TOP:
-            raise ValueError(f"kernel reach {reach} m is too long for {self.res} m voxels")
+        # points whose voxel is farther than this from the sensor's are dropped, so a kernel
+        # never reaches past the window
+        self._limit = self.half_vox - self.radius_vox - 1
+        if self._reach_blk > bki.MAX_REACH_BLK:
+            raise ValueError(f"kernel reach {reach} m is longer than {bki.MAX_REACH_BLK} leaf blocks "
+                             f"({bki.MAX_REACH_BLK * LEAF * self.res:.2f} m at {self.res} m voxels)")
         self.fields = MapFields(self.C, storage_extent(tuple(int(h) for h in self.half_vox)))
         self.store = BlockStore(self.C)
         self.origin_vox: np.ndarray | None = None   # global voxel index of local voxel 0
@@ -107,37 +113,43 @@ class Mapper:
         """Fuse one scan into the map (steps 1-8 of SPEC §1)."""
         self._check_alive()
         cfg = self.config
+        m = self.fields
         rep = IntegrationReport(points=scan.num_points)
         clock = self._clock()
-        vox, xyz, labels, probs, sensor_local = self._preprocess(scan, rep)
+        pts, labels, probs, R, t_local = self._prepare(scan, rep)
         t_rel = float(scan.stamp_s - self.t0)
+        center = np.floor(t_local / self.res).astype(np.int64)
         clock("preprocess")
-        self._move_window(np.floor(sensor_local / self.res).astype(np.int64), rep)
+        self._move_window(center, rep)
         clock("window")
-        if len(vox) == 0:
-            self._finish(scan)
-            return rep
-        m = self.fields
+        geometry = (ti.Matrix(R.tolist()), ti.Vector(t_local.tolist()),
+                    ti.Vector(center.tolist()), ti.Vector(self._limit.tolist()),
+                    cfg.min_range_m ** 2, cfg.max_range_m ** 2, cfg.min_z_m, cfg.max_z_m,
+                    1.0 / self.res)
         if probs is None:
-            rasterize.rasterize_labels(m, vox, xyz, labels)
+            rasterize.rasterize_labels(m, pts, labels, *geometry)
         else:
-            rasterize.rasterize_probs(m, vox, xyz, probs)
+            rasterize.rasterize_probs(m, pts, probs, *geometry)
+        stats = m.stats.to_numpy()
+        rep.used = int(stats[rasterize.USED])
+        rep.dropped_range = int(stats[rasterize.OUT_OF_RANGE]) - rep.dropped_nonfinite
+        rep.dropped_window = int(stats[rasterize.OUT_OF_WINDOW])
         clock("rasterize")
         training.count_training(m, cfg.min_points)
         n = training.assign_slots(m)
         clock("filter")
-        train_xyz, train_hist = self._buf.training(max(n, 1), self.C)
+        train_xyz, train_hist, train_classes = self._buf.training(max(n, 1), self.C)
         training.write_training(
             m, t_rel, self._inv_tau, cfg.min_points, int(cfg.point_weight == "unit"), cfg.prior,
             cfg.ell_min_m if cfg.adaptive else cfg.ell_fixed_vox * self.res, cfg.ell_max_m,
-            int(cfg.adaptive), int(not cfg.uses_kernel), train_xyz, train_hist)
+            int(cfg.adaptive), int(not cfg.uses_kernel), train_xyz, train_hist, train_classes)
         rep.training_voxels = int(n)
         clock("entropy")
         if cfg.uses_kernel and n:
             stamp = self.scans + 1
             bki.mark_receivers(m, stamp, self._reach_blk)
-            bki.gather_update(m, ti.Vector(self.center_vox.astype(np.int32).tolist()), stamp,
-                              t_rel, self._inv_tau, self.res, cfg.sigma0, train_xyz, train_hist)
+            bki.gather_update(m, ti.Vector(center.tolist()), stamp, t_rel, self._inv_tau,
+                              self.res, cfg.sigma0, train_xyz, train_hist, train_classes)
         clock("kernel")
         rasterize.clear_scan_layer(m)
         rasterize.clear_scan_top(m)
@@ -166,37 +178,42 @@ class Mapper:
             last[0] = now
         return tick
 
-    def _preprocess(self, scan: Scan, rep: IntegrationReport):
-        """Step 1 plus every range check: returns int32 voxels, float32 local xyz and evidence."""
+    def _prepare(self, scan: Scan, rep: IntegrationReport):
+        """Check the scan's evidence and pose; the kernels do the per-point work (step 1)."""
         cfg = self.config
         where = f"scan {scan.index}" + (f" ({scan.name})" if scan.name else "")
-        sel = select_points(scan, cfg)
-        rep.dropped_nonfinite, rep.dropped_range = sel.dropped_nonfinite, sel.dropped_range
-        labels, probs = sel.labels, sel.probs
+        pts = np.ascontiguousarray(scan.points_sensor, dtype=np.float32)
+        finite = np.isfinite(pts).all(axis=1)
+        rep.dropped_nonfinite = int(len(pts) - np.count_nonzero(finite))
+        if rep.dropped_nonfinite:
+            pts = pts.copy()
+            pts[~finite] = 2.0 * cfg.max_range_m + 1.0   # out of range: the kernel drops them
+        labels = probs = None
+        if scan.labels is not None:
+            labels = np.ascontiguousarray(scan.labels, dtype=np.int32)
+            if labels.size and (labels.min() < 0 or labels.max() >= self.C):
+                raise ValueError(f"{where}: train ids must lie in [0, {self.C}), got "
+                                 f"[{labels.min()}, {labels.max()}]")
+        else:
+            probs = np.ascontiguousarray(scan.probs, dtype=np.float32)
+            if probs.shape[1] != self.C:
+                raise ValueError(f"{where}: {probs.shape[1]} probability columns, "
+                                 f"the map has {self.C} classes")
+            if not np.all(np.isfinite(probs[finite])) or (probs.size and probs.min() < 0):
+                raise ValueError(f"{where}: probabilities must be finite and >= 0")
+            if rep.dropped_nonfinite:
+                probs = np.where(finite[:, None], probs, 0).astype(np.float32)
         T = scan.T_world_sensor
         if self.origin_vox is None:
             # the origin is block-aligned at the first sensor position, so local coordinates stay
             # small (float32 keeps mm precision within ~10 km of it)
             self.origin_vox = (np.floor(T[:3, 3] / self.res).astype(np.int64) // TOP) * TOP
             self.t0 = float(scan.stamp_s)
-        origin_m = self.origin_vox * self.res
-        sensor_local = T[:3, 3] - origin_m
-        sensor_vox = np.floor(sensor_local / self.res).astype(np.int64)
-        if np.any(np.abs(sensor_vox) + self.half_vox > KEY_LIMIT):
-            raise ValueError(f"{where}: the sensor is {np.abs(sensor_local).max() / 1000:.0f} km from "
+        t_local = T[:3, 3] - self.origin_vox * self.res
+        if np.any(np.abs(t_local) / self.res + self.half_vox > KEY_LIMIT):
+            raise ValueError(f"{where}: the sensor is {np.abs(t_local).max() / 1000:.0f} km from "
                              f"the map origin; tisem maps within {KEY_LIMIT * self.res / 1000:.0f} km")
-        local = to_frame(sel.points_sensor, T, origin_m)
-        vox = np.floor(local / self.res).astype(np.int64)
-        inside = np.all(np.abs(vox - sensor_vox) <= self.half_vox - self.radius_vox - 1, axis=1)
-        rep.dropped_window = int(len(vox) - np.count_nonzero(inside))
-        if rep.dropped_window:
-            vox, local = vox[inside], local[inside]
-            labels = labels[inside] if labels is not None else None
-            probs = probs[inside] if probs is not None else None
-        rep.used = int(len(vox))
-        return (np.ascontiguousarray(vox, dtype=np.int32), np.ascontiguousarray(local, np.float32),
-                labels if labels is None else np.ascontiguousarray(labels),
-                probs if probs is None else np.ascontiguousarray(probs), sensor_local)
+        return pts, labels, probs, T[:3, :3].astype(np.float32), t_local
 
     # ------------------------------------------------------------------ window and store
     def _move_window(self, new_center: np.ndarray, rep: IntegrationReport | None = None) -> None:
@@ -252,16 +269,22 @@ class Mapper:
         probs = np.zeros((n, self.C), np.float32) if with_probs else None
         if self.origin_vox is None or n == 0:
             return labels, probs
-        finite = np.all(np.isfinite(pts), axis=1)
-        vox = np.floor(pts / self.res).astype(np.int64) - self.origin_vox
-        vox[~finite] = 0
-        live = finite & np.all(np.abs(vox - self.center_vox) <= self.half_vox, axis=1)
-        vox32 = np.ascontiguousarray(np.where(live[:, None], vox, 0), np.int32)
+        finite = np.isfinite(pts).all(axis=1)
+        # local coordinates; far or non-finite points are clamped so their voxel index still fits
+        # an int32 in the kernel (they land outside the window either way)
+        local = np.clip(np.where(finite[:, None], pts - self.origin_vox * self.res, 0.0),
+                        -FAR_M, FAR_M).astype(np.float32)
+        inside = np.zeros(n, np.int32)
         out_prob = probs if with_probs else np.zeros((0, self.C), np.float32)
-        kquery.query(self.fields, vox32, live.astype(np.int32), labels, out_prob, int(with_probs))
-        rest = finite & ~live & np.all(np.abs(vox) <= KEY_LIMIT, axis=1)
+        kquery.query(self.fields, local, ti.Vector(self.center_vox.tolist()),
+                     ti.Vector(self.half_vox.tolist()), 1.0 / self.res, labels, inside, out_prob,
+                     int(with_probs))
+        rest = finite & (inside == 0)
         if len(self.store) and rest.any():
-            counts, found = self.store.lookup(vox[rest])
+            vox = np.floor(pts[rest] / self.res).astype(np.int64) - self.origin_vox
+            ok = np.all(np.abs(vox) <= KEY_LIMIT, axis=1)
+            counts = np.zeros((len(vox), self.C), np.float32)
+            counts[ok], _ = self.store.lookup(vox[ok])
             snap = MapSnapshot(np.zeros((len(counts), 3), np.int64), counts,
                                np.zeros(len(counts)), np.zeros(len(counts), np.float32), self.res)
             labels[rest] = snap.labels()

@@ -1,0 +1,64 @@
+"""Shared pieces of the benchmarks: where the data is, how scans are replayed, the device line."""
+from __future__ import annotations
+
+import argparse
+import platform
+import resource
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+from tisem.scan import Scan
+
+KITTI_MINI = Path(__file__).resolve().parents[2] / "shared" / "data" / "semantickitti_08_mini"
+
+
+def add_data_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--data", type=Path, default=None,
+                   help="SemanticKITTI sequence folder (default: ../shared/data/semantickitti_08_mini "
+                        "when present, else a synthetic street)")
+    p.add_argument("--synthetic", action="store_true", help="use a synthetic street instead")
+    p.add_argument("--arch", choices=("cpu", "cuda"), default="cpu")
+    p.add_argument("--threads", type=int, default=2)
+    p.add_argument("--json", type=Path, help="write the results as JSON here")
+
+
+def load_scans(args, count: int) -> tuple[list[Scan], str]:
+    """Up to `count` distinct scans from --data, the mini KITTI data, or a synthetic street."""
+    from tisem.io.semantickitti import SemanticKittiSequence
+    data = args.data
+    if data is None and not args.synthetic and KITTI_MINI.is_dir():
+        data = KITTI_MINI
+    if data is not None:
+        seq = SemanticKittiSequence(data, last=None)
+        scans = [s for s in seq if isinstance(s, Scan)][:count]
+        return scans, f"{data} ({len(scans)} scans)"
+    from tisem.synth.sequence import iter_synthetic, to_scan
+    scans = [to_scan(f) for f in iter_synthetic(count, seed=0)]
+    return scans, f"synthetic street ({len(scans)} scans)"
+
+
+def replay(scans: list[Scan], n: int, period_s: float = 0.1):
+    """n scans cycling through `scans`, timestamps continuing at `period_s` so time moves on.
+
+    With few distinct scans this is the steady state of a sensor circling one place: the map
+    is revisited, not grown, which is what a sensor at 10 Hz sees from one scan to the next.
+    """
+    for k in range(n):
+        s = scans[k % len(scans)]
+        yield Scan(s.points_sensor, s.T_world_sensor, k * period_s, labels=s.labels, probs=s.probs,
+                   gt_labels=s.gt_labels, index=k, name=s.name)
+
+
+def peak_rss_mb() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def device_line(arch: str) -> str:
+    from tisem.backend import describe
+    return f"{describe()}, {platform.node()}, Python {platform.python_version()}"
+
+
+def median(xs) -> float:
+    return float(np.median(np.asarray(xs))) if len(xs) else float("nan")
