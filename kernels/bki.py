@@ -5,9 +5,8 @@ within its own kernel length L(v), then folds the sum into its counters. The wor
 grows with L(v)^3, so low-entropy voxels (short kernels) are cheap: the adaptive kernel pays
 only where the map is uncertain. No atomics: each voxel is written by one thread.
 
-Training points are sorted by leaf block (kernels/training.py). A receiving block first lists
-the non-empty training blocks within reach of any of its voxels (one sparse lookup per block,
-shared by its up to 64 voxels); each voxel then visits only listed blocks its sphere touches.
+Training points are sorted by leaf block (kernels/training.py), so a voxel visits only the
+training points of the blocks its kernel sphere touches, not every voxel cell within reach.
 """
 import math
 
@@ -19,9 +18,8 @@ from kernels.layout import LEAF
 # Evidence below this is float noise at the kernel's edge (g -> 0 as d -> L), not an update:
 # counting it would reset t_last and, with alpha = 0, wipe the voxel's history.
 MIN_UPDATE = 1e-6
-# Most neighbour blocks a receiving block can list: (2 * 2 + 1)^3 for a reach of two blocks.
+# Longest kernel, in leaf blocks, that mark_receivers' neighbourhood is sized for.
 MAX_REACH_BLK = 2
-MAX_LIST = (2 * MAX_REACH_BLK + 2) ** 3
 
 
 @ti.func
@@ -33,10 +31,33 @@ def sparse_kernel(r):
 
 
 @ti.kernel
-def mark_receivers(m: ti.template(), stamp: ti.i32, reach_blk: ti.i32):
+def fill_kernel_table(m: ti.template()):
+    n = m.kernel_lut.shape[0] - 1
+    for i in m.kernel_lut:
+        m.kernel_lut[i] = sparse_kernel(ti.sqrt(ti.min(i / n, 1.0)))    # entries are spaced in r^2
+
+
+@ti.func
+def sparse_kernel_of_r2(m: ti.template(), r2):
+    """g as a function of r^2 = (d / L)^2, linearly interpolated in a table.
+
+    Indexing by r^2 saves the square root, and the table saves a sine and a cosine per
+    (voxel, point) pair: the interpolation error is below 1e-6 of sigma0 (tested).
+    """
+    n = m.kernel_lut.shape[0] - 1
+    x = ti.min(r2, 1.0) * n
+    i = ti.min(ti.cast(x, ti.i32), n - 1)
+    f = x - i
+    return (1.0 - f) * m.kernel_lut[i] + f * m.kernel_lut[i + 1]
+
+
+@ti.kernel
+def mark_receivers(m: ti.template(), center_blk: ti.types.vector(3, ti.i32), stamp: ti.i32,
+                   reach_blk: ti.i32):
     """Stamp every live map block within `reach_blk` blocks of a block holding training points."""
-    for B in ti.grouped(m.s_bcount):
-        if m.s_bcount[B] > 0:
+    for B in ti.grouped(m.s_blk):
+        i, _ = m.table_index(m.unwrap_blk(B, center_blk), center_blk)
+        if m.b_count[i] > 0:
             for dx, dy, dz in ti.ndrange((-reach_blk, reach_blk + 1), (-reach_blk, reach_blk + 1),
                                          (-reach_blk, reach_blk + 1)):
                 nb = m.wrap_blk(B + ti.Vector([dx, dy, dz]))
@@ -58,49 +79,33 @@ def gather_update(m: ti.template(), center: ti.types.vector(3, ti.i32), stamp: t
                   hist: ti.types.ndarray(dtype=ti.f32, ndim=2),    # (K, C) block-sorted
                   classes: ti.types.ndarray(dtype=ti.i32, ndim=1)):  # (K,) bit c: hist[:, c] > 0
     blk_m = LEAF * resolution
+    center_blk = ti.floor(center / LEAF, ti.i32)
     for B in ti.grouped(m.blk_stamp):
         if m.blk_stamp[B] == stamp:
-            wb = m.unwrap(B * LEAF, center)              # world voxel of the block's corner
-            corner = wb.cast(ti.f32) * resolution
-            reach = 0.0
+            corner = m.unwrap(B * LEAF, center).cast(ti.f32) * resolution
             for q in range(LEAF * LEAF * LEAF):
-                u = B * LEAF + ti.Vector([q // (LEAF * LEAF), (q // LEAF) % LEAF, q % LEAF])
-                reach = ti.max(reach, m.ell[u])
-            # the non-empty training blocks within reach of this block, looked up once
-            lo = ti.floor((corner - reach) / blk_m, ti.i32)
-            hi = ti.floor((corner + blk_m + reach) / blk_m, ti.i32)
-            starts = ti.Vector([0] * MAX_LIST)
-            counts = ti.Vector([0] * MAX_LIST)
-            keys = ti.Vector([0] * MAX_LIST)
-            n_list = 0
-            span = hi - lo + 1
-            for bx, by, bz in ti.ndrange((lo[0], hi[0] + 1), (lo[1], hi[1] + 1), (lo[2], hi[2] + 1)):
-                sb = m.wrap_blk(ti.Vector([bx, by, bz]))
-                n = m.s_bcount[sb]                      # 0, without activating, where empty
-                if n > 0 and n_list < MAX_LIST:
-                    starts[n_list] = m.s_bstart[sb]
-                    counts[n_list] = n
-                    keys[n_list] = ((bx - lo[0]) * span[1] + (by - lo[1])) * span[2] + (bz - lo[2])
-                    n_list += 1
-            for q in range(LEAF * LEAF * LEAF):
-                u = B * LEAF + ti.Vector([q // (LEAF * LEAF), (q // LEAF) % LEAF, q % LEAF])
+                local = ti.Vector([q // (LEAF * LEAF), (q // LEAF) % LEAF, q % LEAF])
+                u = B * LEAF + local
                 ell = m.ell[u]
                 if ell > 0:
-                    centre = corner + (ti.Vector([q // (LEAF * LEAF), (q // LEAF) % LEAF, q % LEAF])
-                                       .cast(ti.f32) + 0.5) * resolution
+                    centre = corner + (local.cast(ti.f32) + 0.5) * resolution
                     ell2 = ell * ell
+                    lo = ti.floor((centre - ell) / blk_m, ti.i32)
+                    hi = ti.floor((centre + ell) / blk_m, ti.i32)
                     acc = ti.Vector([0.0] * m.C)
-                    for e in range(n_list):
-                        k3 = keys[e]
-                        b = lo + ti.Vector([k3 // (span[1] * span[2]), (k3 // span[2]) % span[1],
-                                            k3 % span[2]])
-                        b_lo = b.cast(ti.f32) * blk_m
-                        if box_distance2(centre, b_lo, b_lo + blk_m) < ell2:
-                            for p in range(starts[e], starts[e] + counts[e]):
+                    for bx, by, bz in ti.ndrange((lo[0], hi[0] + 1), (lo[1], hi[1] + 1),
+                                                 (lo[2], hi[2] + 1)):
+                        b_lo = ti.Vector([bx, by, bz]).cast(ti.f32) * blk_m
+                        # skip blocks the kernel's sphere does not reach before the sparse lookup
+                        cell, inside = m.table_index(ti.Vector([bx, by, bz]), center_blk)
+                        if inside and box_distance2(centre, b_lo, b_lo + blk_m) < ell2:
+                            n = m.b_count[cell]
+                            start = m.b_start[cell]
+                            for p in range(start, start + n):
                                 d = ti.Vector([xyz[p, 0], xyz[p, 1], xyz[p, 2]]) - centre
                                 d2 = d.dot(d)
                                 if d2 < ell2:
-                                    k = sigma0 * sparse_kernel(ti.sqrt(d2) / ell)
+                                    k = sigma0 * sparse_kernel_of_r2(m, d2 / ell2)
                                     mask = classes[p]
                                     for c in ti.static(range(1, m.C)):
                                         if mask & (1 << c):

@@ -25,6 +25,7 @@ import taichi as ti
 LEAF = 4   # voxels per leaf block edge
 MID = 8    # leaf blocks per top cell edge
 TOP = LEAF * MID
+KERNEL_TABLE = 4096   # samples of the sparse kernel over r^2 in [0, 1]
 
 
 def _pow2_at_least(n: int) -> int:
@@ -44,7 +45,8 @@ def storage_extent(window_half_vox: tuple[int, int, int]) -> tuple[int, int, int
 class MapFields:
     """The Taichi fields of one map. Create after `ti.init`; never share across inits."""
 
-    def __init__(self, num_classes: int, extent: tuple[int, int, int]):
+    def __init__(self, num_classes: int, extent: tuple[int, int, int],
+                 table_half: tuple[int, int, int]):
         for n in extent:
             if n % TOP or n & (n - 1):
                 raise ValueError(f"storage extent {extent} must be powers of two >= {TOP}")
@@ -54,8 +56,7 @@ class MapFields:
         self.N_blk = tuple(n // LEAF for n in self.N)    # extent in leaf blocks
         self.N_top = tuple(n // TOP for n in self.N)     # extent in top cells
         top_shape = tuple(n // TOP for n in self.N)
-        # one SNode tree per map, built and finalised here, so several maps can live in one
-        # Taichi runtime and each can be freed (`destroy`) without touching the others
+        # one SNode tree per map, built and finalised here
         fb = ti.FieldsBuilder()
 
         # map layer: ~88 B per active voxel (20 x f32 counters, t_last, ell) + bitmask
@@ -70,32 +71,40 @@ class MapFields:
         self.blk_stamp = ti.field(ti.i32)   # per leaf block: the last scan whose kernel reaches it
         self.blk.place(self.blk_stamp)
 
-        # scan layer: per voxel the scan's histogram, coordinate sum and point count; per leaf
-        # block where its training points start in the (block-sorted) training arrays, and how many
+        # scan layer: per voxel the scan's histogram, coordinate sum and point count
         self.s_hist = ti.field(ti.f32)
         self.s_sum = ti.field(ti.f32)
         self.s_npts = ti.field(ti.i32)
-        self.s_bcount = ti.field(ti.i32)
-        self.s_bstart = ti.field(ti.i32)
         self.s_top = fb.pointer(ti.ijk, top_shape)
         self.s_blk = self.s_top.pointer(ti.ijk, MID)
-        self.s_blk.place(self.s_bcount, self.s_bstart)
         self.s_vox = self.s_blk.bitmasked(ti.ijk, LEAF)
         self.s_vox.dense(ti.l, self.C).place(self.s_hist)
         self.s_vox.dense(ti.l, 3).place(self.s_sum)
         self.s_vox.place(self.s_npts)
 
+        # the scan's training points per leaf block (count, first slot in the block-sorted
+        # arrays): a dense table centred on the sensor, since the kernel update looks these up
+        # tens of times per voxel and a dense read is several times cheaper than a sparse one
+        self.table_half = tuple(int(h) for h in table_half)
+        self.b_count = ti.field(ti.i32)
+        self.b_start = ti.field(ti.i32)
+        fb.dense(ti.ijk, tuple(2 * h + 1 for h in self.table_half)).place(self.b_count, self.b_start)
+
         self.counter = ti.field(ti.i32)
         self.stats = ti.field(ti.i32)       # per-scan point statistics (kernels/rasterize.py)
         fb.place(self.counter)
         fb.dense(ti.i, 3).place(self.stats)
+        self.kernel_lut = ti.field(ti.f32)  # g(r) sampled in r^2 (kernels/bki.py)
+        fb.dense(ti.i, KERNEL_TABLE + 1).place(self.kernel_lut)
         self._tree = fb.finalize()
 
-    def destroy(self) -> None:
-        """Free the map's memory pool back to Taichi (the fields are unusable afterwards)."""
-        if self._tree is not None:
-            self._tree.destroy()
-            self._tree = None
+    @ti.func
+    def table_index(self, world_blk, center_blk):
+        """(index into b_count / b_start, whether the block lies inside the table)."""
+        i = world_blk - center_blk + ti.Vector(self.table_half)
+        inside = (0 <= i[0] <= 2 * self.table_half[0] and 0 <= i[1] <= 2 * self.table_half[1]
+                  and 0 <= i[2] <= 2 * self.table_half[2])
+        return i, inside
 
     @ti.func
     def wrap(self, w):
@@ -107,6 +116,17 @@ class MapFields:
         """World leaf-block index -> storage leaf-block index."""
         return ti.Vector([b[0] & (self.N_blk[0] - 1), b[1] & (self.N_blk[1] - 1),
                           b[2] & (self.N_blk[2] - 1)])
+
+    @ti.func
+    def unwrap_blk(self, b, center_blk):
+        """Storage leaf-block index -> world leaf-block index nearest `center_blk`."""
+        w = ti.Vector([0, 0, 0])
+        for a in ti.static(range(3)):
+            d = (b[a] - center_blk[a]) & (self.N_blk[a] - 1)
+            if d >= self.N_blk[a] // 2:
+                d -= self.N_blk[a]
+            w[a] = center_blk[a] + d
+        return w
 
     @ti.func
     def unwrap(self, u, center):

@@ -22,26 +22,43 @@ def evidence_total(m: ti.template(), I, min_points):
     return total
 
 
+@ti.func
+def block_cell(m: ti.template(), I, center_blk):
+    """Table cell of the leaf block holding storage voxel I (always inside: see Mapper)."""
+    i, _ = m.table_index(m.unwrap_blk(I // LEAF, center_blk), center_blk)
+    return i
+
+
 @ti.kernel
-def count_training(m: ti.template(), min_points: ti.i32):
+def count_training(m: ti.template(), center_blk: ti.types.vector(3, ti.i32), min_points: ti.i32):
     for I in ti.grouped(m.s_npts):
         if evidence_total(m, I, min_points) > 0:
-            m.s_bcount[I // LEAF] += 1
+            m.b_count[block_cell(m, I, center_blk)] += 1
 
 
 @ti.kernel
-def assign_slots(m: ti.template()) -> ti.i32:
+def assign_slots(m: ti.template(), center_blk: ti.types.vector(3, ti.i32)) -> ti.i32:
     m.counter[None] = 0
-    for B in ti.grouped(m.s_bcount):
-        n = m.s_bcount[B]
+    for B in ti.grouped(m.s_blk):
+        i, _ = m.table_index(m.unwrap_blk(B, center_blk), center_blk)
+        n = m.b_count[i]
         if n > 0:
-            m.s_bstart[B] = ti.atomic_add(m.counter[None], n)
-            m.s_bcount[B] = 0    # reused as the fill cursor; write_training counts it back up
+            m.b_start[i] = ti.atomic_add(m.counter[None], n)
+            m.b_count[i] = 0     # reused as the fill cursor; write_training counts it back up
     return m.counter[None]
 
 
 @ti.kernel
-def write_training(m: ti.template(),
+def clear_table(m: ti.template(), center_blk: ti.types.vector(3, ti.i32)):
+    """Zero the table cells this scan used (only scan blocks can have training points)."""
+    for B in ti.grouped(m.s_blk):
+        i, _ = m.table_index(m.unwrap_blk(B, center_blk), center_blk)
+        m.b_count[i] = 0
+        m.b_start[i] = 0
+
+
+@ti.kernel
+def write_training(m: ti.template(), center_blk: ti.types.vector(3, ti.i32),
                    t: ti.f32, inv_tau: ti.f32, min_points: ti.i32, unit_weight: ti.i32,
                    prior: ti.f32, ell_min: ti.f32, ell_max: ti.f32, adaptive: ti.i32,
                    counting: ti.i32,
@@ -52,8 +69,8 @@ def write_training(m: ti.template(),
     for I in ti.grouped(m.s_npts):
         total = evidence_total(m, I, min_points)
         if total > 0:
-            B = I // LEAF
-            slot = m.s_bstart[B] + ti.atomic_add(m.s_bcount[B], 1)
+            cell = block_cell(m, I, center_blk)
+            slot = m.b_start[cell] + ti.atomic_add(m.b_count[cell], 1)
             scale = 1.0 / total if unit_weight else 1.0
             h = ti.Vector([0.0] * m.C)
             mask = 0

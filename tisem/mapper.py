@@ -91,7 +91,14 @@ class Mapper:
         if self._reach_blk > bki.MAX_REACH_BLK:
             raise ValueError(f"kernel reach {reach} m is longer than {bki.MAX_REACH_BLK} leaf blocks "
                              f"({bki.MAX_REACH_BLK * LEAF * self.res:.2f} m at {self.res} m voxels)")
-        self.fields = MapFields(self.C, storage_extent(tuple(int(h) for h in self.half_vox)))
+        # the training-point table covers every block a scan point can fall in, plus the
+        # blocks a receiving voxel's kernel can reach from there
+        blk_m = LEAF * self.res
+        scan_half = np.array([cfg.max_range_m] * 2 + [max(abs(cfg.min_z_m), abs(cfg.max_z_m))])
+        table_half = np.ceil(scan_half / blk_m).astype(int) + 2 * self._reach_blk + 3
+        self.fields = MapFields(self.C, storage_extent(tuple(int(h) for h in self.half_vox)),
+                                tuple(int(h) for h in table_half))
+        bki.fill_kernel_table(self.fields)
         self.store = BlockStore(self.C)
         self.origin_vox: np.ndarray | None = None   # global voxel index of local voxel 0
         self.t0: float | None = None               # stamp of the first scan
@@ -135,22 +142,24 @@ class Mapper:
         rep.dropped_range = int(stats[rasterize.OUT_OF_RANGE]) - rep.dropped_nonfinite
         rep.dropped_window = int(stats[rasterize.OUT_OF_WINDOW])
         clock("rasterize")
-        training.count_training(m, cfg.min_points)
-        n = training.assign_slots(m)
+        center_blk = ti.Vector(np.floor_divide(center, LEAF).tolist())
+        training.count_training(m, center_blk, cfg.min_points)
+        n = training.assign_slots(m, center_blk)
         clock("filter")
         train_xyz, train_hist, train_classes = self._buf.training(max(n, 1), self.C)
         training.write_training(
-            m, t_rel, self._inv_tau, cfg.min_points, int(cfg.point_weight == "unit"), cfg.prior,
+            m, center_blk, t_rel, self._inv_tau, cfg.min_points, int(cfg.point_weight == "unit"), cfg.prior,
             cfg.ell_min_m if cfg.adaptive else cfg.ell_fixed_vox * self.res, cfg.ell_max_m,
             int(cfg.adaptive), int(not cfg.uses_kernel), train_xyz, train_hist, train_classes)
         rep.training_voxels = int(n)
         clock("entropy")
         if cfg.uses_kernel and n:
             stamp = self.scans + 1
-            bki.mark_receivers(m, stamp, self._reach_blk)
+            bki.mark_receivers(m, center_blk, stamp, self._reach_blk)
             bki.gather_update(m, ti.Vector(center.tolist()), stamp, t_rel, self._inv_tau,
                               self.res, cfg.sigma0, train_xyz, train_hist, train_classes)
         clock("kernel")
+        training.clear_table(m, center_blk)
         rasterize.clear_scan_layer(m)
         rasterize.clear_scan_top(m)
         clock("clear")

@@ -61,12 +61,18 @@ def _summary(conf: Confusion) -> dict:
 def run_pipeline(scans: Iterable[Scan | SkippedScan], cfg: RunConfig, out_dir: str | Path, *,
                  sequence_name: str = "00", total: int | None = None, progress: bool = True,
                  source_info: dict | None = None, mapper: Mapper | None = None,
-                 on_scan=None, write_outputs: bool = True) -> RunResult:
+                 on_scan=None, write_outputs: bool = True, checkpoint_every: int = 0,
+                 checkpoint_dir: str | Path | None = None, resume=None) -> RunResult:
     """Map every scan, then score and write everything (see module docstring).
 
     `scans` may be any iterable; when it can be iterated twice (a sequence object), the
     final-map pass reads the scans again instead of keeping them in memory.
-    `on_scan(mapper, scan, k)` is called after each integrated scan (checkpoints use it).
+    `on_scan(mapper, scan, k)` is called after each integrated scan.
+    `checkpoint_every=N` saves the map and the metrics so far every N mapped scans, atomically,
+    to `checkpoint_dir` (default `<out_dir>/checkpoint/`). `resume` (a results folder, its
+    checkpoint folder or file, or a `tisem.checkpoint.Checkpoint`) continues such a run: the
+    mapper comes from the checkpoint, scans with index <= its last integrated one are passed
+    over (not integrated again), and the metrics go on from the stored ones.
     """
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -74,13 +80,33 @@ def run_pipeline(scans: Iterable[Scan | SkippedScan], cfg: RunConfig, out_dir: s
     info = dict(source_info or {}, sequence=sequence_name)
     (out_dir / "run.json").write_text(json.dumps(info, indent=2, default=str))
 
+    ckpt = None
+    if resume is not None:
+        from tisem.checkpoint import open_checkpoint
+        if mapper is not None:
+            raise ValueError("give either mapper= or resume=, not both")
+        ckpt = open_checkpoint(resume)
+        ckpt.check_run_config(cfg)
+        mapper = ckpt.build_mapper()
     mapper = mapper or Mapper(cfg.mapper)
     online, input_conf = Confusion(mapper.C), Confusion(mapper.C)
     seconds, skipped, trajectory, kept = [], [], [], []
+    done_upto = None   # scans with index <= this were integrated before the checkpoint
+    if ckpt is not None:
+        ckpt.restore_progress(online, input_conf, seconds, skipped, trajectory)
+        done_upto = ckpt.last_index
+        log.info("resuming from %s: %d scans mapped, up to scan %s", ckpt.path, len(seconds),
+                 done_upto)
+    refused = {s.index for s in skipped}
+    ckpt_dir = Path(checkpoint_dir) if checkpoint_dir is not None else out_dir / "checkpoint"
     keep_in_memory = not _reiterable(scans)
     bar = tqdm(scans, total=total, unit="scan", desc=f"mapping ({cfg.mapper.mode})",
                disable=not progress)
     for k, item in enumerate(bar):
+        if done_upto is not None and item.index <= done_upto:
+            if keep_in_memory and not isinstance(item, SkippedScan) and item.index not in refused:
+                kept.append(item)   # still needed by the final-map pass
+            continue
         if isinstance(item, SkippedScan):
             skipped.append(item)
             log.warning("skipped scan %s (%s): %s", item.index, item.name, item.reason)
@@ -105,6 +131,11 @@ def run_pipeline(scans: Iterable[Scan | SkippedScan], cfg: RunConfig, out_dir: s
             kept.append(item)
         if on_scan is not None:
             on_scan(mapper, item, k)
+        if checkpoint_every and len(seconds) % checkpoint_every == 0:
+            from tisem.checkpoint import save_checkpoint
+            save_checkpoint(ckpt_dir, mapper, last_index=item.index, run_config=cfg,
+                            online=online, input_conf=input_conf, seconds=seconds,
+                            skipped=skipped, trajectory=trajectory, source=info)
         bar.set_postfix(voxels=f"{mapper.live_voxels / 1e3:.0f}k", refresh=False)
 
     # final-map protocol: every scan looked up in the finished map

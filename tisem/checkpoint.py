@@ -1,0 +1,227 @@
+"""Checkpoints, resume and `load_map` (issue 5, item 3).
+
+A checkpoint is a map file (`tisem.io.mapfile`) named `<results>/checkpoint/checkpoint.npz`,
+written atomically, whose meta holds everything a run needs to go on exactly where it stopped:
+
+    meta = {"kind": "checkpoint",
+            "last_index": 41,                  # Scan.index of the last integrated scan
+            "mapper_state": mapper.state(),    # origin, t0, window centre, scan count
+            "run_config": {...},               # the resolved RunConfig (to_dict)
+            "progress": {"online": C x C, "input": C x C,    # confusion matrices so far
+                         "seconds": [...], "skipped": [...], "trajectory": [[x, y, z], ...]},
+            "source": {...}}                   # what run.json says (data folder, sequence, ...)
+
+The mapper config itself is the file's `mapper_config_yaml`, the map its snapshot arrays.
+
+    ckpt = load_checkpoint("results/run")          # a results folder, its checkpoint/ or the file
+    mapper = ckpt.build_mapper()                   # Mapper(config) + restore(snapshot, state)
+    run_pipeline(seq, ckpt.run_config(), "results/run", resume=ckpt)
+
+    mapper = tisem.load_map("results/run/map.npz") # any map file or checkpoint, ready to query
+    labels, probs = mapper.query(points_world)
+"""
+from __future__ import annotations
+
+import logging
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from tisem.config import RunConfig, _apply, mapper_config_from_dict, to_dict
+from tisem.errors import SkippedScan
+from tisem.io import mapfile
+from tisem.snapshot import MapSnapshot
+
+log = logging.getLogger(__name__)
+
+__all__ = ["CHECKPOINT_DIR", "Checkpoint", "checkpoint_file", "load_checkpoint",
+           "save_checkpoint", "load_map", "mapper_from_file"]
+
+CHECKPOINT_DIR = "checkpoint"          # <results>/checkpoint/checkpoint.npz
+MAP_NAME = "map.npz"
+
+
+def checkpoint_file(path: str | os.PathLike) -> Path:
+    """The checkpoint file of `path`: a results folder, its checkpoint folder, or the file."""
+    path = Path(path)
+    if path.is_file():
+        return path
+    for cand in (path / CHECKPOINT_DIR / mapfile.CHECKPOINT_NAME, path / mapfile.CHECKPOINT_NAME):
+        if cand.is_file():
+            return cand
+    raise FileNotFoundError(f"{path}: no checkpoint to resume from (looked for "
+                            f"{CHECKPOINT_DIR}/{mapfile.CHECKPOINT_NAME} and "
+                            f"{mapfile.CHECKPOINT_NAME} in it)")
+
+
+def _map_file(path: str | os.PathLike) -> Path:
+    """A map file to load: the file itself, or a results folder's map.npz (else checkpoint)."""
+    path = Path(path)
+    if path.is_file():
+        return path
+    if (path / MAP_NAME).is_file():
+        return path / MAP_NAME
+    if path.is_dir():
+        try:
+            return checkpoint_file(path)
+        except FileNotFoundError:
+            pass
+    raise FileNotFoundError(f"{path}: no map file (expected a .npz, or a folder with {MAP_NAME} "
+                            f"or {CHECKPOINT_DIR}/{mapfile.CHECKPOINT_NAME})")
+
+
+def _state_from_snapshot(snapshot: MapSnapshot) -> dict:
+    """A mapper state for a map file written without one: origin at the block-aligned median
+    key (keeps relative keys small), t0 at the oldest update, window at the origin."""
+    from kernels.layout import TOP
+    if len(snapshot) == 0:
+        return {"origin_vox": None}
+    origin = (np.median(snapshot.keys, axis=0).astype(np.int64) // TOP) * TOP
+    return {"origin_vox": origin.tolist(), "t0": float(snapshot.t_last.min()),
+            "center_vox": [0, 0, 0], "scans": 0, "last_stamp_s": None}
+
+
+@dataclass
+class Checkpoint:
+    """A loaded checkpoint (or map file): the map, its mapper config and the run's meta."""
+
+    path: Path
+    snapshot: MapSnapshot
+    mapper_config: dict
+    meta: dict
+
+    @property
+    def last_index(self) -> int | None:
+        """`Scan.index` of the last scan integrated before the checkpoint (None: unknown)."""
+        v = self.meta.get("last_index")
+        return None if v is None else int(v)
+
+    @property
+    def mapper_state(self) -> dict:
+        # checkpoints nest the state; map.npz files (outputs.write_map_files) store it as meta
+        state = self.meta.get("mapper_state", self.meta)
+        if state.get("origin_vox") is None and len(self.snapshot):
+            log.warning("%s: no mapper state stored; rebuilding one from the voxels", self.path)
+            return _state_from_snapshot(self.snapshot)
+        return state
+
+    @property
+    def results_dir(self) -> Path:
+        """The results folder the checkpoint belongs to (`<results>/checkpoint/checkpoint.npz`)."""
+        folder = self.path.parent
+        return folder.parent if folder.name == CHECKPOINT_DIR else folder
+
+    @property
+    def source(self) -> dict:
+        return dict(self.meta.get("source") or {})
+
+    def config(self):
+        """The `MapperConfig` the map was built with."""
+        return mapper_config_from_dict(self.mapper_config)
+
+    def run_config(self) -> RunConfig:
+        """The resolved `RunConfig` of the run (only the mapper part for a bare map file)."""
+        cfg = RunConfig()
+        data = self.meta.get("run_config")
+        if data:
+            _apply(cfg, data, f"{self.path} run_config")
+        cfg.mapper = self.config()
+        return cfg
+
+    def build_mapper(self, profile: bool = False):
+        """A fresh `Mapper(config)` restored to this checkpoint's map and state."""
+        from tisem.backend import ensure_initialized
+        from tisem.mapper import Mapper
+        ensure_initialized()
+        mapper = Mapper(self.config(), profile=profile)
+        mapper.restore(self.snapshot, self.mapper_state)
+        return mapper
+
+    # ------------------------------------------------------------------ pipeline progress
+    def check_run_config(self, cfg: RunConfig) -> None:
+        """Refuse to resume with a different mapper config; warn about other differences."""
+        mine = to_dict(self.config())
+        theirs = to_dict(cfg.mapper)
+        diff = sorted(k for k in set(mine) | set(theirs) if mine.get(k) != theirs.get(k))
+        if diff:
+            raise ValueError(f"{self.path}: the checkpoint was made with a different mapper config "
+                             f"({', '.join(f'{k}: {mine.get(k)!r} vs {theirs.get(k)!r}' for k in diff)}); "
+                             f"resume with Checkpoint.run_config()")
+        stored = self.meta.get("run_config") or {}
+        now = to_dict(cfg)
+        other = sorted(k for k in stored if k != "mapper" and stored[k] != now.get(k))
+        if other:
+            log.warning("resuming %s with a different run config: %s", self.path,
+                        ", ".join(f"{k}: {stored[k]!r} -> {now.get(k)!r}" for k in other))
+
+    def restore_progress(self, online, input_conf, seconds: list, skipped: list,
+                         trajectory: list) -> None:
+        """Fill the pipeline's accumulators (in place) with what the checkpoint holds."""
+        prog = self.meta.get("progress") or {}
+        for conf, name in ((online, "online"), (input_conf, "input")):
+            m = np.asarray(prog.get(name, np.zeros((conf.num_classes,) * 2)), np.int64)
+            if m.shape != (conf.num_classes, conf.num_classes):
+                raise mapfile.MapFileError(f"{self.path}: {name} confusion of shape {m.shape}, "
+                                           f"expected {conf.num_classes} classes")
+            conf._m += m   # Confusion has no public setter; add() would need the points back
+        seconds.extend(float(s) for s in prog.get("seconds", []))
+        skipped.extend(SkippedScan(**s) for s in prog.get("skipped", []))
+        trajectory.extend(np.asarray(t, np.float64) for t in prog.get("trajectory", []))
+
+
+def load_checkpoint(path: str | os.PathLike) -> Checkpoint:
+    """Read a checkpoint: `path` is a results folder, its checkpoint folder or the file."""
+    file = checkpoint_file(path)
+    snapshot, config, meta = mapfile.load_map_file(file)
+    return Checkpoint(file, snapshot, config, meta)
+
+
+def save_checkpoint(directory: str | os.PathLike, mapper, *, last_index: int | None = None,
+                    run_config: RunConfig | None = None, online=None, input_conf=None,
+                    seconds=(), skipped=(), trajectory=(), source: dict | None = None) -> Path:
+    """Save `mapper` (snapshot + state) and the run's progress to `directory/checkpoint.npz`.
+
+    Atomic (write, fsync, rename): a crash mid-save leaves the previous checkpoint intact.
+    """
+    C = mapper.C
+    zeros = np.zeros((C, C), np.int64)
+    meta = {
+        "kind": "checkpoint",
+        "last_index": None if last_index is None else int(last_index),
+        "mapper_state": mapper.state(),
+        "run_config": to_dict(run_config) if run_config is not None else None,
+        "progress": {
+            "online": online.matrix if online is not None else zeros,
+            "input": input_conf.matrix if input_conf is not None else zeros,
+            "seconds": [float(s) for s in seconds],
+            "skipped": [{"index": int(s.index), "name": str(s.name), "reason": str(s.reason)}
+                        for s in skipped],
+            "trajectory": [np.asarray(t, np.float64).tolist() for t in trajectory],
+        },
+        "source": dict(source or {}),
+    }
+    return mapfile.save_checkpoint(directory, mapper.snapshot(), to_dict(mapper.config), meta)
+
+
+def open_checkpoint(resume) -> Checkpoint:
+    """A `Checkpoint` as given, or loaded from a path (for `run_pipeline(resume=...)`)."""
+    return resume if isinstance(resume, Checkpoint) else load_checkpoint(resume)
+
+
+def mapper_from_file(path: str | os.PathLike):
+    """(Mapper, Checkpoint) for a map file / checkpoint / results folder."""
+    file = _map_file(path)
+    snapshot, config, meta = mapfile.load_map_file(file)
+    ckpt = Checkpoint(file, snapshot, config, meta)
+    return ckpt.build_mapper(), ckpt
+
+
+def load_map(path: str | os.PathLike):
+    """A ready `Mapper` from a `map.npz` (or a checkpoint, or a results folder): query it with
+    `load_map(path).query(points) -> labels, probs` without running the sequence again.
+
+    Initialises Taichi on the CPU when nothing has initialised it yet.
+    """
+    return mapper_from_file(path)[0]
