@@ -66,10 +66,9 @@ def mark_receivers(m: ti.template(), center_blk: ti.types.vector(3, ti.i32), sta
 
 
 @ti.func
-def box_distance2(p, lo, hi):
-    """Squared distance from point p to the axis-aligned box [lo, hi]."""
-    d = ti.max(lo - p, 0.0) + ti.max(p - hi, 0.0)
-    return d.dot(d)
+def axis_gap(x, lo, width):
+    """Distance along one axis from coordinate x to the interval [lo, lo + width]."""
+    return ti.max(lo - x, 0.0) + ti.max(x - lo - width, 0.0)
 
 
 @ti.kernel
@@ -77,7 +76,8 @@ def gather_update(m: ti.template(), center: ti.types.vector(3, ti.i32), stamp: t
                   t: ti.f32, inv_tau: ti.f32, resolution: ti.f32, sigma0: ti.f32,
                   xyz: ti.types.ndarray(dtype=ti.f32, ndim=2),     # (K, 3) training points
                   hist: ti.types.ndarray(dtype=ti.f32, ndim=2),    # (K, C) block-sorted
-                  classes: ti.types.ndarray(dtype=ti.i32, ndim=1)):  # (K,) bit c: hist[:, c] > 0
+                  classes: ti.types.ndarray(dtype=ti.i32, ndim=1),  # (K,) bit c: hist[:, c] > 0
+                  single: ti.types.ndarray(dtype=ti.i32, ndim=1)):  # (K,) the class, if only one
     blk_m = LEAF * resolution
     center_blk = ti.floor(center / LEAF, ti.i32)
     for B in ti.grouped(m.blk_stamp):
@@ -93,22 +93,33 @@ def gather_update(m: ti.template(), center: ti.types.vector(3, ti.i32), stamp: t
                     lo = ti.floor((centre - ell) / blk_m, ti.i32)
                     hi = ti.floor((centre + ell) / blk_m, ti.i32)
                     acc = ti.Vector([0.0] * m.C)
-                    for bx, by, bz in ti.ndrange((lo[0], hi[0] + 1), (lo[1], hi[1] + 1),
-                                                 (lo[2], hi[2] + 1)):
-                        b_lo = ti.Vector([bx, by, bz]).cast(ti.f32) * blk_m
-                        # skip blocks the kernel's sphere does not reach before the sparse lookup
-                        cell, inside = m.table_index(ti.Vector([bx, by, bz]), center_blk)
-                        if inside and box_distance2(centre, b_lo, b_lo + blk_m) < ell2:
-                            n = m.b_count[cell]
-                            start = m.b_start[cell]
-                            for p in range(start, start + n):
-                                d = ti.Vector([xyz[p, 0], xyz[p, 1], xyz[p, 2]]) - centre
-                                d2 = d.dot(d)
-                                if d2 < ell2:
-                                    k = sigma0 * sparse_kernel_of_r2(m, d2 / ell2)
-                                    mask = classes[p]
-                                    for c in ti.static(range(1, m.C)):
-                                        if mask & (1 << c):
-                                            acc[c] += k * hist[p, c]
+                    # plain nested loops (ti.ndrange would flatten them with an integer division
+                    # and modulo per iteration), pruned axis by axis with the separable distance
+                    # from the voxel centre to each block's box
+                    base = ti.Vector(m.table_half) - center_blk
+                    for bx in range(lo[0], hi[0] + 1):
+                        gx = axis_gap(centre[0], bx * blk_m, blk_m)
+                        for by in range(lo[1], hi[1] + 1):
+                            gy = axis_gap(centre[1], by * blk_m, blk_m)
+                            gxy = gx * gx + gy * gy
+                            if gxy < ell2:
+                                for bz in range(lo[2], hi[2] + 1):
+                                    gz = axis_gap(centre[2], bz * blk_m, blk_m)
+                                    cell = base + ti.Vector([bx, by, bz])
+                                    if gxy + gz * gz < ell2 and m.in_table(cell):
+                                        start = m.b_start[cell]
+                                        for p in range(start, start + m.b_count[cell]):
+                                            d = ti.Vector([xyz[p, 0], xyz[p, 1], xyz[p, 2]]) - centre
+                                            d2 = d.dot(d)
+                                            if d2 < ell2:
+                                                k = sigma0 * sparse_kernel_of_r2(m, d2 / ell2)
+                                                c1 = single[p]
+                                                if c1 > 0:      # one class: the common case
+                                                    acc[c1] += k * hist[p, c1]
+                                                else:
+                                                    mask = classes[p]
+                                                    for c in ti.static(range(1, m.C)):
+                                                        if mask & (1 << c):
+                                                            acc[c] += k * hist[p, c]
                     if acc.sum() > MIN_UPDATE:
                         fuse_voxel(m, u, acc, t, inv_tau)

@@ -99,12 +99,15 @@ class MapFields:
         self._tree = fb.finalize()
 
     @ti.func
+    def in_table(self, i):
+        return (0 <= i[0] <= 2 * self.table_half[0] and 0 <= i[1] <= 2 * self.table_half[1]
+                and 0 <= i[2] <= 2 * self.table_half[2])
+
+    @ti.func
     def table_index(self, world_blk, center_blk):
         """(index into b_count / b_start, whether the block lies inside the table)."""
         i = world_blk - center_blk + ti.Vector(self.table_half)
-        inside = (0 <= i[0] <= 2 * self.table_half[0] and 0 <= i[1] <= 2 * self.table_half[1]
-                  and 0 <= i[2] <= 2 * self.table_half[2])
-        return i, inside
+        return i, self.in_table(i)
 
     @ti.func
     def wrap(self, w):

@@ -64,7 +64,8 @@ def write_training(m: ti.template(), center_blk: ti.types.vector(3, ti.i32),
                    counting: ti.i32,
                    out_xyz: ti.types.ndarray(dtype=ti.f32, ndim=2),    # (K, 3) centroid, local m
                    out_hist: ti.types.ndarray(dtype=ti.f32, ndim=2),   # (K, C) class evidence
-                   out_classes: ti.types.ndarray(dtype=ti.i32, ndim=1)):  # (K,) bit c: evidence
+                   out_classes: ti.types.ndarray(dtype=ti.i32, ndim=1),  # (K,) bit c: evidence
+                   out_single: ti.types.ndarray(dtype=ti.i32, ndim=1)):  # (K,) the one class or 0
 
     for I in ti.grouped(m.s_npts):
         total = evidence_total(m, I, min_points)
@@ -74,12 +75,18 @@ def write_training(m: ti.template(), center_blk: ti.types.vector(3, ti.i32),
             scale = 1.0 / total if unit_weight else 1.0
             h = ti.Vector([0.0] * m.C)
             mask = 0
+            n_classes = 0
+            last = 0
             for c in ti.static(range(m.C)):
                 h[c] = m.s_hist[I, c] * scale
                 out_hist[slot, c] = h[c]
                 if h[c] > 0:
                     mask |= 1 << c
+                    n_classes += 1
+                    last = c
             out_classes[slot] = mask
+            # most voxels hold one class: the kernel update then needs one add, not a class loop
+            out_single[slot] = last if n_classes == 1 else 0
             n = ti.cast(m.s_npts[I], ti.f32)
             for a in ti.static(range(3)):
                 out_xyz[slot, a] = m.s_sum[I, a] / n

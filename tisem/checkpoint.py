@@ -222,6 +222,8 @@ def load_map(path: str | os.PathLike):
     """A ready `Mapper` from a `map.npz` (or a checkpoint, or a results folder): query it with
     `load_map(path).query(points) -> labels, probs` without running the sequence again.
 
-    Initialises Taichi on the CPU when nothing has initialised it yet.
+    Initialises Taichi on the CPU when nothing has initialised it yet. tisem holds one map per
+    Taichi runtime: in a process that already has a map, call `tisem.init_taichi()` first
+    (the old map becomes unusable), or `Mapper()` refuses with a RuntimeError.
     """
     return mapper_from_file(path)[0]

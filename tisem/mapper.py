@@ -52,6 +52,7 @@ class _Buffers:
     xyz: np.ndarray = field(default_factory=lambda: np.zeros((0, 3), np.float32))
     hist: np.ndarray = field(default_factory=lambda: np.zeros((0, 0), np.float32))
     classes: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int32))
+    single: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int32))
 
     def training(self, n: int, num_classes: int):
         if self.xyz.shape[0] < n:
@@ -59,7 +60,8 @@ class _Buffers:
             self.xyz = np.zeros((cap, 3), np.float32)
             self.hist = np.zeros((cap, num_classes), np.float32)
             self.classes = np.zeros(cap, np.int32)
-        return self.xyz, self.hist, self.classes
+            self.single = np.zeros(cap, np.int32)
+        return self.xyz, self.hist, self.classes, self.single
 
 
 class Mapper:
@@ -146,18 +148,18 @@ class Mapper:
         training.count_training(m, center_blk, cfg.min_points)
         n = training.assign_slots(m, center_blk)
         clock("filter")
-        train_xyz, train_hist, train_classes = self._buf.training(max(n, 1), self.C)
+        train = self._buf.training(max(n, 1), self.C)
         training.write_training(
             m, center_blk, t_rel, self._inv_tau, cfg.min_points, int(cfg.point_weight == "unit"), cfg.prior,
             cfg.ell_min_m if cfg.adaptive else cfg.ell_fixed_vox * self.res, cfg.ell_max_m,
-            int(cfg.adaptive), int(not cfg.uses_kernel), train_xyz, train_hist, train_classes)
+            int(cfg.adaptive), int(not cfg.uses_kernel), *train)
         rep.training_voxels = int(n)
         clock("entropy")
         if cfg.uses_kernel and n:
             stamp = self.scans + 1
             bki.mark_receivers(m, center_blk, stamp, self._reach_blk)
             bki.gather_update(m, ti.Vector(center.tolist()), stamp, t_rel, self._inv_tau,
-                              self.res, cfg.sigma0, train_xyz, train_hist, train_classes)
+                              self.res, cfg.sigma0, *train)
         clock("kernel")
         training.clear_table(m, center_blk)
         rasterize.clear_scan_layer(m)
