@@ -27,19 +27,22 @@ class MapperConfig:
     max_z_m: float = 8.0
     # 3. redundant voxel filtering
     min_points: int = 1
-    # 4.-6. entropy, adaptive length, sparse kernel
-    prior: float = 1e-3              # added to every class before the entropy is taken
+    # 4.-6. entropy, adaptive length, sparse kernel (defaults measured: README "Parameters")
+    prior: float = 2.0               # pseudo-count added to every class before the entropy is
+                                     # taken: entropy then falls only as evidence piles up, so
+                                     # sparse, young or contradicted voxels get long kernels
     sigma0: float = 1.0
     ell_min_m: float = 0.4
-    ell_max_m: float = 0.8
+    ell_max_m: float = 1.2
     ell_fixed_vox: float = 4.0       # bki: fixed kernel length, in voxels
-    point_weight: str = "unit"       # unit: each training voxel votes once; count: by its points
+    point_weight: str = "count"      # count: a training voxel weighs by its points; unit: once
     # 8. temporal fusion
-    tau_s: float = 2.0               # decay time constant (st mode)
+    tau_s: float = 5.0               # decay time constant (st mode)
     # live window (toroidal storage; blocks outside the box leave the field)
     window_xy_m: float = 200.0       # half-size of the live window around the sensor
     window_z_m: float = 24.0
-    max_live_blocks: int = 400_000   # hard cap on live 4^3 blocks (~2.2 GB? no: see layout.py)
+    max_live_blocks: int = 100_000   # hard cap on live 4^3 leaf blocks (~5.7 KB each), which
+                                     # keeps the sparse pools far from taichi 1.7.4's 1 GiB bug
 
     def validate(self) -> None:
         if self.mode not in MODES:
