@@ -1,0 +1,116 @@
+"""The paper's Table I: fixed kernel lengths of 1, 2, 4, 6 voxels against the adaptive length.
+
+    python benchmarks/kernel_length.py                       # mini KITTI data and a synthetic street
+    python benchmarks/kernel_length.py --data DIR --scans 10 --json table1.json
+
+Every row maps the same scans with plain accumulation (modes `bki` and `adaptive`, so the only
+difference is the kernel length) in a fresh Taichi runtime; the first scan, which compiles the
+kernels, is timed apart. Accuracy and mIoU follow the final-map protocol (SPEC §3). The `st`
+row (adaptive + decay, the default) is added for reference.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from benchmarks.common import KITTI_MINI, device_line, median
+
+FIXED_VOXELS = (1, 2, 4, 6)
+
+
+def parse_args(argv=None):
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--data", type=Path, default=None,
+                   help="SemanticKITTI sequence folder (default: the mini KITTI data when present)")
+    p.add_argument("--synthetic-scans", type=int, default=20,
+                   help="also run a synthetic street of this many scans (0: skip)")
+    p.add_argument("--scans", type=int, default=None, help="use at most this many scans of --data")
+    p.add_argument("--arch", choices=("cpu", "cuda"), default="cpu")
+    p.add_argument("--threads", type=int, default=2)
+    p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE")
+    p.add_argument("--json", type=Path, help="write the rows as JSON here")
+    return p.parse_args(argv)
+
+
+def rows_for(scans, label: str, args) -> list[dict]:
+    import taichi as ti
+    from tisem.backend import init_taichi
+    from tisem.config import load_config
+    from tisem.evaluate import Confusion
+    from tisem.mapper import Mapper
+
+    settings = [(f"fixed {v} vox", ["mode=bki", f"ell_fixed_vox={v}"]) for v in FIXED_VOXELS]
+    settings += [("adaptive", ["mode=adaptive"]), ("adaptive + decay (st)", ["mode=st"])]
+    rows = []
+    for name, sets in settings:
+        cfg = load_config(None, [*args.overrides, *sets]).mapper
+        init_taichi(args.arch, threads=args.threads)
+        mapper = Mapper(cfg)
+        seconds = []
+        for scan in scans:
+            ti.sync()
+            t0 = time.perf_counter()
+            mapper.integrate(scan)
+            ti.sync()
+            seconds.append(time.perf_counter() - t0)
+        conf = Confusion(mapper.C)
+        for scan in scans:
+            labels, _ = mapper.query(scan.points_world(), with_probs=False)
+            conf.add(scan.gt_labels, labels)
+        m = conf.metrics()
+        steady = seconds[1:] if len(seconds) > 1 else seconds
+        length = (f"{cfg.ell_fixed_vox * cfg.resolution_m:.1f} m" if cfg.mode == "bki"
+                  else f"{cfg.ell_min_m:.1f}-{cfg.ell_max_m:.1f} m")
+        rows.append({"data": label, "kernel": name, "length": length,
+                     "seconds_per_scan": median(steady), "seconds_total": float(np.sum(steady)),
+                     "compile_seconds": seconds[0] - median(steady), "scans": len(scans),
+                     "accuracy": m["accuracy"], "miou": m["miou"]})
+        print(f"  {label}: {name:>22}  {1000 * rows[-1]['seconds_per_scan']:7.1f} ms/scan  "
+              f"acc {m['accuracy']:.4f}  mIoU {m['miou']:.4f}", flush=True)
+    return rows
+
+
+def format_rows(rows: list[dict]) -> str:
+    out = ["| data | kernel | length | s / scan | s for N scans (N) | accuracy | mIoU |",
+           "| --- | --- | --- | ---: | ---: | ---: | ---: |"]
+    for r in rows:
+        out.append(f"| {r['data']} | {r['kernel']} | {r['length']} | {r['seconds_per_scan']:.3f} | "
+                   f"{r['seconds_total']:.2f} ({r['scans'] - 1}) | {r['accuracy']:.4f} | {r['miou']:.4f} |")
+    return "\n".join(out)
+
+
+def run(args) -> dict:
+    from tisem.io.semantickitti import SemanticKittiSequence
+    from tisem.scan import Scan
+
+    rows = []
+    data = args.data if args.data is not None else (KITTI_MINI if KITTI_MINI.is_dir() else None)
+    if data is not None:
+        seq = SemanticKittiSequence(data, last=None if args.scans is None else args.scans - 1)
+        scans = [s for s in seq if isinstance(s, Scan)]
+        rows += rows_for(scans, f"{data.name}", args)
+    if args.synthetic_scans:
+        from tisem.synth.sequence import iter_synthetic, to_scan
+        scans = [to_scan(f) for f in iter_synthetic(args.synthetic_scans, seed=0)]
+        rows += rows_for(scans, f"synthetic street ({args.synthetic_scans})", args)
+    return {"device": device_line(args.arch), "arch": args.arch, "threads": args.threads,
+            "rows": rows}
+
+
+def main(argv=None) -> int:
+    args = parse_args(argv)
+    result = run(args)
+    print(f"\ndevice: {result['device']}\n")
+    print(format_rows(result["rows"]))
+    if args.json:
+        args.json.write_text(json.dumps(result, indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
