@@ -77,10 +77,14 @@ def rasterize_probs(m: ti.template(),
 
 
 @ti.kernel
-def clear_scan_layer(m: ti.template()):
-    """Free every scan-layer leaf block (its memory is recycled zero-filled), then the top cells."""
-    for I in ti.grouped(m.s_blk):
-        ti.deactivate(m.s_blk, [I[0], I[1], I[2]])
+def clear_scan_layer(m: ti.template(), center_blk: ti.types.vector(3, ti.i32)):
+    """Zero the training table cells of every scan-layer leaf block (only those can have been
+    used) and free the block (its memory is recycled zero-filled); clear_scan_top follows."""
+    for B in ti.grouped(m.s_blk):
+        i, _ = m.table_index(m.unwrap_blk(B, center_blk), center_blk)
+        m.b_count[i] = 0
+        m.b_start[i] = 0
+        ti.deactivate(m.s_blk, [B[0], B[1], B[2]])
 
 
 @ti.kernel

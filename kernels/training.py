@@ -49,15 +49,6 @@ def assign_slots(m: ti.template(), center_blk: ti.types.vector(3, ti.i32)) -> ti
 
 
 @ti.kernel
-def clear_table(m: ti.template(), center_blk: ti.types.vector(3, ti.i32)):
-    """Zero the table cells this scan used (only scan blocks can have training points)."""
-    for B in ti.grouped(m.s_blk):
-        i, _ = m.table_index(m.unwrap_blk(B, center_blk), center_blk)
-        m.b_count[i] = 0
-        m.b_start[i] = 0
-
-
-@ti.kernel
 def write_training(m: ti.template(), center_blk: ti.types.vector(3, ti.i32),
                    t: ti.f32, inv_tau: ti.f32, min_points: ti.i32, unit_weight: ti.i32,
                    prior: ti.f32, ell_min: ti.f32, ell_max: ti.f32, adaptive: ti.i32,

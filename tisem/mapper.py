@@ -161,8 +161,7 @@ class Mapper:
             bki.gather_update(m, ti.Vector(center.tolist()), stamp, t_rel, self._inv_tau,
                               self.res, cfg.sigma0, *train)
         clock("kernel")
-        training.clear_table(m, center_blk)
-        rasterize.clear_scan_layer(m)
+        rasterize.clear_scan_layer(m, center_blk)
         rasterize.clear_scan_top(m)
         clock("clear")
         self._finish(scan)
