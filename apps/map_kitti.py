@@ -82,6 +82,11 @@ def main(argv=None) -> int:
             return 2
     if args.input:
         cfg.input = args.input
+    try:   # first, so that a backend that cannot start costs nothing
+        device = cli.init_backend(args)
+    except cli.BackendError as exc:
+        log.error("%s", exc)
+        return 2
     out = cli.results_dir(args)
     data, sequence = args.data, args.sequence
     if data is None:
@@ -96,7 +101,6 @@ def main(argv=None) -> int:
     except DatasetError as exc:
         log.error("%s", exc)
         return 2
-    device = cli.init_backend(args)
     log.info("%s: sequence %s, %d scans, mode %s, %s", seq.sequence_dir, seq.sequence_name,
              len(seq), cfg.mapper.mode, device)
     result = run_pipeline(seq, cfg, out, sequence_name=seq.sequence_name, total=len(seq),

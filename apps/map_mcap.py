@@ -82,7 +82,11 @@ def main(argv=None) -> int:
 
     from tisem.pipeline import results_table, run_pipeline
     out = cli.results_dir(args)
-    device = cli.init_backend(args)
+    try:
+        device = cli.init_backend(args)
+    except cli.BackendError as exc:
+        log.error("%s", exc)
+        return 2
     result = run_pipeline(reader, cfg, out, sequence_name=args.sequence_name, total=reader.total,
                           progress=not args.no_progress,
                           source_info={"mcap": str(args.log.resolve()), "topic": reader.topic,

@@ -42,9 +42,18 @@ def run_config_from_args(args) -> RunConfig:
     return cfg
 
 
+class BackendError(RuntimeError):
+    """The requested Taichi backend cannot start (e.g. --arch cuda without a GPU)."""
+
+
 def init_backend(args) -> str:
-    from tisem.backend import init_taichi
-    return init_taichi(args.arch, threads=args.threads)
+    """Start Taichi as the options say; a backend that cannot start raises BackendError."""
+    from tisem.backend import describe, init_taichi
+    try:
+        init_taichi(args.arch, threads=args.threads)
+    except RuntimeError as exc:
+        raise BackendError(str(exc)) from None
+    return describe()
 
 
 def results_dir(args, root: str | Path = "results") -> Path:
