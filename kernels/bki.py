@@ -56,11 +56,12 @@ def mark_receivers(m: ti.template(), center_blk: ti.types.vector(3, ti.i32), sta
                    reach_blk: ti.i32):
     """Stamp every live map block within `reach_blk` blocks of a block holding training points."""
     for B in ti.grouped(m.s_blk):
-        i, _ = m.table_index(m.unwrap_blk(B, center_blk), center_blk)
+        wb = m.s_unwrap_blk(B, center_blk)
+        i, _ = m.table_index(wb, center_blk)
         if m.b_count[i] > 0:
             for dx, dy, dz in ti.ndrange((-reach_blk, reach_blk + 1), (-reach_blk, reach_blk + 1),
                                          (-reach_blk, reach_blk + 1)):
-                nb = m.wrap_blk(B + ti.Vector([dx, dy, dz]))
+                nb = m.wrap_blk(wb + ti.Vector([dx, dy, dz]))
                 if ti.is_active(m.blk, nb):
                     m.blk_stamp[nb] = stamp
 

@@ -18,7 +18,6 @@ u = w & (N - 1). The mapper keeps every live block inside a window smaller than 
 sensor, so two live world voxels never share a storage cell, and a storage index is turned back
 into its world index by unwrapping around the window centre (`unwrap`).
 """
-from __future__ import annotations
 
 import taichi as ti
 
@@ -46,16 +45,21 @@ class MapFields:
     """The Taichi fields of one map. Create after `ti.init`; never share across inits."""
 
     def __init__(self, num_classes: int, extent: tuple[int, int, int],
-                 table_half: tuple[int, int, int]):
-        for n in extent:
+                 scan_extent: tuple[int, int, int], table_half: tuple[int, int, int]):
+        for n in (*extent, *scan_extent):
             if n % TOP or n & (n - 1):
-                raise ValueError(f"storage extent {extent} must be powers of two >= {TOP}")
+                raise ValueError(f"storage extents {extent}, {scan_extent} must be powers of two "
+                                 f">= {TOP}")
         self.C = int(num_classes)
         self.N = tuple(int(n) for n in extent)
         self.mask = tuple(n - 1 for n in self.N)
         self.N_blk = tuple(n // LEAF for n in self.N)    # extent in leaf blocks
         self.N_top = tuple(n // TOP for n in self.N)     # extent in top cells
         top_shape = tuple(n // TOP for n in self.N)
+        # the scan layer only ever holds one scan around the sensor: its own, smaller toroidal
+        # extent keeps the root that every struct-for over it scans small
+        self.NS = tuple(int(n) for n in scan_extent)
+        self.NS_blk = tuple(n // LEAF for n in self.NS)
         # one SNode tree per map, built and finalised here
         fb = ti.FieldsBuilder()
 
@@ -75,7 +79,7 @@ class MapFields:
         self.s_hist = ti.field(ti.f32)
         self.s_sum = ti.field(ti.f32)
         self.s_npts = ti.field(ti.i32)
-        self.s_top = fb.pointer(ti.ijk, top_shape)
+        self.s_top = fb.pointer(ti.ijk, tuple(n // TOP for n in self.NS))
         self.s_blk = self.s_top.pointer(ti.ijk, MID)
         self.s_vox = self.s_blk.bitmasked(ti.ijk, LEAF)
         self.s_vox.dense(ti.l, self.C).place(self.s_hist)
@@ -110,34 +114,51 @@ class MapFields:
         return i, self.in_table(i)
 
     @ti.func
+    def _wrap(self, w, n: ti.template()):
+        return ti.Vector([w[0] & (n[0] - 1), w[1] & (n[1] - 1), w[2] & (n[2] - 1)])
+
+    @ti.func
+    def _unwrap(self, u, center, n: ti.template()):
+        """Storage index -> the world index nearest `center` (valid within n/2 of it)."""
+        w = ti.Vector([0, 0, 0])
+        for a in ti.static(range(3)):
+            d = (u[a] - center[a]) & (n[a] - 1)
+            if d >= n[a] // 2:
+                d -= n[a]
+            w[a] = center[a] + d
+        return w
+
+    @ti.func
     def wrap(self, w):
-        """World voxel index -> storage index."""
-        return ti.Vector([w[0] & self.mask[0], w[1] & self.mask[1], w[2] & self.mask[2]])
+        """World voxel -> map storage voxel."""
+        return self._wrap(w, self.N)
 
     @ti.func
     def wrap_blk(self, b):
-        """World leaf-block index -> storage leaf-block index."""
-        return ti.Vector([b[0] & (self.N_blk[0] - 1), b[1] & (self.N_blk[1] - 1),
-                          b[2] & (self.N_blk[2] - 1)])
-
-    @ti.func
-    def unwrap_blk(self, b, center_blk):
-        """Storage leaf-block index -> world leaf-block index nearest `center_blk`."""
-        w = ti.Vector([0, 0, 0])
-        for a in ti.static(range(3)):
-            d = (b[a] - center_blk[a]) & (self.N_blk[a] - 1)
-            if d >= self.N_blk[a] // 2:
-                d -= self.N_blk[a]
-            w[a] = center_blk[a] + d
-        return w
+        """World leaf block -> map storage leaf block."""
+        return self._wrap(b, self.N_blk)
 
     @ti.func
     def unwrap(self, u, center):
-        """Storage index -> the world index nearest `center` (valid within N/2 of it)."""
-        w = ti.Vector([0, 0, 0])
-        for a in ti.static(range(3)):
-            d = (u[a] - center[a]) & self.mask[a]
-            if d >= self.N[a] // 2:
-                d -= self.N[a]
-            w[a] = center[a] + d
-        return w
+        """Map storage voxel -> world voxel (nearest the window centre `center`)."""
+        return self._unwrap(u, center, self.N)
+
+    @ti.func
+    def unwrap_blk(self, b, center_blk):
+        """Map storage leaf block -> world leaf block."""
+        return self._unwrap(b, center_blk, self.N_blk)
+
+    @ti.func
+    def s_wrap(self, w):
+        """World voxel -> scan-layer storage voxel."""
+        return self._wrap(w, self.NS)
+
+    @ti.func
+    def s_unwrap(self, u, center):
+        """Scan-layer storage voxel -> world voxel (nearest the sensor's voxel `center`)."""
+        return self._unwrap(u, center, self.NS)
+
+    @ti.func
+    def s_unwrap_blk(self, b, center_blk):
+        """Scan-layer storage leaf block -> world leaf block."""
+        return self._unwrap(b, center_blk, self.NS_blk)

@@ -32,7 +32,7 @@ def locate(m: ti.template(), p, R, t, center, limit, min_r2, max_r2, min_z, max_
 
 @ti.func
 def add_point(m: ti.template(), w, q):
-    u = m.wrap(w)
+    u = m.s_wrap(w)
     m.s_npts[u] += 1
     for a in ti.static(range(3)):
         m.s_sum[u, a] += q[a]
@@ -81,7 +81,7 @@ def clear_scan_layer(m: ti.template(), center_blk: ti.types.vector(3, ti.i32)):
     """Zero the training table cells of every scan-layer leaf block (only those can have been
     used) and free the block (its memory is recycled zero-filled); clear_scan_top follows."""
     for B in ti.grouped(m.s_blk):
-        i, _ = m.table_index(m.unwrap_blk(B, center_blk), center_blk)
+        i, _ = m.table_index(m.s_unwrap_blk(B, center_blk), center_blk)
         m.b_count[i] = 0
         m.b_start[i] = 0
         ti.deactivate(m.s_blk, [B[0], B[1], B[2]])

@@ -23,24 +23,25 @@ def evidence_total(m: ti.template(), I, min_points):
 
 
 @ti.func
-def block_cell(m: ti.template(), I, center_blk):
-    """Table cell of the leaf block holding storage voxel I (always inside: see Mapper)."""
-    i, _ = m.table_index(m.unwrap_blk(I // LEAF, center_blk), center_blk)
+def block_cell(m: ti.template(), I, center):
+    """Table cell of the leaf block holding scan-layer voxel I (always inside: see Mapper)."""
+    center_blk = ti.floor(center / LEAF, ti.i32)
+    i, _ = m.table_index(m.s_unwrap_blk(I // LEAF, center_blk), center_blk)
     return i
 
 
 @ti.kernel
-def count_training(m: ti.template(), center_blk: ti.types.vector(3, ti.i32), min_points: ti.i32):
+def count_training(m: ti.template(), center: ti.types.vector(3, ti.i32), min_points: ti.i32):
     for I in ti.grouped(m.s_npts):
         if evidence_total(m, I, min_points) > 0:
-            m.b_count[block_cell(m, I, center_blk)] += 1
+            m.b_count[block_cell(m, I, center)] += 1
 
 
 @ti.kernel
 def assign_slots(m: ti.template(), center_blk: ti.types.vector(3, ti.i32)) -> ti.i32:
     m.counter[None] = 0
     for B in ti.grouped(m.s_blk):
-        i, _ = m.table_index(m.unwrap_blk(B, center_blk), center_blk)
+        i, _ = m.table_index(m.s_unwrap_blk(B, center_blk), center_blk)
         n = m.b_count[i]
         if n > 0:
             m.b_start[i] = ti.atomic_add(m.counter[None], n)
@@ -49,7 +50,7 @@ def assign_slots(m: ti.template(), center_blk: ti.types.vector(3, ti.i32)) -> ti
 
 
 @ti.kernel
-def write_training(m: ti.template(), center_blk: ti.types.vector(3, ti.i32),
+def write_training(m: ti.template(), center: ti.types.vector(3, ti.i32),
                    t: ti.f32, inv_tau: ti.f32, min_points: ti.i32, unit_weight: ti.i32,
                    prior: ti.f32, ell_min: ti.f32, ell_max: ti.f32, adaptive: ti.i32,
                    counting: ti.i32,
@@ -61,7 +62,8 @@ def write_training(m: ti.template(), center_blk: ti.types.vector(3, ti.i32),
     for I in ti.grouped(m.s_npts):
         total = evidence_total(m, I, min_points)
         if total > 0:
-            cell = block_cell(m, I, center_blk)
+            cell = block_cell(m, I, center)
+            u = m.wrap(m.s_unwrap(I, center))       # the same voxel in the map layer
             slot = m.b_start[cell] + ti.atomic_add(m.b_count[cell], 1)
             scale = 1.0 / total if unit_weight else 1.0
             h = ti.Vector([0.0] * m.C)
@@ -83,14 +85,14 @@ def write_training(m: ti.template(), center_blk: ti.types.vector(3, ti.i32),
                 out_xyz[slot, a] = m.s_sum[I, a] / n
             if counting:
                 # csm: the voxel's own histogram is the whole update, accumulated without decay
-                m.ell[I] = ell_min                  # any positive value marks the voxel live
-                fuse_voxel(m, I, h, t, 0.0)
+                m.ell[u] = ell_min                  # any positive value marks the voxel live
+                fuse_voxel(m, u, h, t, 0.0)
             else:
                 length = ell_min
                 if adaptive:
-                    alpha = decay_factor(t - m.t_last[I], inv_tau)
+                    alpha = decay_factor(t - m.t_last[u], inv_tau)
                     p = ti.Vector([0.0] * m.C)
                     for c in ti.static(range(m.C)):
-                        p[c] = prior + alpha * m.counts[I, c] + h[c]
+                        p[c] = prior + alpha * m.counts[u, c] + h[c]
                     length = adaptive_length(p, ell_min, ell_max, m.C - 1)
-                m.ell[I] = length                   # writing activates the map voxel
+                m.ell[u] = length                   # writing activates the map voxel

@@ -87,18 +87,22 @@ class Mapper:
         self.half_vox = np.array([math.ceil(cfg.window_xy_m / self.res)] * 2
                                  + [math.ceil(cfg.window_z_m / self.res)], np.int64)
         self.half_blk = self.half_vox // LEAF + 1
-        # points whose voxel is farther than this from the sensor's are dropped, so a kernel
-        # never reaches past the window
-        self._limit = self.half_vox - self.radius_vox - 1
         if self._reach_blk > bki.MAX_REACH_BLK:
             raise ValueError(f"kernel reach {reach} m is longer than {bki.MAX_REACH_BLK} leaf blocks "
                              f"({bki.MAX_REACH_BLK * LEAF * self.res:.2f} m at {self.res} m voxels)")
-        # the training-point table covers every block a scan point can fall in, plus the
-        # blocks a receiving voxel's kernel can reach from there
-        blk_m = LEAF * self.res
-        scan_half = np.array([cfg.max_range_m] * 2 + [max(abs(cfg.min_z_m), abs(cfg.max_z_m))])
-        table_half = np.ceil(scan_half / blk_m).astype(int) + 2 * self._reach_blk + 3
+        # Points whose voxel is farther than `_limit` from the sensor's are dropped (counted as
+        # outside the window), so that (a) a kernel never reaches past the window and (b) every
+        # training voxel fits the scan layer and the training-point table. Any point within
+        # max_range is inside in x and y; in z the window bounds it (a tilted sensor's far
+        # points can lie well above or below its own height band).
+        scan_half = np.array([math.ceil(cfg.max_range_m / self.res) + 1] * 2
+                             + [self.half_vox[2]], np.int64)
+        self._limit = np.minimum(self.half_vox - self.radius_vox - 1, scan_half)
+        # the table covers every block a training voxel can fall in, plus the blocks a
+        # receiving voxel's kernel can reach from there
+        table_half = -(-self._limit // LEAF) + 2 * self._reach_blk + 3
         self.fields = MapFields(self.C, storage_extent(tuple(int(h) for h in self.half_vox)),
+                                storage_extent(tuple(int(h) for h in self._limit)),
                                 tuple(int(h) for h in table_half))
         bki.fill_kernel_table(self.fields)
         self.store = BlockStore(self.C)
@@ -144,13 +148,14 @@ class Mapper:
         rep.dropped_range = int(stats[rasterize.OUT_OF_RANGE]) - rep.dropped_nonfinite
         rep.dropped_window = int(stats[rasterize.OUT_OF_WINDOW])
         clock("rasterize")
+        center_v = ti.Vector(center.tolist())
         center_blk = ti.Vector(np.floor_divide(center, LEAF).tolist())
-        training.count_training(m, center_blk, cfg.min_points)
+        training.count_training(m, center_v, cfg.min_points)
         n = training.assign_slots(m, center_blk)
         clock("filter")
         train = self._buf.training(max(n, 1), self.C)
         training.write_training(
-            m, center_blk, t_rel, self._inv_tau, cfg.min_points, int(cfg.point_weight == "unit"), cfg.prior,
+            m, center_v, t_rel, self._inv_tau, cfg.min_points, int(cfg.point_weight == "unit"), cfg.prior,
             cfg.ell_min_m if cfg.adaptive else cfg.ell_fixed_vox * self.res, cfg.ell_max_m,
             int(cfg.adaptive), int(not cfg.uses_kernel), *train)
         rep.training_voxels = int(n)
@@ -158,7 +163,7 @@ class Mapper:
         if cfg.uses_kernel and n:
             stamp = self.scans + 1
             bki.mark_receivers(m, center_blk, stamp, self._reach_blk)
-            bki.gather_update(m, ti.Vector(center.tolist()), stamp, t_rel, self._inv_tau,
+            bki.gather_update(m, center_v, stamp, t_rel, self._inv_tau,
                               self.res, cfg.sigma0, *train)
         clock("kernel")
         rasterize.clear_scan_layer(m, center_blk)
