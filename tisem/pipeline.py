@@ -49,6 +49,16 @@ def _input_labels(scan: Scan) -> np.ndarray:
     return lab
 
 
+def _per_file_point(scan: Scan, labels: np.ndarray) -> np.ndarray:
+    """One label per point of the source file: points the reader dropped (NaN/inf) get 0."""
+    kept = scan.meta.get("kept")
+    if kept is None:
+        return labels
+    full = np.zeros(scan.meta["file_points"], np.int32)
+    full[kept] = labels
+    return full
+
+
 def _reiterable(scans: Iterable) -> bool:
     return iter(scans) is not scans
 
@@ -145,7 +155,7 @@ def run_pipeline(scans: Iterable[Scan | SkippedScan], cfg: RunConfig, out_dir: s
         if isinstance(item, SkippedScan):
             continue
         labels, _ = mapper.query(item.points_world(), with_probs=False)
-        write_predictions(pred_root, sequence_name, item.index, labels)
+        write_predictions(pred_root, sequence_name, item.index, _per_file_point(item, labels))
         if item.gt_labels is not None:
             final.add(item.gt_labels, labels)
 

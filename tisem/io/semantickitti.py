@@ -411,7 +411,10 @@ class SemanticKittiSequence:
                 name=name,
                 meta={"unknown_raw_ids": unknown, "unknown_raw_ids_gt": unknown_gt,
                       "dropped_nonfinite": dropped, "input": self.input,
-                      "sequence": self.sequence_name},
+                      "sequence": self.sequence_name,
+                      # which points of the file these are: predictions are written one per
+                      # point of the .bin, as SemanticKITTI tools expect
+                      "file_points": n, "kept": finite if dropped else None},
             )
         except ScanError:
             raise
