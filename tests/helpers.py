@@ -1,0 +1,262 @@
+"""Shared builders for the engine tests (issue 2): runtimes, configs, poses, scans, scenes,
+and hooks that record what each kernel stage of `Mapper.integrate` produced.
+
+Taichi rules these follow (shared/notes/taichi-sparse.md §4.5-4.6): every test gets its own
+runtime (`taichi_cpu` fixture: `init_taichi("cpu", threads=2)`, one Mapper per runtime), no
+Taichi object outlives its runtime, and the test kernels below live in this real source file
+(Taichi reads kernel source from disk). With 2 threads float atomics are not bitwise
+reproducible, so comparisons carry named tolerances.
+"""
+# (no `from __future__ import annotations`: Taichi reads the kernels' annotations)
+import math
+
+import numpy as np
+import pytest
+import taichi as ti
+
+from kernels import bki, entropy, rasterize, training
+from tisem.backend import init_taichi
+from tisem.config import MapperConfig
+from tisem.scan import Scan
+
+C = 20
+ROAD, SIDEWALK, BUILDING, VEGETATION, POLE = 9, 11, 13, 15, 18
+
+
+# --------------------------------------------------------------------------- runtimes
+
+def fresh_runtime(debug: bool = False) -> None:
+    """A new Taichi runtime (every map built before it is gone: never touch it again)."""
+    init_taichi("cpu", threads=2, debug=debug)
+
+
+@pytest.fixture
+def taichi_cpu():
+    fresh_runtime()
+    yield
+    ti.reset()
+
+
+@pytest.fixture
+def taichi_debug():
+    """A runtime with `debug=True`: out-of-bounds accesses raise instead of corrupting."""
+    fresh_runtime(debug=True)
+    yield
+    ti.reset()
+
+
+def small_config(**kw) -> MapperConfig:
+    """A 20 m sensor in a 30 m window (the same sizes as tests/test_checkpoint.py, so the
+    offline kernel cache is shared)."""
+    base = dict(max_range_m=20.0, window_xy_m=30.0, window_z_m=12.0, min_z_m=-4.0, max_z_m=4.0)
+    base.update(kw)
+    return MapperConfig(**base)
+
+
+# --------------------------------------------------------------------------- geometry
+
+def pose(x=0.0, y=0.0, z=0.0, yaw=0.0, pitch=0.0, roll=0.0) -> np.ndarray:
+    """T_world_sensor from a position and ZYX Euler angles (radians)."""
+    cz, sz, cy, sy, cx, sx = (math.cos(yaw), math.sin(yaw), math.cos(pitch), math.sin(pitch),
+                              math.cos(roll), math.sin(roll))
+    Rz = np.array([[cz, -sz, 0], [sz, cz, 0], [0, 0, 1]])
+    Ry = np.array([[cy, 0, sy], [0, 1, 0], [-sy, 0, cy]])
+    Rx = np.array([[1, 0, 0], [0, cx, -sx], [0, sx, cx]])
+    T = np.eye(4)
+    T[:3, :3] = Rz @ Ry @ Rx
+    T[:3, 3] = [x, y, z]
+    return T
+
+
+def scan_from_world(world_xyz, T, stamp_s, labels=None, probs=None, gt=None, index=0,
+                    name="") -> Scan:
+    """A `Scan` whose sensor-frame points are the given world points seen from pose T."""
+    world_xyz = np.asarray(world_xyz, np.float64)
+    sensor = (world_xyz - T[:3, 3]) @ T[:3, :3]
+    return Scan(points_sensor=sensor.astype(np.float32), T_world_sensor=T, stamp_s=stamp_s,
+                labels=labels, probs=probs, gt_labels=gt, index=index, name=name)
+
+
+def away_from_faces(world_xyz, res, margin=0.02) -> np.ndarray:
+    """Move points at least `margin` voxels away from every voxel face, so that float32 (tisem)
+    and float64 (numpy) put each point in the same voxel."""
+    v = np.asarray(world_xyz, np.float64) / res
+    base = np.floor(v)
+    return (base + np.clip(v - base, margin, 1 - margin)) * res
+
+
+def voxel_keys(world_xyz, res) -> np.ndarray:
+    return np.floor(np.asarray(world_xyz, np.float64) / res).astype(np.int64)
+
+
+def grid_plane(x_range, y_range, z, spacing, rng=None) -> np.ndarray:
+    """Points on the horizontal plane z on a grid (jittered by up to half a spacing)."""
+    xs = np.arange(x_range[0] + spacing / 2, x_range[1], spacing)
+    ys = np.arange(y_range[0] + spacing / 2, y_range[1], spacing)
+    X, Y = np.meshgrid(xs, ys, indexing="ij")
+    pts = np.column_stack([X.ravel(), Y.ravel(), np.full(X.size, float(z))])
+    if rng is not None:
+        pts[:, :2] += rng.uniform(-spacing / 2, spacing / 2, (len(pts), 2))
+    return pts
+
+
+def one_hot(labels, num_classes=C) -> np.ndarray:
+    p = np.zeros((len(labels), num_classes), np.float32)
+    p[np.arange(len(labels)), labels] = 1.0
+    return p
+
+
+def flip_labels(labels, fraction, rng) -> np.ndarray:
+    """Replace a random `fraction` of the labels by other classes in 1..19."""
+    out = np.asarray(labels, np.int32).copy()
+    flip = rng.random(len(out)) < fraction
+    new = rng.integers(1, C - 1, flip.sum())           # 1..18
+    new = np.where(new >= out[flip], new + 1, new)     # never the point's own class
+    out[flip] = new
+    return out
+
+
+# --------------------------------------------------------------------------- test kernels
+
+@ti.kernel
+def _sample_kernel(m: ti.template(), r2: ti.types.ndarray(dtype=ti.f32, ndim=1),
+                   lut: ti.types.ndarray(dtype=ti.f32, ndim=1),
+                   exact: ti.types.ndarray(dtype=ti.f32, ndim=1)):
+    for i in range(r2.shape[0]):
+        lut[i] = bki.sparse_kernel_of_r2(m, r2[i])
+        exact[i] = bki.sparse_kernel(ti.sqrt(r2[i]))
+
+
+def sample_kernel(mapper, r2):
+    """g(r) at r^2 through the engine's table (`sparse_kernel_of_r2`) and its closed form."""
+    r2 = np.ascontiguousarray(r2, np.float32)
+    lut, exact = np.zeros_like(r2), np.zeros_like(r2)
+    _sample_kernel(mapper.fields, r2, lut, exact)
+    return lut.astype(np.float64), exact.astype(np.float64)
+
+
+@ti.kernel
+def _entropy(p: ti.types.ndarray(dtype=ti.f32, ndim=2), ell_min: ti.f32, ell_max: ti.f32,
+             h: ti.types.ndarray(dtype=ti.f32, ndim=1),
+             ell: ti.types.ndarray(dtype=ti.f32, ndim=1)):
+    for i in range(p.shape[0]):
+        v = ti.Vector([0.0] * C)
+        for c in ti.static(range(C)):
+            v[c] = p[i, c]
+        h[i] = entropy.normalized_entropy(v, C - 1)
+        ell[i] = entropy.adaptive_length(v, ell_min, ell_max, C - 1)
+
+
+def engine_entropy(p, ell_min, ell_max):
+    """(normalised entropy, adaptive length) of each row of p, by the engine's ti.funcs."""
+    p = np.ascontiguousarray(p, np.float32)
+    h, ell = np.zeros(len(p), np.float32), np.zeros(len(p), np.float32)
+    _entropy(p, ell_min, ell_max, h, ell)
+    return h.astype(np.float64), ell.astype(np.float64)
+
+
+@ti.kernel
+def _export_scan_layer(m: ti.template(), center: ti.types.vector(3, ti.i32),
+                       keys: ti.types.ndarray(dtype=ti.i32, ndim=2),
+                       npts: ti.types.ndarray(dtype=ti.i32, ndim=1),
+                       sums: ti.types.ndarray(dtype=ti.f32, ndim=2),
+                       hist: ti.types.ndarray(dtype=ti.f32, ndim=2),
+                       count: ti.types.ndarray(dtype=ti.i32, ndim=1)):
+    for I in ti.grouped(m.s_npts):
+        idx = ti.atomic_add(count[0], 1)
+        if idx < keys.shape[0]:
+            w = m.s_unwrap(I, center)
+            for a in ti.static(range(3)):
+                keys[idx, a] = w[a]
+                sums[idx, a] = m.s_sum[I, a]
+            npts[idx] = m.s_npts[I]
+            for c in ti.static(range(m.C)):
+                hist[idx, c] = m.s_hist[I, c]
+
+
+def _sorted_by_key(keys, *arrays):
+    order = np.lexsort((keys[:, 2], keys[:, 1], keys[:, 0]))
+    return (keys[order],) + tuple(a[order] for a in arrays)
+
+
+class StageRecorder:
+    """Records, for every scan a Mapper integrates, the output of two kernel stages:
+
+    * `scan_layer[i]`: the rasterised scan (steps 1-2) — global voxel keys, point counts,
+      centroids (world metres) and class histograms of every voxel the scan's points hit;
+    * `training[i]`: the training points after filtering (step 3) — global keys of their
+      voxels, centroids (world metres) and class evidence (weighted per `point_weight`).
+
+    It wraps the kernels the mapper calls (module attributes, restored by monkeypatch).
+    """
+
+    def __init__(self, monkeypatch, mapper):
+        self.mapper = mapper
+        self.scan_layer: list[dict] = []
+        self.training: list[dict] = []
+        self.reloaded = 0        # (for the caller's own bookkeeping)
+        self._n_training = 0
+        for name in ("rasterize_labels", "rasterize_probs"):
+            monkeypatch.setattr(rasterize, name, self._after_rasterize(getattr(rasterize, name)))
+        monkeypatch.setattr(training, "assign_slots", self._count(training.assign_slots))
+        monkeypatch.setattr(training, "write_training",
+                            self._after_training(training.write_training))
+
+    def _after_rasterize(self, kernel):
+        def wrapped(m, pts, *args):
+            kernel(m, pts, *args)
+            cap = max(int(pts.shape[0]), 1)
+            keys, npts = np.zeros((cap, 3), np.int32), np.zeros(cap, np.int32)
+            sums, hist = np.zeros((cap, 3), np.float32), np.zeros((cap, m.C), np.float32)
+            count = np.zeros(1, np.int32)
+            mp = self.mapper
+            _export_scan_layer(m, ti.Vector([int(v) for v in mp.center_vox]), keys, npts, sums,
+                               hist, count)
+            n = int(count[0])
+            assert n <= cap, f"scan layer holds {n} voxels for {cap} points"
+            keys = keys[:n].astype(np.int64) + mp.origin_vox
+            centroid = sums[:n].astype(np.float64) / npts[:n, None] + mp.origin_vox * mp.res
+            keys, npts, centroid, hist = _sorted_by_key(keys, npts[:n], centroid, hist[:n])
+            self.scan_layer.append(dict(keys=keys, npts=npts, centroid=centroid, hist=hist))
+        return wrapped
+
+    def _count(self, kernel):
+        def wrapped(*args):
+            self._n_training = int(kernel(*args))
+            return self._n_training
+        return wrapped
+
+    def _after_training(self, kernel):
+        def wrapped(*args):
+            kernel(*args)
+            xyz, hist = args[-4], args[-3]
+            n = self._n_training
+            mp = self.mapper
+            centroid = xyz[:n].astype(np.float64) + mp.origin_vox * mp.res
+            keys = np.floor(xyz[:n].astype(np.float64) / mp.res).astype(np.int64) + mp.origin_vox
+            keys, centroid, hist = _sorted_by_key(keys, centroid, hist[:n].copy())
+            self.training.append(dict(keys=keys, centroid=centroid, hist=hist))
+        return wrapped
+
+
+def hand_rasterize(scan: Scan, cfg: MapperConfig):
+    """Steps 1-2 by hand in float64: (keys, npts, centroid, hist) of every voxel the kept
+    points hit (world frame, global keys), sorted by key. Class 0 adds no evidence."""
+    from tisem.preprocess import select_points
+    sel = select_points(scan, cfg)
+    T = scan.T_world_sensor
+    world = sel.points_sensor.astype(np.float64) @ T[:3, :3].T + T[:3, 3]
+    keys, inv = np.unique(voxel_keys(world, cfg.resolution_m), axis=0, return_inverse=True)
+    inv = inv.reshape(-1)
+    npts = np.bincount(inv, minlength=len(keys))
+    centroid = np.stack([np.bincount(inv, world[:, a], len(keys)) for a in range(3)], 1)
+    centroid /= npts[:, None]
+    hist = np.zeros((len(keys), cfg.num_classes))
+    if sel.labels is not None:
+        ok = sel.labels > 0
+        np.add.at(hist, (inv[ok], sel.labels[ok]), 1.0)
+    else:
+        p = sel.probs.astype(np.float64).copy()
+        p[:, 0] = 0
+        np.add.at(hist, inv, p)
+    return keys, npts, centroid, hist
