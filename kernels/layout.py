@@ -97,7 +97,7 @@ class MapFields:
         self.counter = ti.field(ti.i32)
         self.stats = ti.field(ti.i32)       # per-scan point statistics (kernels/rasterize.py)
         fb.place(self.counter)
-        fb.dense(ti.i, 3).place(self.stats)
+        fb.dense(ti.i, 4).place(self.stats)
         self.kernel_lut = ti.field(ti.f32)  # g(r) sampled in r^2 (kernels/bki.py)
         fb.dense(ti.i, KERNEL_TABLE + 1).place(self.kernel_lut)
         self._tree = fb.finalize()

@@ -8,7 +8,8 @@ never get here: the mapper moves them out of range first (fast math makes NaN te
 import taichi as ti
 
 # slots of the per-scan point statistics (m.stats)
-USED, OUT_OF_RANGE, OUT_OF_WINDOW = 0, 1, 2
+USED, OUT_OF_RANGE, OUT_OF_WINDOW, IMPLAUSIBLY_FAR = 0, 1, 2, 3
+FAR_M = 1000.0   # no LiDAR returns from this far: such points are corrupt data, not range
 
 
 @ti.func
@@ -20,6 +21,8 @@ def locate(m: ti.template(), p, R, t, center, limit, min_r2, max_r2, min_z, max_
     r2 = p.dot(p)
     if r2 < min_r2 or r2 > max_r2 or p[2] < min_z or p[2] > max_z:
         ti.atomic_add(m.stats[OUT_OF_RANGE], 1)
+        if r2 > FAR_M * FAR_M:
+            ti.atomic_add(m.stats[IMPLAUSIBLY_FAR], 1)
     else:
         off = ti.abs(w - center)
         if off[0] > limit[0] or off[1] > limit[1] or off[2] > limit[2]:
@@ -46,7 +49,7 @@ def rasterize_labels(m: ti.template(),
                      R: ti.types.matrix(3, 3, ti.f32), t: ti.types.vector(3, ti.f32),
                      center: ti.types.vector(3, ti.i32), limit: ti.types.vector(3, ti.i32),
                      min_r2: ti.f32, max_r2: ti.f32, min_z: ti.f32, max_z: ti.f32, inv_res: ti.f32):
-    for i in ti.static(range(3)):
+    for i in ti.static(range(4)):
         m.stats[i] = 0
     for n in range(label.shape[0]):
         p = ti.Vector([pts[n, 0], pts[n, 1], pts[n, 2]])
@@ -64,7 +67,7 @@ def rasterize_probs(m: ti.template(),
                     R: ti.types.matrix(3, 3, ti.f32), t: ti.types.vector(3, ti.f32),
                     center: ti.types.vector(3, ti.i32), limit: ti.types.vector(3, ti.i32),
                     min_r2: ti.f32, max_r2: ti.f32, min_z: ti.f32, max_z: ti.f32, inv_res: ti.f32):
-    for i in ti.static(range(3)):
+    for i in ti.static(range(4)):
         m.stats[i] = 0
     for n in range(prob.shape[0]):
         p = ti.Vector([pts[n, 0], pts[n, 1], pts[n, 2]])

@@ -182,7 +182,7 @@ def test_resume_refuses_another_mapper_config(taichi_cpu, tmp_path):
     run_pipeline(scans, run_config(), tmp_path, progress=False, write_outputs=False,
                  checkpoint_every=1)
     with pytest.raises(ValueError, match="tau_s"):   # refused before any map is built
-        run_pipeline(scans, run_config(tau_s=5.0), tmp_path, progress=False,
+        run_pipeline(scans, run_config(tau_s=1.0), tmp_path, progress=False,
                      write_outputs=False, resume=tmp_path)
     with pytest.raises(FileNotFoundError, match="no checkpoint"):
         load_checkpoint(tmp_path / "nowhere")

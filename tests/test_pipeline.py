@@ -160,11 +160,6 @@ def test_metrics_json_has_the_issue_keys(damaged):
     assert metrics["final"]["accuracy"] > 0.5
 
 
-@pytest.mark.xfail(strict=True, reason=(
-    "engine bug: tisem/pipeline.py (run_pipeline) drops the IntegrationReport that "
-    "mapper.integrate returns and never reads Scan.meta['dropped_nonfinite' / "
-    "'unknown_raw_ids'] (tisem/io/semantickitti.py): NaN/inf points, unknown raw ids and "
-    "points out of range/window are counted but reported nowhere"))
 def test_dropped_points_are_reported_with_their_file(damaged):
     """Points dropped from a scan that is still mapped: a message names the scan's file
     (its .bin or .label) and the problem."""

@@ -39,10 +39,15 @@ class MapperConfig:
     # 8. temporal fusion
     tau_s: float = 5.0               # decay time constant (st mode)
     # live window (toroidal storage; blocks outside the box leave the field)
-    window_xy_m: float = 200.0       # half-size of the live window around the sensor
+    window_xy_m: float = 100.0       # half-size of the live window around the sensor; must
+                                     # hold max_range + kernel reach + 0.8 m. 100 m keeps even
+                                     # the densest stretch of the synthetic loop at <= 58k
+                                     # blocks (docs/long_drive.md)
     window_z_m: float = 24.0
-    max_live_blocks: int = 100_000   # hard cap on live 4^3 leaf blocks (~5.7 KB each), which
-                                     # keeps the sparse pools far from taichi 1.7.4's 1 GiB bug
+    max_live_blocks: int = 65_536    # hard cap on live 4^3 leaf blocks (~5.6 KB each). taichi
+                                     # 1.7.4 maps a 2nd 1 GiB host chunk (unsafe: its allocator
+                                     # bug) at 98,304 live blocks, measured; this leaves 2 pool
+                                     # chunks (32k blocks) for the scan layer and a scan's growth
 
     def validate(self) -> None:
         if self.mode not in MODES:
@@ -58,6 +63,9 @@ class MapperConfig:
             raise ValueError(f"ell_min_m ({self.ell_min_m}) > ell_max_m ({self.ell_max_m})")
         if self.min_range_m < 0 or self.min_range_m >= self.max_range_m:
             raise ValueError("need 0 <= min_range_m < max_range_m")
+        if self.max_range_m >= 1000:
+            raise ValueError("max_range_m must be < 1000 m (points beyond 1 km are treated as "
+                             "corrupt)")
         if self.min_z_m >= self.max_z_m:
             raise ValueError("need min_z_m < max_z_m")
         if self.prior < 0:

@@ -40,6 +40,35 @@ class RunResult:
     trajectory: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
 
 
+class DropLog:
+    """Points a mapped scan lost, and why: logged per scan (when it is more than the routine
+    range filter) and totalled for metrics.json."""
+
+    ANOMALIES = {"dropped_nonfinite": "non-finite (NaN/inf) points",
+                 "unknown_raw_ids": "unknown raw ids (mapped to 0)",
+                 "dropped_far": "implausibly far points (> 1 km)",
+                 "dropped_window": "points outside the map's index window"}
+
+    def __init__(self):
+        self.totals = {k: 0 for k in ("dropped_nonfinite", "unknown_raw_ids", "dropped_range",
+                                      "dropped_far", "dropped_window")}
+        self.scans: list[dict] = []
+
+    def add(self, scan: Scan, report) -> None:
+        counts = {"dropped_nonfinite": scan.meta.get("dropped_nonfinite", 0)
+                  + report.dropped_nonfinite,
+                  "unknown_raw_ids": scan.meta.get("unknown_raw_ids", 0),
+                  "dropped_range": report.dropped_range, "dropped_far": report.dropped_far,
+                  "dropped_window": report.dropped_window}
+        for k, v in counts.items():
+            self.totals[k] += int(v)
+        anomalies = {k: int(counts[k]) for k in self.ANOMALIES if counts[k]}
+        if anomalies:
+            self.scans.append({"index": scan.index, "name": scan.name, **anomalies})
+            log.info("scan %s (%s): %s", scan.index, scan.name,
+                     ", ".join(f"{v} {self.ANOMALIES[k]}" for k, v in anomalies.items()))
+
+
 def _input_labels(scan: Scan) -> np.ndarray:
     """The network's own per-point answer, scored like the map (probabilities -> argmax)."""
     if scan.labels is not None:
@@ -99,6 +128,7 @@ def run_pipeline(scans: Iterable[Scan | SkippedScan], cfg: RunConfig, out_dir: s
         ckpt.check_run_config(cfg)
         mapper = ckpt.build_mapper()
     mapper = mapper or Mapper(cfg.mapper)
+    drops = DropLog()
     online, input_conf = Confusion(mapper.C), Confusion(mapper.C)
     seconds, skipped, trajectory, kept = [], [], [], []
     done_upto = None   # scans with index <= this were integrated before the checkpoint
@@ -124,9 +154,10 @@ def run_pipeline(scans: Iterable[Scan | SkippedScan], cfg: RunConfig, out_dir: s
         try:
             ti.sync()
             start = time.perf_counter()
-            mapper.integrate(item)
+            report = mapper.integrate(item)
             ti.sync()
             seconds.append(time.perf_counter() - start)
+            drops.add(item, report)
         except ValueError as exc:   # a scan the mapper refuses (bad labels, pose far away, ...)
             skipped.append(SkippedScan(item.index, item.name, str(exc)))
             log.warning("skipped scan %s: %s", item.index, exc)
@@ -169,6 +200,8 @@ def run_pipeline(scans: Iterable[Scan | SkippedScan], cfg: RunConfig, out_dir: s
         "active_voxels": mapper.live_voxels + mapper.stored_voxels,
         "live_voxels": mapper.live_voxels,
         "stored_voxels": mapper.stored_voxels,
+        "dropped": drops.totals,
+        "dropped_scans": drops.scans,
         "evaluated": final.metrics()["points"] > 0,
         "final": _summary(final),
         "online": _summary(online),
