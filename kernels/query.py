@@ -1,6 +1,33 @@
 """Step 9 and the map's host interface: query, count, export, import, evict."""
 import taichi as ti
 
+from kernels.rasterize import to_local
+
+
+@ti.func
+def lookup(m: ti.template(), w, center, half, p, out_label: ti.template(),
+           out_inside: ti.template(), out_prob: ti.template(), with_prob):
+    """Answer query point p, whose world voxel is w: argmax and normalised counters."""
+    off = ti.abs(w - center)
+    best = 0
+    inside = 0
+    if off[0] <= half[0] and off[1] <= half[1] and off[2] <= half[2]:
+        inside = 1
+        u = m.wrap(w)
+        best_v = 0.0
+        total = 0.0
+        for c in ti.static(range(m.C)):
+            v = m.counts[u, c]
+            total += v
+            if v > best_v:
+                best_v = v
+                best = c
+        if with_prob:
+            for c in ti.static(range(m.C)):
+                out_prob[p, c] = m.counts[u, c] / total if total > 0 else 0.0
+    out_label[p] = best
+    out_inside[p] = inside
+
 
 @ti.kernel
 def query(m: ti.template(),
@@ -12,25 +39,23 @@ def query(m: ti.template(),
           with_prob: ti.i32):
     for p in range(out_label.shape[0]):
         w = ti.floor(ti.Vector([pts[p, 0], pts[p, 1], pts[p, 2]]) * inv_res, ti.i32)
-        off = ti.abs(w - center)
-        best = 0
-        inside = 0
-        if off[0] <= half[0] and off[1] <= half[1] and off[2] <= half[2]:
-            inside = 1
-            u = m.wrap(w)
-            best_v = 0.0
-            total = 0.0
-            for c in ti.static(range(m.C)):
-                v = m.counts[u, c]
-                total += v
-                if v > best_v:
-                    best_v = v
-                    best = c
-            if with_prob:
-                for c in ti.static(range(m.C)):
-                    out_prob[p, c] = m.counts[u, c] / total if total > 0 else 0.0
-        out_label[p] = best
-        out_inside[p] = inside
+        lookup(m, w, center, half, p, out_label, out_inside, out_prob, with_prob)
+
+
+@ti.kernel
+def query_sensor(m: ti.template(),
+                 pts: ti.types.ndarray(dtype=ti.f32, ndim=2),     # (N, 3) sensor frame
+                 R: ti.types.matrix(3, 3, ti.f32), t: ti.types.vector(3, ti.f32),
+                 center: ti.types.vector(3, ti.i32), half: ti.types.vector(3, ti.i32),
+                 inv_res: ti.f32,
+                 out_label: ti.types.ndarray(dtype=ti.i32, ndim=1),
+                 out_inside: ti.types.ndarray(dtype=ti.i32, ndim=1),
+                 out_prob: ti.types.ndarray(dtype=ti.f32, ndim=2), with_prob: ti.i32):
+    """Query a scan's own points with the very arithmetic that rasterised them, so a point on
+    a voxel face is looked up in the voxel it was added to."""
+    for p in range(out_label.shape[0]):
+        w = ti.floor(to_local(R, ti.Vector([pts[p, 0], pts[p, 1], pts[p, 2]]), t) * inv_res, ti.i32)
+        lookup(m, w, center, half, p, out_label, out_inside, out_prob, with_prob)
 
 
 @ti.kernel

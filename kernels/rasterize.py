@@ -13,10 +13,16 @@ FAR_M = 1000.0   # no LiDAR returns from this far: such points are corrupt data,
 
 
 @ti.func
+def to_local(R, p, t):
+    """Sensor frame -> local map coordinates (the one place this arithmetic is written)."""
+    return R @ p + t
+
+
+@ti.func
 def locate(m: ti.template(), p, R, t, center, limit, min_r2, max_r2, min_z, max_z, inv_res):
     """Whether sensor-frame point p may be used, its world voxel and its local coordinates."""
     ok = 0
-    q = R @ p + t
+    q = to_local(R, p, t)
     w = ti.floor(q * inv_res, ti.i32)
     r2 = p.dot(p)
     if r2 < min_r2 or r2 > max_r2 or p[2] < min_z or p[2] > max_z:
