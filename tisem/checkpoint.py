@@ -157,7 +157,7 @@ class Checkpoint:
                         ", ".join(f"{k}: {stored[k]!r} -> {now.get(k)!r}" for k in other))
 
     def restore_progress(self, online, input_conf, seconds: list, skipped: list,
-                         trajectory: list) -> None:
+                         trajectory: list, drops=None) -> None:
         """Fill the pipeline's accumulators (in place) with what the checkpoint holds."""
         prog = self.meta.get("progress") or {}
         for conf, name in ((online, "online"), (input_conf, "input")):
@@ -169,6 +169,8 @@ class Checkpoint:
         seconds.extend(float(s) for s in prog.get("seconds", []))
         skipped.extend(SkippedScan(**s) for s in prog.get("skipped", []))
         trajectory.extend(np.asarray(t, np.float64) for t in prog.get("trajectory", []))
+        if drops is not None and prog.get("dropped"):
+            drops.restore(prog["dropped"])
 
 
 def load_checkpoint(path: str | os.PathLike) -> Checkpoint:
@@ -180,7 +182,8 @@ def load_checkpoint(path: str | os.PathLike) -> Checkpoint:
 
 def save_checkpoint(directory: str | os.PathLike, mapper, *, last_index: int | None = None,
                     run_config: RunConfig | None = None, online=None, input_conf=None,
-                    seconds=(), skipped=(), trajectory=(), source: dict | None = None) -> Path:
+                    seconds=(), skipped=(), trajectory=(), source: dict | None = None,
+                    drops=None) -> Path:
     """Save `mapper` (snapshot + state) and the run's progress to `directory/checkpoint.npz`.
 
     Atomic (write, fsync, rename): a crash mid-save leaves the previous checkpoint intact.
@@ -199,6 +202,7 @@ def save_checkpoint(directory: str | os.PathLike, mapper, *, last_index: int | N
             "skipped": [{"index": int(s.index), "name": str(s.name), "reason": str(s.reason)}
                         for s in skipped],
             "trajectory": [np.asarray(t, np.float64).tolist() for t in trajectory],
+            "dropped": drops.to_dict() if drops is not None else None,
         },
         "source": dict(source or {}),
     }

@@ -54,6 +54,15 @@ class DropLog:
                                       "dropped_far", "dropped_window")}
         self.scans: list[dict] = []
 
+    def to_dict(self) -> dict:
+        return {"totals": dict(self.totals), "scans": list(self.scans)}
+
+    def restore(self, saved: dict) -> None:
+        """Continue from a checkpoint's `to_dict()`."""
+        for k, v in saved.get("totals", {}).items():
+            self.totals[k] = self.totals.get(k, 0) + int(v)
+        self.scans[:0] = saved.get("scans", [])
+
     def add(self, scan: Scan, report) -> None:
         counts = {"dropped_nonfinite": scan.meta.get("dropped_nonfinite", 0)
                   + report.dropped_nonfinite,
@@ -133,7 +142,7 @@ def run_pipeline(scans: Iterable[Scan | SkippedScan], cfg: RunConfig, out_dir: s
     seconds, skipped, trajectory, kept = [], [], [], []
     done_upto = None   # scans with index <= this were integrated before the checkpoint
     if ckpt is not None:
-        ckpt.restore_progress(online, input_conf, seconds, skipped, trajectory)
+        ckpt.restore_progress(online, input_conf, seconds, skipped, trajectory, drops)
         done_upto = ckpt.last_index
         log.info("resuming from %s: %d scans mapped, up to scan %s", ckpt.path, len(seconds),
                  done_upto)
@@ -176,7 +185,7 @@ def run_pipeline(scans: Iterable[Scan | SkippedScan], cfg: RunConfig, out_dir: s
             from tisem.checkpoint import save_checkpoint
             save_checkpoint(ckpt_dir, mapper, last_index=item.index, run_config=cfg,
                             online=online, input_conf=input_conf, seconds=seconds,
-                            skipped=skipped, trajectory=trajectory, source=info)
+                            skipped=skipped, trajectory=trajectory, source=info, drops=drops)
         bar.set_postfix(voxels=f"{mapper.live_voxels / 1e3:.0f}k", refresh=False)
 
     # final-map protocol: every scan looked up in the finished map
