@@ -1,11 +1,17 @@
-"""The live window: find leaf blocks outside it, export their voxels, free them.
+"""The live window: find the voxels that leave it, export them, free what they leave empty.
+
+The window is a box of voxels, |w - center| <= half per axis, the same box the query kernel
+reads the field in; everything outside it is in the host store. Leaf blocks that straddle its
+face are split: their outside voxels leave (exported, zeroed, their bits cleared), the rest stay,
+and a block is freed once it has no voxel left. So a voxel is live exactly when the box holds it,
+and a query never looks in the wrong place.
 
 Block indices here are storage leaf-block indices (voxel // LEAF), as struct-fors over the
-block SNode yield them; they are unwrapped around the window centre (in blocks) like voxels.
+block SNode yield them; they are unwrapped around a centre (in blocks) like voxels.
 """
 import taichi as ti
 
-from kernels.layout import LEAF, MID
+from kernels.layout import LEAF, TOP
 
 
 @ti.func
@@ -19,17 +25,27 @@ def unwrap_cells(u, center, n: ti.template()):
     return w
 
 
+@ti.func
+def outside(lo, hi, center, half):
+    """Whether the voxel range [lo, hi] (per axis) pokes out of the box around center."""
+    out = 0
+    for a in ti.static(range(3)):
+        if lo[a] < center[a] - half[a] or hi[a] > center[a] + half[a]:
+            out = 1
+    return out
+
+
 @ti.kernel
-def find_far_blocks(m: ti.template(),
-                    old_center_blk: ti.types.vector(3, ti.i32),
-                    new_center_blk: ti.types.vector(3, ti.i32),
-                    half_blk: ti.types.vector(3, ti.i32),
-                    out_blocks: ti.types.ndarray(dtype=ti.i32, ndim=2)) -> ti.i32:   # (K, 3)
+def find_leaving_blocks(m: ti.template(),
+                        old_center_blk: ti.types.vector(3, ti.i32),   # unwraps storage blocks
+                        center: ti.types.vector(3, ti.i32),           # the new box, voxels
+                        half: ti.types.vector(3, ti.i32),
+                        out_blocks: ti.types.ndarray(dtype=ti.i32, ndim=2)) -> ti.i32:   # (K, 3)
+    """Live leaf blocks not wholly inside the box (storage indices); returns how many."""
     m.counter[None] = 0
     for B in ti.grouped(m.blk):
-        wb = unwrap_cells(B, old_center_blk, m.N_blk)
-        off = ti.abs(wb - new_center_blk)
-        if off[0] > half_blk[0] or off[1] > half_blk[1] or off[2] > half_blk[2]:
+        lo = unwrap_cells(B, old_center_blk, m.N_blk) * LEAF
+        if outside(lo, lo + LEAF - 1, center, half):
             idx = ti.atomic_add(m.counter[None], 1)
             if idx < out_blocks.shape[0]:
                 for a in ti.static(range(3)):
@@ -38,47 +54,96 @@ def find_far_blocks(m: ti.template(),
 
 
 @ti.kernel
-def export_blocks(m: ti.template(), center: ti.types.vector(3, ti.i32),
-                  blocks: ti.types.ndarray(dtype=ti.i32, ndim=2), n_blocks: ti.i32,
-                  keys: ti.types.ndarray(dtype=ti.i32, ndim=2),
-                  counts: ti.types.ndarray(dtype=ti.f32, ndim=2),
-                  t_last: ti.types.ndarray(dtype=ti.f32, ndim=1),
-                  ell: ti.types.ndarray(dtype=ti.f32, ndim=1)) -> ti.i32:
-    """Export the live voxels of the listed storage blocks (world keys unwrapped at `center`)."""
+def export_leaving(m: ti.template(), old_center: ti.types.vector(3, ti.i32),
+                   center: ti.types.vector(3, ti.i32), half: ti.types.vector(3, ti.i32),
+                   blocks: ti.types.ndarray(dtype=ti.i32, ndim=2), n_blocks: ti.i32,
+                   keys: ti.types.ndarray(dtype=ti.i32, ndim=2),       # (M, 3) world voxel
+                   counts: ti.types.ndarray(dtype=ti.f32, ndim=2),     # (M, C)
+                   t_last: ti.types.ndarray(dtype=ti.f32, ndim=1),
+                   ell: ti.types.ndarray(dtype=ti.f32, ndim=1),
+                   left: ti.types.ndarray(dtype=ti.i32, ndim=1)) -> ti.i32:   # (n_blocks,)
+    """Move the live voxels of the listed blocks that lie outside the box out of the field.
+
+    Each leaving voxel is written to the outputs (world keys unwrapped at `old_center`), then
+    zeroed and its bit cleared (a bitmasked cell keeps its data when deactivated, and the next
+    voxel there must start from zero). `left[b]` counts block b's voxels that stay.
+    """
     m.counter[None] = 0
     for b, i, j, k in ti.ndrange(n_blocks, LEAF, LEAF, LEAF):
         u = ti.Vector([blocks[b, 0] * LEAF + i, blocks[b, 1] * LEAF + j, blocks[b, 2] * LEAF + k])
         if ti.is_active(m.vox, u):
-            idx = ti.atomic_add(m.counter[None], 1)
-            if idx < keys.shape[0]:
-                w = m.unwrap(u, center)
-                for a in ti.static(range(3)):
-                    keys[idx, a] = w[a]
+            w = m.unwrap(u, old_center)
+            if outside(w, w, center, half):
+                idx = ti.atomic_add(m.counter[None], 1)
+                if idx < keys.shape[0]:
+                    for a in ti.static(range(3)):
+                        keys[idx, a] = w[a]
+                    for c in ti.static(range(m.C)):
+                        counts[idx, c] = m.counts[u, c]
+                    t_last[idx] = m.t_last[u]
+                    ell[idx] = m.ell[u]
                 for c in ti.static(range(m.C)):
-                    counts[idx, c] = m.counts[u, c]
-                t_last[idx] = m.t_last[u]
-                ell[idx] = m.ell[u]
+                    m.counts[u, c] = 0.0
+                m.t_last[u] = 0.0
+                m.ell[u] = 0.0
+                ti.deactivate(m.vox, u)
+            else:
+                ti.atomic_add(left[b], 1)
     return m.counter[None]
 
 
 @ti.kernel
-def free_blocks(m: ti.template(), blocks: ti.types.ndarray(dtype=ti.i32, ndim=2), n_blocks: ti.i32):
+def free_empty_blocks(m: ti.template(), blocks: ti.types.ndarray(dtype=ti.i32, ndim=2),
+                      n_blocks: ti.i32, left: ti.types.ndarray(dtype=ti.i32, ndim=1)) -> ti.i32:
+    """Free the listed blocks that have no voxel left (their memory is recycled zero-filled)."""
+    n = 0
     for b in range(n_blocks):
-        ti.deactivate(m.blk, [blocks[b, 0], blocks[b, 1], blocks[b, 2]])
+        if left[b] == 0:
+            ti.deactivate(m.blk, [blocks[b, 0], blocks[b, 1], blocks[b, 2]])
+            n += 1
+    return n
 
 
 @ti.kernel
 def free_far_top_cells(m: ti.template(), old_center_top: ti.types.vector(3, ti.i32),
-                       new_center_blk: ti.types.vector(3, ti.i32),
-                       half_blk: ti.types.vector(3, ti.i32)):
-    """Free top cells all of whose blocks lie outside the window (they were freed just before)."""
+                       center: ti.types.vector(3, ti.i32), half: ti.types.vector(3, ti.i32)):
+    """Free top cells that lie wholly outside the box (their blocks were freed just before)."""
     for T in ti.grouped(m.top):
-        wt = unwrap_cells(T, old_center_top, m.N_top)
+        lo = unwrap_cells(T, old_center_top, m.N_top) * TOP
+        hi = lo + TOP - 1
         far = 0
         for a in ti.static(range(3)):
-            lo = wt[a] * MID
-            hi = lo + MID - 1
-            if lo > new_center_blk[a] + half_blk[a] or hi < new_center_blk[a] - half_blk[a]:
+            if lo[a] > center[a] + half[a] or hi[a] < center[a] - half[a]:
                 far = 1
         if far:
             ti.deactivate(m.top, T)
+
+
+@ti.kernel
+def blocks_by_ring(m: ti.template(), old_center_blk: ti.types.vector(3, ti.i32),
+                   center_blk: ti.types.vector(3, ti.i32), half_blk: ti.types.vector(3, ti.i32),
+                   rings: ti.types.ndarray(dtype=ti.i32, ndim=1)):   # (half_blk.x + 1,)
+    """Live blocks within the block box around center_blk, by Chebyshev x/y distance."""
+    for B in ti.grouped(m.blk):
+        off = ti.abs(unwrap_cells(B, old_center_blk, m.N_blk) - center_blk)
+        r = ti.max(off[0], off[1])
+        if r <= half_blk[0] and off[2] <= half_blk[2]:
+            ti.atomic_add(rings[r], 1)
+
+
+@ti.kernel
+def count_scan_blocks(m: ti.template()) -> ti.i32:
+    """Leaf blocks of the scan layer (what one scan holds while it is being fused)."""
+    n = 0
+    for B in ti.grouped(m.s_blk):
+        n += 1
+    return n
+
+
+@ti.kernel
+def count_top_cells(m: ti.template()) -> ti.i32:
+    """Active top cells of the map layer (each holds an 8^3 pointer array of leaf blocks)."""
+    n = 0
+    for T in ti.grouped(m.top):
+        n += 1
+    return n

@@ -40,6 +40,7 @@ class IntegrationReport:
     dropped_nonfinite: int = 0
     dropped_range: int = 0
     dropped_window: int = 0
+    dropped_far: int = 0            # of dropped_range: implausibly far (> 1 km), corrupt data
     training_voxels: int = 0
     evicted_voxels: int = 0
     reloaded_voxels: int = 0
@@ -147,6 +148,7 @@ class Mapper:
         rep.used = int(stats[rasterize.USED])
         rep.dropped_range = int(stats[rasterize.OUT_OF_RANGE]) - rep.dropped_nonfinite
         rep.dropped_window = int(stats[rasterize.OUT_OF_WINDOW])
+        rep.dropped_far = int(stats[rasterize.IMPLAUSIBLY_FAR]) - rep.dropped_nonfinite
         clock("rasterize")
         center_v = ti.Vector(center.tolist())
         center_blk = ti.Vector(np.floor_divide(center, LEAF).tolist())
@@ -202,7 +204,9 @@ class Mapper:
         rep.dropped_nonfinite = int(len(pts) - np.count_nonzero(finite))
         if rep.dropped_nonfinite:
             pts = pts.copy()
-            pts[~finite] = 2.0 * cfg.max_range_m + 1.0   # out of range: the kernel drops them
+            # beyond any range (and counted as implausibly far, which the report corrects for):
+            # the kernel drops them without a NaN test, which fast math would not honour
+            pts[~finite] = (2.0 * rasterize.FAR_M, 0.0, 0.0)
         labels = probs = None
         if scan.labels is not None:
             labels = np.ascontiguousarray(scan.labels, dtype=np.int32)
@@ -232,42 +236,123 @@ class Mapper:
 
     # ------------------------------------------------------------------ window and store
     def _move_window(self, new_center: np.ndarray, rep: IntegrationReport | None = None) -> None:
-        """Evict blocks that fall outside the window around `new_center`, reload stored ones."""
+        """Move the live window to `new_center`: voxels that leave it go to the store, stored
+        voxels it now covers come back, and `_fit_cap` keeps the live blocks under the cap.
+
+        The window is the voxel box |w - center_vox| <= half_vox, the very box `query` reads
+        the field in: kernels/window.py splits the blocks its face cuts, so a voxel is live
+        exactly when the box holds it, and the field and the store never hold the same voxel.
+        """
         m = self.fields
-        new_blk = np.floor_divide(new_center, LEAF)
-        if self.center_vox is not None:
-            old_blk = np.floor_divide(self.center_vox, LEAF)
-            if np.any(np.abs(new_blk - old_blk) > 0):
-                evicted = self._evict(old_blk, new_blk)
-                if rep is not None:
-                    rep.evicted_voxels = evicted
+        new_center = np.asarray(new_center, np.int64)
+        half = self._fit_cap(new_center)
+        st = self._cap_state
+        if self.center_vox is not None and (np.any(new_center != self.center_vox)
+                                            or np.any(half != self.half_vox)):
+            evicted = self._evict(new_center, half)
+            if rep is not None:
+                rep.evicted_voxels = evicted
         self.center_vox = new_center
-        back = self.store.take_inside(new_blk, self.half_blk)
+        self.half_vox = half
+        back = self.store.take_box(new_center, half)
         if back is not None:
             keys, counts, t_last, ell = back
             kquery.import_voxels(m, np.ascontiguousarray(keys, np.int32), counts, t_last, ell)
             if rep is not None:
                 rep.reloaded_voxels = len(keys)
+            st["live"] = kquery.count_blocks(m)
+        else:   # (live blocks after the move, to learn how many the scan adds)
+            st["live"] = st["now"] - st["freed"]
 
-    def _evict(self, old_blk: np.ndarray, new_blk: np.ndarray) -> int:
+    def _evict(self, new_center: np.ndarray, half: np.ndarray) -> int:
+        """Move the live voxels outside the box |w - new_center| <= half to the store and free
+        the blocks and top cells they leave empty; returns how many voxels moved."""
         m = self.fields
-        nblocks = kquery.count_blocks(m)
-        blocks = np.zeros((max(nblocks, 1), 3), np.int32)
+        st = self._cap_state
         vec = lambda a: ti.Vector([int(x) for x in a])
-        n = window.find_far_blocks(m, vec(old_blk), vec(new_blk), vec(self.half_blk), blocks)
+        old_blk = np.floor_divide(self.center_vox, LEAF)
+        blocks = np.zeros((max(st["now"], 1), 3), np.int32)
+        n = window.find_leaving_blocks(m, vec(old_blk), vec(new_center), vec(half), blocks)
         if n == 0:
             return 0
+        if n > len(blocks):   # (st["now"] is exact; this is a guard)
+            blocks = np.zeros((n, 3), np.int32)
+            n = window.find_leaving_blocks(m, vec(old_blk), vec(new_center), vec(half), blocks)
         cap = n * LEAF ** 3
         keys = np.zeros((cap, 3), np.int32)
         counts = np.zeros((cap, self.C), np.float32)
         t_last = np.zeros(cap, np.float32)
         ell = np.zeros(cap, np.float32)
-        nv = window.export_blocks(m, vec(self.center_vox), blocks, n, keys, counts, t_last, ell)
+        left = np.zeros(n, np.int32)
+        nv = window.export_leaving(m, vec(self.center_vox), vec(new_center), vec(half), blocks, n,
+                                   keys, counts, t_last, ell, left)
         self.store.put(keys[:nv], counts[:nv], t_last[:nv], ell[:nv])
-        window.free_blocks(m, blocks, n)
-        window.free_far_top_cells(m, vec(np.floor_divide(old_blk, TOP // LEAF)), vec(new_blk),
-                                  vec(self.half_blk))
+        st["freed"] = window.free_empty_blocks(m, blocks, n, left)
+        # a top cell can only fall wholly outside when the box's range of top cells changes
+        tops = np.r_[np.floor_divide(new_center - half, TOP), np.floor_divide(new_center + half, TOP)]
+        if st.get("tops") is None or np.any(tops != st["tops"]):
+            window.free_far_top_cells(m, vec(np.floor_divide(self.center_vox, TOP)),
+                                      vec(new_center), vec(half))
+            st["tops"] = tops
         return int(nv)
+
+    def _fit_cap(self, center: np.ndarray) -> np.ndarray:
+        """Half-size (voxels) of the live window for a scan at `center`, under the block cap.
+
+        The configured window, unless its blocks (live and stored) would leave less room under
+        `max_live_blocks` than the most blocks one scan has added so far: then the largest
+        smaller x/y box that does, so the farthest blocks go to the store first (they come back
+        once the map around the sensor thins out). Raises ValueError, with the map untouched
+        (the pipeline skips the scan), when even the smallest box that holds a scan and its
+        kernel reach does not fit.
+        """
+        m = self.fields
+        st = self.__dict__.get("_cap_state")
+        if st is None:   # the configured window; headroom: the most blocks a scan has added
+            st = self._cap_state = {"full": self.half_vox.copy(), "headroom": 0, "live": None,
+                                    "shrunk": False}
+        full = st["full"]
+        live = st["now"] = kquery.count_blocks(m)
+        st["freed"] = 0
+        if st["live"] is not None:
+            st["headroom"] = max(st["headroom"], live - st["live"])
+        cap = int(self.config.max_live_blocks)
+        budget = cap - st["headroom"]
+        center_blk = np.floor_divide(center, LEAF)
+        full_blk = -(-full // LEAF)             # rings of blocks the full box can touch
+        stored = self.store.count_blocks_by_ring(center_blk, full_blk)
+        if live + int(stored.sum()) <= budget:
+            if st["shrunk"]:
+                log.info("live window back to its full size (%d live blocks)", live)
+                st["shrunk"] = False
+            return full
+        rings = np.zeros(int(full_blk[0]) + 1, np.int32)
+        if self.center_vox is not None:
+            vec = lambda a: ti.Vector([int(x) for x in a])
+            window.blocks_by_ring(m, vec(np.floor_divide(self.center_vox, LEAF)), vec(center_blk),
+                                  vec(full_blk), rings)
+        within = np.cumsum(rings + stored)      # blocks within ring r: the box of half 4r holds
+        fits = np.flatnonzero(within <= budget)
+        r = int(fits.max()) if len(fits) else -1
+        if r >= full_blk[0]:
+            return full
+        # every voxel a scan touches lies within _limit + kernel radius of its centre voxel
+        reach = int(self._limit[:2].max()) + self.radius_vox
+        r_min = -(-reach // LEAF)
+        if r < r_min:
+            raise ValueError(
+                f"the live map cannot stay under max_live_blocks={cap}: the smallest window that "
+                f"holds a scan (+-{reach * self.res:.0f} m) has "
+                f"{int(within[min(r_min, len(within) - 1)])} blocks here, and a scan adds up to "
+                f"{st['headroom']}; raise max_live_blocks (~5.7 KB each) or lower max_range_m")
+        if not st["shrunk"]:
+            log.warning("the map around the sensor needs more than max_live_blocks=%d blocks: "
+                        "live window shrunk to +-%.0f m (farthest blocks go to the store)",
+                        cap, r * LEAF * self.res)
+            st["shrunk"] = True
+        half = full.copy()
+        half[:2] = r * LEAF                     # a box of half 4r voxels touches rings <= r
+        return half
 
     # ------------------------------------------------------------------ query and export
     def query(self, points_world: np.ndarray, with_probs: bool = True):
