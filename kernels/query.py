@@ -1,7 +1,6 @@
 """Step 9 and the map's host interface: query, count, export, import, evict."""
 import taichi as ti
 
-from kernels.rasterize import to_local
 
 
 @ti.func
@@ -39,22 +38,6 @@ def query(m: ti.template(),
           with_prob: ti.i32):
     for p in range(out_label.shape[0]):
         w = ti.floor(ti.Vector([pts[p, 0], pts[p, 1], pts[p, 2]]) * inv_res, ti.i32)
-        lookup(m, w, center, half, p, out_label, out_inside, out_prob, with_prob)
-
-
-@ti.kernel
-def query_sensor(m: ti.template(),
-                 pts: ti.types.ndarray(dtype=ti.f32, ndim=2),     # (N, 3) sensor frame
-                 R: ti.types.matrix(3, 3, ti.f32), t: ti.types.vector(3, ti.f32),
-                 center: ti.types.vector(3, ti.i32), half: ti.types.vector(3, ti.i32),
-                 inv_res: ti.f32,
-                 out_label: ti.types.ndarray(dtype=ti.i32, ndim=1),
-                 out_inside: ti.types.ndarray(dtype=ti.i32, ndim=1),
-                 out_prob: ti.types.ndarray(dtype=ti.f32, ndim=2), with_prob: ti.i32):
-    """Query a scan's own points with the very arithmetic that rasterised them, so a point on
-    a voxel face is looked up in the voxel it was added to."""
-    for p in range(out_label.shape[0]):
-        w = ti.floor(to_local(R, ti.Vector([pts[p, 0], pts[p, 1], pts[p, 2]]), t) * inv_res, ti.i32)
         lookup(m, w, center, half, p, out_label, out_inside, out_prob, with_prob)
 
 
