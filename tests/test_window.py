@@ -184,19 +184,43 @@ def test_store_round_trip_split_and_lookup():
         np.testing.assert_array_equal(g, e)
 
 
-def test_store_refuses_duplicates_and_far_keys():
+def test_store_refuses_voxels_inside_the_window_and_far_keys():
     rng = np.random.default_rng(1)
     keys, counts, t_last, ell = random_voxels(rng, 100)
     store = BlockStore(20)
-    store.put(keys, counts, t_last, ell)
-    with pytest.raises(RuntimeError, match="stored twice"):
-        store.put(keys[:3], counts[:3], t_last[:3], ell[:3])
-    assert len(store) == len(keys)
+    with pytest.raises(ValueError, match="inside the live window"):
+        store.put(keys, counts, t_last, ell, box=(keys[0], np.array([2, 2, 2])))
+    assert len(store) == 0
     far = np.array([[KEY_LIMIT + 1, 0, 0]])
     with pytest.raises(ValueError, match="beyond"):
         store.put(far, counts[:1], t_last[:1], ell[:1])
     with pytest.raises(ValueError, match="expected"):
         store.put(keys, counts[:, :5], t_last, ell)
+
+
+def test_store_blocks_in_pieces():
+    """A block the window's face cuts is stored in pieces, one per scan; take and lookup gather
+    them, and a window sliding over the store takes each voxel exactly once."""
+    rng = np.random.default_rng(3)
+    want = random_voxels(rng, 20000, lo=-40, hi=40)
+    store = BlockStore(20)
+    x = want[0][:, 0]
+    for cx in range(-41, 41, 3):            # a window sliding +x: voxels leave through its face
+        box = (np.array([cx + 200, 0, 0]), np.array([200, 100, 100]))
+        leaving = (x >= cx - 3) & (x < cx)
+        store.put(*(a[leaving] for a in want), box=box)
+    assert len(store) == len(x) and store.num_blocks > len(np.unique(pack(want[0] // 4)))
+    counts, found = store.lookup(want[0])
+    assert found.all()
+    np.testing.assert_array_equal(counts, want[1])
+    got = []
+    for cx in range(-60, 60, 2):          # and a window coming back takes them out in pieces
+        part = store.take_box(np.array([cx, 0, 0]), np.array([1, 100, 100]))
+        if part is not None:
+            got.append(part)
+    assert len(store) == 0
+    for g, e in zip(sort_rows([np.concatenate(p) for p in zip(*got)]), sort_rows(want)):
+        np.testing.assert_array_equal(g, e)
 
 
 def test_store_is_compact():

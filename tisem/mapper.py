@@ -286,7 +286,7 @@ class Mapper:
         left = np.zeros(n, np.int32)
         nv = window.export_leaving(m, vec(self.center_vox), vec(new_center), vec(half), blocks, n,
                                    keys, counts, t_last, ell, left)
-        self.store.put(keys[:nv], counts[:nv], t_last[:nv], ell[:nv])
+        self.store.put(keys[:nv], counts[:nv], t_last[:nv], ell[:nv], box=(new_center, half))
         st["freed"] = window.free_empty_blocks(m, blocks, n, left)
         # a top cell can only fall wholly outside when the box's range of top cells changes
         tops = np.r_[np.floor_divide(new_center - half, TOP), np.floor_divide(new_center + half, TOP)]

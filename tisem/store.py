@@ -4,13 +4,15 @@ Voxels keep their counters, last-update times and kernel lengths while they are 
 sensor comes back they are written back into the Taichi field untouched, so the lazy decay then
 covers the time they were away, exactly as if they had never left.
 
-Layout. Every `put` (one scan's evictions) becomes a *segment*: its voxels sorted by leaf block,
+Layout. Every `put` (one scan's evictions) becomes a *segment* per face of the window the voxels
+left through (a thin slab just outside it): its voxels sorted by leaf block,
 each voxel as a 1-byte index inside its 4^3 block, t_last and ell as float32, and the counters
 compressed to their non-zero entries (a class byte and a float32 value each; a voxel holds ~5
-of 20 classes). That is ~35 B per voxel instead of the field's ~100 B, with no Python object per
-block. Blocks taken back (the sensor returned) are marked dead; a segment is compacted once half
-its voxels are gone. Each segment keeps its bounding box in blocks, so finding the blocks that
-re-enter the window only looks inside the few segments that overlap it.
+of 20 classes; a bit mask says which). That is ~39 B per voxel on the synthetic loop instead of
+the field's ~100 B, with no Python object per block. Blocks taken back (the sensor returned)
+are marked dead and a segment is compacted once a fifth of it is dead. Each segment keeps its
+bounding box in blocks, so finding what re-enters the window only looks inside the few
+segments that overlap it.
 
 Keys are voxel indices relative to the map origin; |key| <= KEY_LIMIT per axis (packed in
 21 bits), which at 0.2 m is +-209 km around the first scan.
@@ -26,9 +28,8 @@ _HALF = 1 << (_BITS - 1)
 KEY_LIMIT = _HALF - 1   # |voxel index| (relative to the map origin) the packed keys can hold
 _MASK = (1 << _BITS) - 1
 _LOCAL = np.array([LEAF * LEAF, LEAF, 1], np.int64)   # voxel within block -> 0..LEAF^3-1
-# A segment is rewritten without its taken blocks once fewer than this fraction of its voxels
-# are left. Blocks cut by the window's face leave in two pieces a scan apart, and the second
-# piece takes the first out of its segment: without compaction a quarter of the store is dead.
+# A segment is rewritten without the blocks taken back from it (the sensor returned) once
+# fewer than this fraction of its voxels are left.
 COMPACT = 0.8
 
 
@@ -164,9 +165,9 @@ class _Segment:
 class BlockStore:
     """Voxels (keys relative to the map origin, times relative to its t0) grouped by block.
 
-    A voxel is either live (in the Taichi field) or here, never both: `put` refuses a voxel that
-    is already stored. A block may be split between the two (the window's face cuts it); here
-    each stored block is held whole by one segment (`put` merges the pieces).
+    A voxel is either live (in the Taichi field) or here, never both (see `put`). A block may be
+    split between the two (the window's face cuts it), and its stored part may be in a few
+    pieces, one per segment; `take_box` and `lookup` gather them.
     """
 
     def __init__(self, num_classes: int):
@@ -203,8 +204,12 @@ class BlockStore:
         return np.flatnonzero(np.all(b[:, :3] <= hi, axis=1) & np.all(b[:, 3:] >= lo, axis=1))
 
     # ------------------------------------------------------------------ in and out
-    def put(self, keys, counts, t_last, ell) -> None:
-        """Store voxels (their blocks must not be live any more)."""
+    def put(self, keys, counts, t_last, ell, box=None) -> None:
+        """Store voxels. `box=(center, half)`: the live window they just left. None of them may
+        lie inside it; as `take_box` takes every stored voxel inside the window each time it
+        moves, no voxel is then ever live and stored at once. The voxels are stored in one
+        segment per face of the box they left through, so each segment is a thin slab just
+        outside that face and the window overlaps few segments."""
         keys = np.asarray(keys)
         if len(keys) == 0:
             return
@@ -216,22 +221,21 @@ class BlockStore:
                              f"{np.shape(ell)}")
         if np.abs(keys).max() > KEY_LIMIT:
             raise ValueError(f"put: voxel keys beyond +-{KEY_LIMIT} of the map origin")
-        blocks = np.floor_divide(keys, LEAF)
-        packed = np.unique(pack(blocks))
-        lo, hi = blocks.min(axis=0), blocks.max(axis=0)
-        clashing = lambda s: np.isin(s.packed, packed)
-        for i in self._overlapping(lo, hi):
-            s = self._segments[i]
-            both = np.flatnonzero(s.alive & clashing(s))
-            if len(both) and np.isin(pack(s.keys_of(s.voxels_of(both))), pack(keys)).any():
-                raise RuntimeError("put: a voxel would be stored twice (it was live and stored "
-                                   "at once); refusing, the map would be corrupted")
-        clash = self._take_blocks(lo, hi, clashing)
-        if clash is not None:
-            # the other piece of a block the window's face cut: hold the block whole again
-            keys, counts, t_last, ell = (np.concatenate([a, b]) for a, b in
-                                         zip(clash, (keys.astype(np.int32), counts, t_last, ell)))
-        self._add(_Segment.build(keys, counts, t_last, ell))
+        if box is None:
+            self._add(_Segment.build(keys, counts, t_last, ell))
+            return
+        c, h = (np.asarray(v, np.int64) for v in box)
+        off = keys.astype(np.int64) - c
+        below, above = off < -h, off > h
+        out = below | above
+        if not out.any(axis=1).all():
+            raise ValueError("put: voxels inside the live window cannot be stored (they would be "
+                             "live and stored at once)")
+        axis = np.argmax(out, axis=1)                       # the first axis it is outside on
+        face = 2 * axis + above[np.arange(len(keys)), axis]
+        for f in np.unique(face):
+            sel = face == f
+            self._add(_Segment.build(keys[sel], counts[sel], t_last[sel], ell[sel]))
 
     def _add(self, seg: _Segment) -> None:
         self._boxes()
@@ -351,20 +355,24 @@ class BlockStore:
         packed, seg_of, blk_of = self._block_index()
         blocks = np.floor_divide(keys, LEAF)
         q = pack(blocks)
-        pos = np.clip(np.searchsorted(packed, q), 0, len(packed) - 1)
-        hit = np.flatnonzero(packed[pos] == q)
-        local = (keys[hit] - blocks[hit] * LEAF) @ _LOCAL
-        for i in np.unique(seg_of[pos[hit]]):
-            s = self._segments[i]
-            mine = hit[seg_of[pos[hit]] == i]
-            b = blk_of[pos[mine]]
-            ub, row = np.unique(b, return_inverse=True)
-            # a (blocks, LEAF^3) table of voxel indices for the blocks asked about
-            table = np.full((len(ub), LEAF ** 3), -1, np.int64)
-            vox = s.voxels_of(ub)
-            table[np.repeat(np.arange(len(ub)), np.diff(s.vstart)[ub]), s.local[vox]] = vox
-            v = table[row, local[np.searchsorted(hit, mine)]]
-            ok = v >= 0
-            counts[mine[ok]] = s.decode_counts(v[ok], self.C)
-            found[mine[ok]] = True
+        first = np.searchsorted(packed, q, side="left")
+        pieces = np.searchsorted(packed, q, side="right") - first
+        local = (keys - blocks * LEAF) @ _LOCAL
+        # a block cut by the window's face can be stored in a few pieces (segments): try each
+        for k in range(int(pieces.max())):
+            ask = np.flatnonzero((pieces > k) & ~found)
+            pos = first[ask] + k
+            for i in np.unique(seg_of[pos]):
+                s = self._segments[i]
+                mine = ask[seg_of[pos] == i]
+                b = blk_of[first[mine] + k]
+                ub, row = np.unique(b, return_inverse=True)
+                # a (blocks, LEAF^3) table of voxel indices for the blocks asked about
+                table = np.full((len(ub), LEAF ** 3), -1, np.int64)
+                vox = s.voxels_of(ub)
+                table[np.repeat(np.arange(len(ub)), np.diff(s.vstart)[ub]), s.local[vox]] = vox
+                v = table[row, local[mine]]
+                ok = v >= 0
+                counts[mine[ok]] = s.decode_counts(v[ok], self.C)
+                found[mine[ok]] = True
         return counts, found
