@@ -118,7 +118,7 @@ class MapFields:
         return ti.Vector([w[0] & (n[0] - 1), w[1] & (n[1] - 1), w[2] & (n[2] - 1)])
 
     @ti.func
-    def _unwrap(self, u, center, n: ti.template()):
+    def unwrap_cells(self, u, center, n: ti.template()):
         """Storage index -> the world index nearest `center` (valid within n/2 of it)."""
         w = ti.Vector([0, 0, 0])
         for a in ti.static(range(3)):
@@ -141,12 +141,12 @@ class MapFields:
     @ti.func
     def unwrap(self, u, center):
         """Map storage voxel -> world voxel (nearest the window centre `center`)."""
-        return self._unwrap(u, center, self.N)
+        return self.unwrap_cells(u, center, self.N)
 
     @ti.func
     def unwrap_blk(self, b, center_blk):
         """Map storage leaf block -> world leaf block."""
-        return self._unwrap(b, center_blk, self.N_blk)
+        return self.unwrap_cells(b, center_blk, self.N_blk)
 
     @ti.func
     def s_wrap(self, w):
@@ -156,9 +156,9 @@ class MapFields:
     @ti.func
     def s_unwrap(self, u, center):
         """Scan-layer storage voxel -> world voxel (nearest the sensor's voxel `center`)."""
-        return self._unwrap(u, center, self.NS)
+        return self.unwrap_cells(u, center, self.NS)
 
     @ti.func
     def s_unwrap_blk(self, b, center_blk):
         """Scan-layer storage leaf block -> world leaf block."""
-        return self._unwrap(b, center_blk, self.NS_blk)
+        return self.unwrap_cells(b, center_blk, self.NS_blk)

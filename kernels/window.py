@@ -15,17 +15,6 @@ from kernels.layout import LEAF, TOP
 
 
 @ti.func
-def unwrap_cells(u, center, n: ti.template()):
-    w = ti.Vector([0, 0, 0])
-    for a in ti.static(range(3)):
-        d = (u[a] - center[a]) & (n[a] - 1)
-        if d >= n[a] // 2:
-            d -= n[a]
-        w[a] = center[a] + d
-    return w
-
-
-@ti.func
 def outside(lo, hi, center, half):
     """Whether the voxel range [lo, hi] (per axis) pokes out of the box around center."""
     out = 0
@@ -44,7 +33,7 @@ def find_leaving_blocks(m: ti.template(),
     """Live leaf blocks not wholly inside the box (storage indices); returns how many."""
     m.counter[None] = 0
     for B in ti.grouped(m.blk):
-        lo = unwrap_cells(B, old_center_blk, m.N_blk) * LEAF
+        lo = m.unwrap_blk(B, old_center_blk) * LEAF
         if outside(lo, lo + LEAF - 1, center, half):
             idx = ti.atomic_add(m.counter[None], 1)
             if idx < out_blocks.shape[0]:
@@ -109,7 +98,7 @@ def free_far_top_cells(m: ti.template(), old_center_top: ti.types.vector(3, ti.i
                        center: ti.types.vector(3, ti.i32), half: ti.types.vector(3, ti.i32)):
     """Free top cells that lie wholly outside the box (their blocks were freed just before)."""
     for T in ti.grouped(m.top):
-        lo = unwrap_cells(T, old_center_top, m.N_top) * TOP
+        lo = m.unwrap_cells(T, old_center_top, m.N_top) * TOP
         hi = lo + TOP - 1
         far = 0
         for a in ti.static(range(3)):
@@ -125,7 +114,7 @@ def blocks_by_ring(m: ti.template(), old_center_blk: ti.types.vector(3, ti.i32),
                    rings: ti.types.ndarray(dtype=ti.i32, ndim=1)):   # (half_blk.x + 1,)
     """Live blocks within the block box around center_blk, by Chebyshev x/y distance."""
     for B in ti.grouped(m.blk):
-        off = ti.abs(unwrap_cells(B, old_center_blk, m.N_blk) - center_blk)
+        off = ti.abs(m.unwrap_blk(B, old_center_blk) - center_blk)
         r = ti.max(off[0], off[1])
         if r <= half_blk[0] and off[2] <= half_blk[2]:
             ti.atomic_add(rings[r], 1)
