@@ -187,6 +187,7 @@ def run(args) -> dict:
                          "live_voxels": mapper.live_voxels, "stored_voxels": mapper.stored_voxels,
                          "live_blocks": mapper.live_blocks,
                          "store_mb": mapper.store.nbytes / 2 ** 20,
+                         "store_disk_mb": mapper.store.disk_bytes / 2 ** 20,
                          "elapsed_s": time.perf_counter() - t_start})
             last_window_s, last_scan = window_s, i + 1
             if not args.probe_chunk:
@@ -235,7 +236,8 @@ def draw(r: dict, path: Path) -> None:
     scan = [x["scan"] for x in rows]
     fig, ax = plt.subplots(3, 1, figsize=(7, 6.5), sharex=True)
     ax[0].plot(scan, [x["rss_mb"] for x in rows], label="resident memory")
-    ax[0].plot(scan, [x["store_mb"] for x in rows], label="of which host store (payload)")
+    ax[0].plot(scan, [x["store_mb"] for x in rows], label="of which host store in RAM")
+    ax[0].plot(scan, [x["store_disk_mb"] for x in rows], label="host store on disk")
     ax[0].set_ylabel("MB")
     ax[0].legend(loc="upper left", fontsize=8)
     ax[1].plot(scan, [x["ms_per_scan"] for x in rows], color="C2")

@@ -22,6 +22,7 @@ The mapper config itself is the file's `mapper_config_yaml`, the map its snapsho
 """
 from __future__ import annotations
 
+import dataclasses
 import logging
 import os
 from dataclasses import dataclass
@@ -130,20 +131,23 @@ class Checkpoint:
         cfg.mapper = self.config()
         return cfg
 
-    def build_mapper(self, profile: bool = False):
-        """A fresh `Mapper(config)` restored to this checkpoint's map and state."""
+    def build_mapper(self, profile: bool = False, store_dir: str | None = None):
+        """A fresh `Mapper(config)` restored to this checkpoint's map and state. `store_dir`:
+        where its store spills (`MapperConfig.store_dir`; not the saved one, a folder on the
+        machine that wrote the file)."""
         from tisem.backend import ensure_initialized
         from tisem.mapper import Mapper
         ensure_initialized()
-        mapper = Mapper(self.config(), profile=profile)
+        mapper = Mapper(dataclasses.replace(self.config(), store_dir=store_dir), profile=profile)
         mapper.restore(self.snapshot, self.mapper_state)
         return mapper
 
     # ------------------------------------------------------------------ pipeline progress
     def check_run_config(self, cfg: RunConfig) -> None:
         """Refuse to resume with a different mapper config; warn about other differences."""
-        mine = to_dict(self.config())
-        theirs = to_dict(cfg.mapper)
+        # where the store spills is a place on this machine, not part of the map
+        mine, theirs = ({k: v for k, v in to_dict(c).items() if k != "store_dir"}
+                        for c in (self.config(), cfg.mapper))
         diff = sorted(k for k in set(mine) | set(theirs) if mine.get(k) != theirs.get(k))
         if diff:
             raise ValueError(f"{self.path}: the checkpoint was made with a different mapper config "

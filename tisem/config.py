@@ -48,6 +48,11 @@ class MapperConfig:
                                      # 1.7.4 maps a 2nd 1 GiB host chunk (unsafe: its allocator
                                      # bug) at 98,304 live blocks, measured; this leaves 2 pool
                                      # chunks (32k blocks) for the scan layer and a scan's growth
+    store_dir: str | None = None     # where the host store keeps the voxels that left the
+                                     # window (~35 B each, in an unnamed temp file that goes
+                                     # with the process); None: the system temp dir. A place
+                                     # on this machine, not part of the map: resuming a
+                                     # checkpoint uses the run's, not the saved one
 
     def validate(self) -> None:
         if self.mode not in MODES:

@@ -72,6 +72,8 @@ class Mapper:
         self.config = config or MapperConfig()
         self.config.validate()
         cfg = self.config
+        # first: a missing store_dir is refused before the runtime's one map slot is taken
+        self.store = BlockStore(cfg.num_classes, spill_dir=cfg.store_dir)
         self._generation = backend.claim_map_slot()
         self.C = cfg.num_classes
         self.res = float(cfg.resolution_m)
@@ -106,7 +108,6 @@ class Mapper:
                                 storage_extent(tuple(int(h) for h in self._limit)),
                                 tuple(int(h) for h in table_half))
         bki.fill_kernel_table(self.fields)
-        self.store = BlockStore(self.C)
         self.origin_vox: np.ndarray | None = None   # global voxel index of local voxel 0
         self.t0: float | None = None               # stamp of the first scan
         self.center_vox: np.ndarray | None = None   # window centre, local voxels

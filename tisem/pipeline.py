@@ -135,7 +135,7 @@ def run_pipeline(scans: Iterable[Scan | SkippedScan], cfg: RunConfig, out_dir: s
             raise ValueError("give either mapper= or resume=, not both")
         ckpt = open_checkpoint(resume)
         ckpt.check_run_config(cfg)
-        mapper = ckpt.build_mapper()
+        mapper = ckpt.build_mapper(store_dir=cfg.mapper.store_dir)
     mapper = mapper or Mapper(cfg.mapper)
     drops = DropLog()
     online, input_conf = Confusion(mapper.C), Confusion(mapper.C)
