@@ -18,7 +18,7 @@ from kernels.layout import LEAF
 # Evidence below this is float noise at the kernel's edge (g -> 0 as d -> L), not an update:
 # counting it would reset t_last and, with alpha = 0, wipe the voxel's history.
 MIN_UPDATE = 1e-6
-# Longest kernel, in leaf blocks, that mark_receivers' neighbourhood is sized for.
+# Longest kernel, in leaf blocks, that the training table's margin is sized for.
 MAX_REACH_BLK = 2
 
 
@@ -51,21 +51,6 @@ def sparse_kernel_of_r2(m: ti.template(), r2):
     return (1.0 - f) * m.kernel_lut[i] + f * m.kernel_lut[i + 1]
 
 
-@ti.kernel
-def mark_receivers(m: ti.template(), center_blk: ti.types.vector(3, ti.i32), stamp: ti.i32,
-                   reach_blk: ti.i32):
-    """Stamp every live map block within `reach_blk` blocks of a block holding training points."""
-    for B in ti.grouped(m.s_blk):
-        wb = m.s_unwrap_blk(B, center_blk)
-        i, _ = m.table_index(wb, center_blk)
-        if m.b_count[i] > 0:
-            for dx, dy, dz in ti.ndrange((-reach_blk, reach_blk + 1), (-reach_blk, reach_blk + 1),
-                                         (-reach_blk, reach_blk + 1)):
-                nb = m.wrap_blk(wb + ti.Vector([dx, dy, dz]))
-                if ti.is_active(m.blk, nb):
-                    m.blk_stamp[nb] = stamp
-
-
 @ti.func
 def axis_gap(x, lo, width):
     """Distance along one axis from coordinate x to the interval [lo, lo + width]."""
@@ -81,9 +66,14 @@ def gather_update(m: ti.template(), center: ti.types.vector(3, ti.i32), stamp: t
                   single: ti.types.ndarray(dtype=ti.i32, ndim=1)):  # (K,) the class, if only one
     blk_m = LEAF * resolution
     center_blk = ti.floor(center / LEAF, ti.i32)
-    for B in ti.grouped(m.blk_stamp):
-        if m.blk_stamp[B] == stamp:
-            corner = m.unwrap(B * LEAF, center).cast(ti.f32) * resolution
+    base = ti.Vector(m.table_half) - center_blk
+    for B in ti.grouped(m.blk):
+        wb = m.unwrap_blk(B, center_blk)
+        i, inside = m.table_index(wb, center_blk)
+        # only blocks a training block can reach (assign_slots marked them; a superset, as the
+        # mark is coarse: the distance tests below decide)
+        if inside and m.near[m.near_index(i)] == stamp:
+            corner = (wb * LEAF).cast(ti.f32) * resolution
             for q in range(LEAF * LEAF * LEAF):
                 local = ti.Vector([q // (LEAF * LEAF), (q // LEAF) % LEAF, q % LEAF])
                 u = B * LEAF + local
@@ -91,13 +81,13 @@ def gather_update(m: ti.template(), center: ti.types.vector(3, ti.i32), stamp: t
                 if ell > 0:
                     centre = corner + (local.cast(ti.f32) + 0.5) * resolution
                     ell2 = ell * ell
+                    inv_ell2 = 1.0 / ell2
                     lo = ti.floor((centre - ell) / blk_m, ti.i32)
                     hi = ti.floor((centre + ell) / blk_m, ti.i32)
                     acc = ti.Vector([0.0] * m.C)
                     # plain nested loops (ti.ndrange would flatten them with an integer division
                     # and modulo per iteration), pruned axis by axis with the separable distance
                     # from the voxel centre to each block's box
-                    base = ti.Vector(m.table_half) - center_blk
                     for bx in range(lo[0], hi[0] + 1):
                         gx = axis_gap(centre[0], bx * blk_m, blk_m)
                         for by in range(lo[1], hi[1] + 1):
@@ -107,13 +97,18 @@ def gather_update(m: ti.template(), center: ti.types.vector(3, ti.i32), stamp: t
                                 for bz in range(lo[2], hi[2] + 1):
                                     gz = axis_gap(centre[2], bz * blk_m, blk_m)
                                     cell = base + ti.Vector([bx, by, bz])
-                                    if gxy + gz * gz < ell2 and m.in_table(cell):
+                                    # inside the table by construction: training blocks lie
+                                    # within the scan's limit, receivers within NEAR + reach of
+                                    # one, their kernels within reach more; the table's margin
+                                    # (Mapper) is wider than that
+                                    assert m.in_table(cell)
+                                    if gxy + gz * gz < ell2:
                                         start = m.b_start[cell]
                                         for p in range(start, start + m.b_count[cell]):
                                             d = ti.Vector([xyz[p, 0], xyz[p, 1], xyz[p, 2]]) - centre
                                             d2 = d.dot(d)
                                             if d2 < ell2:
-                                                k = sigma0 * sparse_kernel_of_r2(m, d2 / ell2)
+                                                k = sparse_kernel_of_r2(m, d2 * inv_ell2)
                                                 c1 = single[p]
                                                 if c1 > 0:      # one class: the common case
                                                     acc[c1] += k * hist[p, c1]
@@ -122,5 +117,6 @@ def gather_update(m: ti.template(), center: ti.types.vector(3, ti.i32), stamp: t
                                                     for c in ti.static(range(1, m.C)):
                                                         if mask & (1 << c):
                                                             acc[c] += k * hist[p, c]
+                    acc *= sigma0
                     if acc.sum() > MIN_UPDATE:
                         fuse_voxel(m, u, acc, t, inv_tau)

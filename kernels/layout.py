@@ -25,6 +25,7 @@ LEAF = 4   # voxels per leaf block edge
 MID = 8    # leaf blocks per top cell edge
 TOP = LEAF * MID
 KERNEL_TABLE = 4096   # samples of the sparse kernel over r^2 in [0, 1]
+NEAR = 2   # table cells (leaf blocks) per edge of a cell of the coarse `near` table
 
 
 def _pow2_at_least(n: int) -> int:
@@ -72,8 +73,6 @@ class MapFields:
         self.vox = self.blk.bitmasked(ti.ijk, LEAF)
         self.vox.dense(ti.l, self.C).place(self.counts)
         self.vox.place(self.t_last, self.ell)
-        self.blk_stamp = ti.field(ti.i32)   # per leaf block: the last scan whose kernel reaches it
-        self.blk.place(self.blk_stamp)
 
         # scan layer: per voxel the scan's histogram, coordinate sum and point count
         self.s_hist = ti.field(ti.f32)
@@ -93,6 +92,11 @@ class MapFields:
         self.b_count = ti.field(ti.i32)
         self.b_start = ti.field(ti.i32)
         fb.dense(ti.ijk, tuple(2 * h + 1 for h in self.table_half)).place(self.b_count, self.b_start)
+        # which map blocks the scan's kernels can reach: per NEAR x NEAR x NEAR table cells, the
+        # last scan with a training block within reach (kernels/training.py marks it). A dense
+        # read per map block replaces a sparse is_active test per (training block, neighbour).
+        self.near = ti.field(ti.i32)
+        fb.dense(ti.ijk, tuple(2 * h // NEAR + 1 for h in self.table_half)).place(self.near)
 
         self.counter = ti.field(ti.i32)
         self.stats = ti.field(ti.i32)       # per-scan point statistics (kernels/rasterize.py)
@@ -106,6 +110,11 @@ class MapFields:
     def in_table(self, i):
         return (0 <= i[0] <= 2 * self.table_half[0] and 0 <= i[1] <= 2 * self.table_half[1]
                 and 0 <= i[2] <= 2 * self.table_half[2])
+
+    @ti.func
+    def near_index(self, i):
+        """Cell of the coarse `near` table holding training-table cell i (inside the table)."""
+        return i // NEAR
 
     @ti.func
     def table_index(self, world_blk, center_blk):

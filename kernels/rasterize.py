@@ -7,6 +7,8 @@ never get here: the mapper moves them out of range first (fast math makes NaN te
 """
 import taichi as ti
 
+from kernels.layout import LEAF
+
 # slots of the per-scan point statistics (m.stats)
 USED, OUT_OF_RANGE, OUT_OF_WINDOW, IMPLAUSIBLY_FAR = 0, 1, 2, 3
 FAR_M = 1000.0   # no LiDAR returns from this far: such points are corrupt data, not range
@@ -40,9 +42,15 @@ def locate(m: ti.template(), p, R, t, center, limit, min_r2, max_r2, min_z, max_
 
 
 @ti.func
-def add_point(m: ti.template(), w, q):
+def add_point(m: ti.template(), w, q, center, min_points):
+    """Add a point to its voxel; the point that brings the voxel to `min_points` counts the
+    voxel in its leaf block's slot of the training table (step 3's filter, kernels/training.py:
+    exactly one point sees that count, so no separate pass over the voxels is needed)."""
     u = m.s_wrap(w)
-    m.s_npts[u] += 1
+    if ti.atomic_add(m.s_npts[u], 1) == min_points - 1:
+        center_blk = ti.floor(center / LEAF, ti.i32)
+        i, _ = m.table_index(ti.floor(w / LEAF, ti.i32), center_blk)
+        ti.atomic_add(m.b_count[i], 1)
     for a in ti.static(range(3)):
         m.s_sum[u, a] += q[a]
     return u
@@ -54,14 +62,15 @@ def rasterize_labels(m: ti.template(),
                      label: ti.types.ndarray(dtype=ti.i32, ndim=1),    # (N,) train id in [0, C)
                      R: ti.types.matrix(3, 3, ti.f32), t: ti.types.vector(3, ti.f32),
                      center: ti.types.vector(3, ti.i32), limit: ti.types.vector(3, ti.i32),
-                     min_r2: ti.f32, max_r2: ti.f32, min_z: ti.f32, max_z: ti.f32, inv_res: ti.f32):
+                     min_r2: ti.f32, max_r2: ti.f32, min_z: ti.f32, max_z: ti.f32, inv_res: ti.f32,
+                     min_points: ti.i32):
     for i in ti.static(range(4)):
         m.stats[i] = 0
     for n in range(label.shape[0]):
         p = ti.Vector([pts[n, 0], pts[n, 1], pts[n, 2]])
         ok, w, q = locate(m, p, R, t, center, limit, min_r2, max_r2, min_z, max_z, inv_res)
         if ok:
-            u = add_point(m, w, q)
+            u = add_point(m, w, q, center, min_points)
             if label[n] > 0:  # train id 0 (unlabeled) counts as a point but adds no evidence
                 m.s_hist[u, label[n]] += 1.0
 
@@ -72,14 +81,15 @@ def rasterize_probs(m: ti.template(),
                     prob: ti.types.ndarray(dtype=ti.f32, ndim=2),      # (N, C), class 0 ignored
                     R: ti.types.matrix(3, 3, ti.f32), t: ti.types.vector(3, ti.f32),
                     center: ti.types.vector(3, ti.i32), limit: ti.types.vector(3, ti.i32),
-                    min_r2: ti.f32, max_r2: ti.f32, min_z: ti.f32, max_z: ti.f32, inv_res: ti.f32):
+                    min_r2: ti.f32, max_r2: ti.f32, min_z: ti.f32, max_z: ti.f32, inv_res: ti.f32,
+                    min_points: ti.i32):
     for i in ti.static(range(4)):
         m.stats[i] = 0
     for n in range(prob.shape[0]):
         p = ti.Vector([pts[n, 0], pts[n, 1], pts[n, 2]])
         ok, w, q = locate(m, p, R, t, center, limit, min_r2, max_r2, min_z, max_z, inv_res)
         if ok:
-            u = add_point(m, w, q)
+            u = add_point(m, w, q, center, min_points)
             for c in ti.static(range(1, m.C)):
                 if prob[n, c] > 0:
                     m.s_hist[u, c] += prob[n, c]

@@ -2,24 +2,18 @@
 length, and write the training points (centroid + class evidence) sorted by leaf block.
 
 Sorting by block lets the kernel update visit only the training points of the few blocks
-around a voxel instead of every voxel cell within its kernel length. Three passes: count
-per block, hand out each block's slice of the arrays, fill the slices.
+around a voxel instead of every voxel cell within its kernel length. Three steps: rasterising
+counts per block the voxels with at least `min_points` points (kernels/rasterize.py),
+`assign_slots` hands out each block's slice of the arrays, `write_training` fills the slices
+with the voxels that also carry class evidence. A voxel with points but no evidence (only
+unlabeled points) leaves its slot unused at the end of its block's slice: the fill cursor,
+not the slice length, is what the kernel update reads.
 """
 import taichi as ti
 
 from kernels.entropy import adaptive_length
 from kernels.fusion import decay_factor, fuse_voxel
 from kernels.layout import LEAF
-
-
-@ti.func
-def evidence_total(m: ti.template(), I, min_points):
-    """Class evidence of scan voxel I, or 0 when the filter drops it (too few points)."""
-    total = 0.0
-    if m.s_npts[I] >= min_points:
-        for c in ti.static(range(m.C)):
-            total += m.s_hist[I, c]
-    return total
 
 
 @ti.func
@@ -31,14 +25,10 @@ def block_cell(m: ti.template(), I, center):
 
 
 @ti.kernel
-def count_training(m: ti.template(), center: ti.types.vector(3, ti.i32), min_points: ti.i32):
-    for I in ti.grouped(m.s_npts):
-        if evidence_total(m, I, min_points) > 0:
-            m.b_count[block_cell(m, I, center)] += 1
-
-
-@ti.kernel
-def assign_slots(m: ti.template(), center_blk: ti.types.vector(3, ti.i32)) -> ti.i32:
+def assign_slots(m: ti.template(), center_blk: ti.types.vector(3, ti.i32), stamp: ti.i32,
+                 reach_blk: ti.i32) -> ti.i32:
+    """Hand each block its slice of the training arrays, and mark in `near` the coarse cells
+    of every block within `reach_blk` of it (the map blocks the kernel update visits)."""
     m.counter[None] = 0
     for B in ti.grouped(m.s_blk):
         i, _ = m.table_index(m.s_unwrap_blk(B, center_blk), center_blk)
@@ -46,6 +36,13 @@ def assign_slots(m: ti.template(), center_blk: ti.types.vector(3, ti.i32)) -> ti
         if n > 0:
             m.b_start[i] = ti.atomic_add(m.counter[None], n)
             m.b_count[i] = 0     # reused as the fill cursor; write_training counts it back up
+            # the table's margin (Mapper) keeps i +- reach_blk inside it
+            lo = m.near_index(i - reach_blk)
+            hi = m.near_index(i + reach_blk)
+            for cx in range(lo[0], hi[0] + 1):
+                for cy in range(lo[1], hi[1] + 1):
+                    for cz in range(lo[2], hi[2] + 1):
+                        m.near[cx, cy, cz] = stamp
     return m.counter[None]
 
 
@@ -57,21 +54,26 @@ def write_training(m: ti.template(), center: ti.types.vector(3, ti.i32),
                    out_xyz: ti.types.ndarray(dtype=ti.f32, ndim=2),    # (K, 3) centroid, local m
                    out_hist: ti.types.ndarray(dtype=ti.f32, ndim=2),   # (K, C) class evidence
                    out_classes: ti.types.ndarray(dtype=ti.i32, ndim=1),  # (K,) bit c: evidence
-                   out_single: ti.types.ndarray(dtype=ti.i32, ndim=1)):  # (K,) the one class or 0
-
+                   out_single: ti.types.ndarray(dtype=ti.i32, ndim=1)  # (K,) the one class or 0
+                   ) -> ti.i32:
+    """Fill the training arrays; returns how many training points were written."""
+    written = 0
     for I in ti.grouped(m.s_npts):
-        total = evidence_total(m, I, min_points)
-        if total > 0:
+        h = ti.Vector([0.0] * m.C)
+        for c in ti.static(range(m.C)):
+            h[c] = m.s_hist[I, c]
+        total = h.sum()
+        if m.s_npts[I] >= min_points and total > 0:
+            written += 1
             cell = block_cell(m, I, center)
             u = m.wrap(m.s_unwrap(I, center))       # the same voxel in the map layer
             slot = m.b_start[cell] + ti.atomic_add(m.b_count[cell], 1)
-            scale = 1.0 / total if unit_weight else 1.0
-            h = ti.Vector([0.0] * m.C)
+            if unit_weight:
+                h *= 1.0 / total
             mask = 0
             n_classes = 0
             last = 0
             for c in ti.static(range(m.C)):
-                h[c] = m.s_hist[I, c] * scale
                 out_hist[slot, c] = h[c]
                 if h[c] > 0:
                     mask |= 1 << c
@@ -96,3 +98,4 @@ def write_training(m: ti.template(), center: ti.types.vector(3, ti.i32),
                         p[c] = prior + alpha * m.counts[u, c] + h[c]
                     length = adaptive_length(p, ell_min, ell_max, m.C - 1)
                 m.ell[u] = length                   # writing activates the map voxel
+    return written

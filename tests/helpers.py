@@ -195,10 +195,8 @@ class StageRecorder:
         self.scan_layer: list[dict] = []
         self.training: list[dict] = []
         self.reloaded = 0        # (for the caller's own bookkeeping)
-        self._n_training = 0
         for name in ("rasterize_labels", "rasterize_probs"):
             monkeypatch.setattr(rasterize, name, self._after_rasterize(getattr(rasterize, name)))
-        monkeypatch.setattr(training, "assign_slots", self._count(training.assign_slots))
         monkeypatch.setattr(training, "write_training",
                             self._after_training(training.write_training))
 
@@ -220,22 +218,23 @@ class StageRecorder:
             self.scan_layer.append(dict(keys=keys, npts=npts, centroid=centroid, hist=hist))
         return wrapped
 
-    def _count(self, kernel):
-        def wrapped(*args):
-            self._n_training = int(kernel(*args))
-            return self._n_training
-        return wrapped
-
     def _after_training(self, kernel):
-        def wrapped(*args):
-            kernel(*args)
-            xyz, hist = args[-4], args[-3]
-            n = self._n_training
+        def wrapped(m, *args):
+            n = kernel(m, *args)
+            # each block's slice may end in unused slots (voxels without evidence): the written
+            # points are the first b_count of each slice
+            count, start = m.b_count.to_numpy().ravel(), m.b_start.to_numpy().ravel()
+            used = count > 0
+            rows = np.concatenate([np.arange(s, s + c) for s, c in zip(start[used], count[used])]
+                                  or [np.zeros(0, np.int64)])
+            assert len(rows) == n, f"write_training reported {n} points, the table holds {len(rows)}"
+            xyz, hist = args[-4][rows], args[-3][rows]
             mp = self.mapper
-            centroid = xyz[:n].astype(np.float64) + mp.origin_vox * mp.res
-            keys = np.floor(xyz[:n].astype(np.float64) / mp.res).astype(np.int64) + mp.origin_vox
-            keys, centroid, hist = _sorted_by_key(keys, centroid, hist[:n].copy())
+            centroid = xyz.astype(np.float64) + mp.origin_vox * mp.res
+            keys = np.floor(xyz.astype(np.float64) / mp.res).astype(np.int64) + mp.origin_vox
+            keys, centroid, hist = _sorted_by_key(keys, centroid, hist.copy())
             self.training.append(dict(keys=keys, centroid=centroid, hist=hist))
+            return n
         return wrapped
 
 

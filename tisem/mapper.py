@@ -140,7 +140,7 @@ class Mapper:
         geometry = (ti.Matrix(R.tolist()), ti.Vector(t_local.tolist()),
                     ti.Vector(center.tolist()), ti.Vector(self._limit.tolist()),
                     cfg.min_range_m ** 2, cfg.max_range_m ** 2, cfg.min_z_m, cfg.max_z_m,
-                    1.0 / self.res)
+                    1.0 / self.res, cfg.min_points)
         if probs is None:
             rasterize.rasterize_labels(m, pts, labels, *geometry)
         else:
@@ -153,19 +153,17 @@ class Mapper:
         clock("rasterize")
         center_v = ti.Vector(center.tolist())
         center_blk = ti.Vector(np.floor_divide(center, LEAF).tolist())
-        training.count_training(m, center_v, cfg.min_points)
-        n = training.assign_slots(m, center_blk)
+        stamp = self.scans + 1
+        n = training.assign_slots(m, center_blk, stamp, self._reach_blk)
         clock("filter")
         train = self._buf.training(max(n, 1), self.C)
-        training.write_training(
+        n = training.write_training(
             m, center_v, t_rel, self._inv_tau, cfg.min_points, int(cfg.point_weight == "unit"), cfg.prior,
             cfg.ell_min_m if cfg.adaptive else cfg.ell_fixed_vox * self.res, cfg.ell_max_m,
             int(cfg.adaptive), int(not cfg.uses_kernel), *train)
         rep.training_voxels = int(n)
         clock("entropy")
         if cfg.uses_kernel and n:
-            stamp = self.scans + 1
-            bki.mark_receivers(m, center_blk, stamp, self._reach_blk)
             bki.gather_update(m, center_v, stamp, t_rel, self._inv_tau,
                               self.res, cfg.sigma0, *train)
         clock("kernel")
@@ -382,7 +380,9 @@ class Mapper:
                      int(with_probs))
         rest = finite & (inside == 0)
         if len(self.store) and rest.any():
-            vox = np.floor(pts[rest] / self.res).astype(np.int64) - self.origin_vox
+            # the voxel index exactly as the kernel computes it (float32 local * 1/res), so a
+            # point on a voxel face finds the same voxel live or stored
+            vox = np.floor(local[rest] * np.float32(1.0 / self.res)).astype(np.int64)
             ok = np.all(np.abs(vox) <= KEY_LIMIT, axis=1)
             counts = np.zeros((len(vox), self.C), np.float32)
             counts[ok], _ = self.store.lookup(vox[ok])
