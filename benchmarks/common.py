@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import argparse
+import json
 import platform
 import resource
 import tempfile
@@ -62,3 +63,24 @@ def device_line(arch: str) -> str:
 
 def median(xs) -> float:
     return float(np.median(np.asarray(xs))) if len(xs) else float("nan")
+
+
+def write_json(path, result: dict) -> None:
+    """The benchmark's result as JSON (numpy scalars and paths as plain values)."""
+    if path:
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(json.dumps(result, indent=2, default=_plain))
+
+
+def _plain(x):
+    return float(x) if isinstance(x, (np.floating, np.integer)) else str(x)
+
+
+def benchmark_main(argv, parse_args, run, format_result) -> int:
+    """Parse, run, print the result's table, write --json: every benchmark's `main`."""
+    args = parse_args(argv)
+    result = run(args)
+    print(format_result(result))
+    write_json(args.json, result)
+    return 0

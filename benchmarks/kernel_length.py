@@ -11,14 +11,13 @@ row (adaptive + decay, the default) is added for reference.
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
-from benchmarks.common import KITTI_MINI, device_line, median
+from benchmarks.common import KITTI_MINI, benchmark_main, device_line, median
 
 FIXED_VOXELS = (1, 2, 4, 6)
 
@@ -102,14 +101,12 @@ def run(args) -> dict:
             "rows": rows}
 
 
+def format_result(result: dict) -> str:
+    return f"\ndevice: {result['device']}\n\n" + format_rows(result["rows"])
+
+
 def main(argv=None) -> int:
-    args = parse_args(argv)
-    result = run(args)
-    print(f"\ndevice: {result['device']}\n")
-    print(format_rows(result["rows"]))
-    if args.json:
-        args.json.write_text(json.dumps(result, indent=2))
-    return 0
+    return benchmark_main(argv, parse_args, run, format_result)
 
 
 if __name__ == "__main__":

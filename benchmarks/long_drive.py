@@ -23,13 +23,14 @@ it reports the live leaf blocks at that moment.
 from __future__ import annotations
 
 import argparse
-import json
 import resource
 import sys
 import time
 from pathlib import Path
 
 import numpy as np
+
+from benchmarks.common import benchmark_main
 
 GIB = 1 << 30
 
@@ -304,13 +305,7 @@ def format_result(r: dict) -> str:
 
 
 def main(argv=None) -> int:
-    args = parse_args(argv)
-    r = run(args)
-    print(format_result(r))
-    if args.json:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps(r, indent=2, default=float))
-    return 0
+    return benchmark_main(argv, parse_args, run, format_result)
 
 
 if __name__ == "__main__":

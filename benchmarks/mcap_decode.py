@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import argparse
 import datetime as dt
-import json
 import os
 import platform
 import statistics
@@ -23,6 +22,8 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+
+from benchmarks.common import benchmark_main
 
 
 def parse_args(argv=None):
@@ -90,15 +91,13 @@ def table(result: dict) -> str:
         f"{r['points_per_s'] / 1e6:.1f} |" for r in result["rows"])
 
 
+def format_result(result: dict) -> str:
+    return (f"MCAP decode, {result['date']}, {result['machine']}, median of {result['runs']} runs\n\n"
+            + table(result))
+
+
 def main(argv=None) -> int:
-    args = parse_args(argv)
-    result = run(args)
-    print(f"MCAP decode, {result['date']}, {result['machine']}, median of {result['runs']} runs\n")
-    print(table(result))
-    if args.json:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps(result, indent=2))
-    return 0
+    return benchmark_main(argv, parse_args, run, format_result)
 
 
 if __name__ == "__main__":

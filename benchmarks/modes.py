@@ -9,12 +9,11 @@ Each mode runs through the same pipeline as `apps/map_kitti.py` (final-map proto
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import sys
 from pathlib import Path
 
-from benchmarks.common import KITTI_MINI, device_line
+from benchmarks.common import KITTI_MINI, benchmark_main, device_line
 
 MODES = ("csm", "bki", "spatial", "adaptive", "st")
 
@@ -65,15 +64,13 @@ def format_rows(rows) -> str:
     return "\n".join(out)
 
 
+def format_result(result: dict) -> str:
+    return f"\ndata: {result['data']}\ndevice: {result['device']}\n\n" + format_rows(result["rows"])
+
+
 def main(argv=None) -> int:
     logging.basicConfig(level=logging.INFO, format="%(message)s")
-    args = parse_args(argv)
-    result = run(args)
-    print(f"\ndata: {result['data']}\ndevice: {result['device']}\n")
-    print(format_rows(result["rows"]))
-    if args.json:
-        args.json.write_text(json.dumps(result, indent=2, default=str))
-    return 0
+    return benchmark_main(argv, parse_args, run, format_result)
 
 
 if __name__ == "__main__":

@@ -10,13 +10,12 @@ steady state. Every clock read is preceded by ti.sync(); figures are medians ove
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 
 import numpy as np
 
-from benchmarks.common import add_data_args, device_line, load_scans, median, peak_rss_mb, replay
+from benchmarks.common import add_data_args, benchmark_main, device_line, load_scans, median, peak_rss_mb, replay
 
 
 def parse_args(argv=None):
@@ -111,12 +110,7 @@ def format_result(r: dict) -> str:
 
 
 def main(argv=None) -> int:
-    args = parse_args(argv)
-    r = run(args)
-    print(format_result(r))
-    if args.json:
-        args.json.write_text(json.dumps(r, indent=2, default=float))
-    return 0
+    return benchmark_main(argv, parse_args, run, format_result)
 
 
 if __name__ == "__main__":

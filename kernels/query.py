@@ -42,19 +42,24 @@ def query(m: ti.template(),
 
 
 @ti.kernel
-def count_voxels(m: ti.template()) -> ti.i32:
+def count_active(cells: ti.template()) -> ti.i32:
+    """Active cells of a sparse field or SNode (m.ell: live voxels, m.blk: live leaf blocks)."""
     n = 0
-    for I in ti.grouped(m.ell):
+    for I in ti.grouped(cells):
         n += 1
     return n
 
 
-@ti.kernel
-def count_blocks(m: ti.template()) -> ti.i32:
-    n = 0
-    for I in ti.grouped(m.blk):
-        n += 1
-    return n
+@ti.func
+def write_row(m: ti.template(), u, w, idx, keys: ti.template(), counts: ti.template(),
+              t_last: ti.template(), ell: ti.template()):
+    """Copy map voxel u (world index w) into row idx of the host arrays."""
+    for a in ti.static(range(3)):
+        keys[idx, a] = w[a]
+    for c in ti.static(range(m.C)):
+        counts[idx, c] = m.counts[u, c]
+    t_last[idx] = m.t_last[u]
+    ell[idx] = m.ell[u]
 
 
 @ti.kernel
@@ -67,13 +72,7 @@ def export_voxels(m: ti.template(), center: ti.types.vector(3, ti.i32),
     for I in ti.grouped(m.ell):
         idx = ti.atomic_add(m.counter[None], 1)
         if idx < keys.shape[0]:
-            w = m.unwrap(I, center)
-            for a in ti.static(range(3)):
-                keys[idx, a] = w[a]
-            for c in ti.static(range(m.C)):
-                counts[idx, c] = m.counts[I, c]
-            t_last[idx] = m.t_last[I]
-            ell[idx] = m.ell[I]
+            write_row(m, I, m.unwrap(I, center), idx, keys, counts, t_last, ell)
     return m.counter[None]
 
 

@@ -57,42 +57,28 @@ def add_point(m: ti.template(), w, q, center, min_points):
 
 
 @ti.kernel
-def rasterize_labels(m: ti.template(),
-                     pts: ti.types.ndarray(dtype=ti.f32, ndim=2),      # (N, 3) sensor frame
-                     label: ti.types.ndarray(dtype=ti.i32, ndim=1),    # (N,) train id in [0, C)
-                     R: ti.types.matrix(3, 3, ti.f32), t: ti.types.vector(3, ti.f32),
-                     center: ti.types.vector(3, ti.i32), limit: ti.types.vector(3, ti.i32),
-                     min_r2: ti.f32, max_r2: ti.f32, min_z: ti.f32, max_z: ti.f32, inv_res: ti.f32,
-                     min_points: ti.i32):
+def rasterize(m: ti.template(),
+              pts: ti.types.ndarray(dtype=ti.f32, ndim=2),       # (N, 3) sensor frame
+              label: ti.types.ndarray(dtype=ti.i32, ndim=1),     # (N,) train id in [0, C), or
+              prob: ti.types.ndarray(dtype=ti.f32, ndim=2),      # (N, C), class 0 ignored
+              use_probs: ti.template(),                          # which of the two is evidence
+              R: ti.types.matrix(3, 3, ti.f32), t: ti.types.vector(3, ti.f32),
+              center: ti.types.vector(3, ti.i32), limit: ti.types.vector(3, ti.i32),
+              min_r2: ti.f32, max_r2: ti.f32, min_z: ti.f32, max_z: ti.f32, inv_res: ti.f32,
+              min_points: ti.i32):
     for i in ti.static(range(4)):
         m.stats[i] = 0
-    for n in range(label.shape[0]):
+    for n in range(pts.shape[0]):
         p = ti.Vector([pts[n, 0], pts[n, 1], pts[n, 2]])
         ok, w, q = locate(m, p, R, t, center, limit, min_r2, max_r2, min_z, max_z, inv_res)
         if ok:
             u = add_point(m, w, q, center, min_points)
-            if label[n] > 0:  # train id 0 (unlabeled) counts as a point but adds no evidence
+            if ti.static(use_probs):
+                for c in ti.static(range(1, m.C)):
+                    if prob[n, c] > 0:
+                        m.s_hist[u, c] += prob[n, c]
+            elif label[n] > 0:  # train id 0 (unlabeled) counts as a point but adds no evidence
                 m.s_hist[u, label[n]] += 1.0
-
-
-@ti.kernel
-def rasterize_probs(m: ti.template(),
-                    pts: ti.types.ndarray(dtype=ti.f32, ndim=2),       # (N, 3) sensor frame
-                    prob: ti.types.ndarray(dtype=ti.f32, ndim=2),      # (N, C), class 0 ignored
-                    R: ti.types.matrix(3, 3, ti.f32), t: ti.types.vector(3, ti.f32),
-                    center: ti.types.vector(3, ti.i32), limit: ti.types.vector(3, ti.i32),
-                    min_r2: ti.f32, max_r2: ti.f32, min_z: ti.f32, max_z: ti.f32, inv_res: ti.f32,
-                    min_points: ti.i32):
-    for i in ti.static(range(4)):
-        m.stats[i] = 0
-    for n in range(prob.shape[0]):
-        p = ti.Vector([pts[n, 0], pts[n, 1], pts[n, 2]])
-        ok, w, q = locate(m, p, R, t, center, limit, min_r2, max_r2, min_z, max_z, inv_res)
-        if ok:
-            u = add_point(m, w, q, center, min_points)
-            for c in ti.static(range(1, m.C)):
-                if prob[n, c] > 0:
-                    m.s_hist[u, c] += prob[n, c]
 
 
 @ti.kernel

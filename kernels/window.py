@@ -12,6 +12,7 @@ block SNode yield them; they are unwrapped around a centre (in blocks) like voxe
 import taichi as ti
 
 from kernels.layout import LEAF, TOP
+from kernels.query import write_row
 
 
 @ti.func
@@ -65,12 +66,7 @@ def export_leaving(m: ti.template(), old_center: ti.types.vector(3, ti.i32),
             if outside(w, w, center, half):
                 idx = ti.atomic_add(m.counter[None], 1)
                 if idx < keys.shape[0]:
-                    for a in ti.static(range(3)):
-                        keys[idx, a] = w[a]
-                    for c in ti.static(range(m.C)):
-                        counts[idx, c] = m.counts[u, c]
-                    t_last[idx] = m.t_last[u]
-                    ell[idx] = m.ell[u]
+                    write_row(m, u, w, idx, keys, counts, t_last, ell)
                 for c in ti.static(range(m.C)):
                     m.counts[u, c] = 0.0
                 m.t_last[u] = 0.0
@@ -118,21 +114,3 @@ def blocks_by_ring(m: ti.template(), old_center_blk: ti.types.vector(3, ti.i32),
         r = ti.max(off[0], off[1])
         if r <= half_blk[0] and off[2] <= half_blk[2]:
             ti.atomic_add(rings[r], 1)
-
-
-@ti.kernel
-def count_scan_blocks(m: ti.template()) -> ti.i32:
-    """Leaf blocks of the scan layer (what one scan holds while it is being fused)."""
-    n = 0
-    for B in ti.grouped(m.s_blk):
-        n += 1
-    return n
-
-
-@ti.kernel
-def count_top_cells(m: ti.template()) -> ti.i32:
-    """Active top cells of the map layer (each holds an 8^3 pointer array of leaf blocks)."""
-    n = 0
-    for T in ti.grouped(m.top):
-        n += 1
-    return n

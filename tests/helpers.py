@@ -2,7 +2,7 @@
 and hooks that record what each kernel stage of `Mapper.integrate` produced.
 
 Taichi rules these follow (shared/notes/taichi-sparse.md §4.5-4.6): every test gets its own
-runtime (`taichi_cpu` fixture: `init_taichi("cpu", threads=2)`, one Mapper per runtime), no
+runtime (the `taichi_cpu` fixture of conftest.py: `init_taichi("cpu", threads=2)`, one Mapper per runtime), no
 Taichi object outlives its runtime, and the test kernels below live in this real source file
 (Taichi reads kernel source from disk). With 2 threads float atomics are not bitwise
 reproducible, so comparisons carry named tolerances.
@@ -11,12 +11,12 @@ reproducible, so comparisons carry named tolerances.
 import math
 
 import numpy as np
-import pytest
 import taichi as ti
 
 from kernels import bki, entropy, rasterize, training
 from tisem.backend import init_taichi
 from tisem.config import MapperConfig
+from tisem.reference import voxel_histograms
 from tisem.scan import Scan
 
 C = 20
@@ -28,21 +28,6 @@ ROAD, SIDEWALK, BUILDING, VEGETATION, POLE = 9, 11, 13, 15, 18
 def fresh_runtime(debug: bool = False) -> None:
     """A new Taichi runtime (every map built before it is gone: never touch it again)."""
     init_taichi("cpu", threads=2, debug=debug)
-
-
-@pytest.fixture
-def taichi_cpu():
-    fresh_runtime()
-    yield
-    ti.reset()
-
-
-@pytest.fixture
-def taichi_debug():
-    """A runtime with `debug=True`: out-of-bounds accesses raise instead of corrupting."""
-    fresh_runtime(debug=True)
-    yield
-    ti.reset()
 
 
 def small_config(**kw) -> MapperConfig:
@@ -195,8 +180,7 @@ class StageRecorder:
         self.scan_layer: list[dict] = []
         self.training: list[dict] = []
         self.reloaded = 0        # (for the caller's own bookkeeping)
-        for name in ("rasterize_labels", "rasterize_probs"):
-            monkeypatch.setattr(rasterize, name, self._after_rasterize(getattr(rasterize, name)))
+        monkeypatch.setattr(rasterize, "rasterize", self._after_rasterize(rasterize.rasterize))
         monkeypatch.setattr(training, "write_training",
                             self._after_training(training.write_training))
 
@@ -245,17 +229,4 @@ def hand_rasterize(scan: Scan, cfg: MapperConfig):
     sel = select_points(scan, cfg)
     T = scan.T_world_sensor
     world = sel.points_sensor.astype(np.float64) @ T[:3, :3].T + T[:3, 3]
-    keys, inv = np.unique(voxel_keys(world, cfg.resolution_m), axis=0, return_inverse=True)
-    inv = inv.reshape(-1)
-    npts = np.bincount(inv, minlength=len(keys))
-    centroid = np.stack([np.bincount(inv, world[:, a], len(keys)) for a in range(3)], 1)
-    centroid /= npts[:, None]
-    hist = np.zeros((len(keys), cfg.num_classes))
-    if sel.labels is not None:
-        ok = sel.labels > 0
-        np.add.at(hist, (inv[ok], sel.labels[ok]), 1.0)
-    else:
-        p = sel.probs.astype(np.float64).copy()
-        p[:, 0] = 0
-        np.add.at(hist, inv, p)
-    return keys, npts, centroid, hist
+    return voxel_histograms(world, sel, cfg.resolution_m, cfg.num_classes)

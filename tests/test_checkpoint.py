@@ -17,10 +17,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import taichi as ti
 
 import tisem
-from tisem.backend import init_taichi
+from helpers import fresh_runtime
 from tisem.checkpoint import checkpoint_file, load_checkpoint, save_checkpoint
 from tisem.config import MapperConfig, RunConfig
 from tisem.errors import SkippedScan
@@ -31,17 +30,6 @@ from tisem.scan import Scan
 ROAD, SIDEWALK, BUILDING, VEGETATION, POLE = 9, 11, 13, 15, 18
 REPO = Path(__file__).resolve().parents[1]
 
-
-def fresh_runtime() -> None:
-    """A new Taichi runtime: every map built before it is gone (never touch it again)."""
-    init_taichi("cpu", threads=2)
-
-
-@pytest.fixture
-def taichi_cpu():
-    fresh_runtime()
-    yield
-    ti.reset()
 
 
 def small_config(**kw) -> MapperConfig:

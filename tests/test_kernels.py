@@ -16,7 +16,6 @@ import pytest
 
 from helpers import (C, StageRecorder, away_from_faces, engine_entropy, hand_rasterize, one_hot,
                      pose, sample_kernel, scan_from_world, small_config, voxel_keys)
-from helpers import taichi_cpu  # noqa: F401  (a fixture: a fresh Taichi runtime per test)
 from tisem.mapper import Mapper
 from tisem.reference import ReferenceMapper, normalized_entropy, sparse_kernel
 from tisem.scan import Scan

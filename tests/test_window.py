@@ -14,9 +14,8 @@ import re
 
 import numpy as np
 import pytest
-import taichi as ti
 
-from tisem.backend import init_taichi
+from helpers import fresh_runtime
 from tisem.config import MapperConfig, RunConfig
 from tisem.mapper import Mapper
 from tisem.scan import Scan
@@ -26,17 +25,6 @@ from tisem.store import KEY_LIMIT, BlockStore, pack
 
 ROAD, SIDEWALK, BUILDING, VEGETATION, POLE = 9, 11, 13, 15, 18
 
-
-def fresh_runtime() -> None:
-    """A new Taichi runtime: every map built before it is gone (never touch it again)."""
-    init_taichi("cpu", threads=2)
-
-
-@pytest.fixture
-def taichi_cpu():
-    fresh_runtime()
-    yield
-    ti.reset()
 
 
 def config(**kw) -> MapperConfig:

@@ -116,6 +116,9 @@ class Mapper:
         self.profile = profile
         self.stage_seconds = {s: 0.0 for s in STAGES}
         self._buf = _Buffers()
+        # empty stand-ins for the kind of evidence a scan does not carry (labels or probs)
+        self._no_labels = np.zeros(0, np.int32)
+        self._no_probs = np.zeros((0, self.C), np.float32)
         if cfg.mode == "spatial":
             self._inv_tau = -1.0
         elif cfg.decay_tau_s == math.inf:
@@ -142,9 +145,9 @@ class Mapper:
                     cfg.min_range_m ** 2, cfg.max_range_m ** 2, cfg.min_z_m, cfg.max_z_m,
                     1.0 / self.res, cfg.min_points)
         if probs is None:
-            rasterize.rasterize_labels(m, pts, labels, *geometry)
+            rasterize.rasterize(m, pts, labels, self._no_probs, False, *geometry)
         else:
-            rasterize.rasterize_probs(m, pts, probs, *geometry)
+            rasterize.rasterize(m, pts, self._no_labels, probs, True, *geometry)
         stats = m.stats.to_numpy()
         rep.used = int(stats[rasterize.USED])
         rep.dropped_range = int(stats[rasterize.OUT_OF_RANGE]) - rep.dropped_nonfinite
@@ -259,7 +262,7 @@ class Mapper:
             kquery.import_voxels(m, np.ascontiguousarray(keys, np.int32), counts, t_last, ell)
             if rep is not None:
                 rep.reloaded_voxels = len(keys)
-            st["live"] = kquery.count_blocks(m)
+            st["live"] = kquery.count_active(m.blk)
         else:   # (live blocks after the move, to learn how many the scan adds)
             st["live"] = st["now"] - st["freed"]
 
@@ -311,7 +314,7 @@ class Mapper:
             st = self._cap_state = {"full": self.half_vox.copy(), "headroom": 0, "live": None,
                                     "shrunk": False}
         full = st["full"]
-        live = st["now"] = kquery.count_blocks(m)
+        live = st["now"] = kquery.count_active(m.blk)
         st["freed"] = 0
         if st["live"] is not None:
             st["headroom"] = max(st["headroom"], live - st["live"])
@@ -396,7 +399,7 @@ class Mapper:
     def _live_arrays(self):
         self._check_alive()
         m = self.fields
-        n = kquery.count_voxels(m)
+        n = kquery.count_active(m.ell)
         keys = np.zeros((n, 3), np.int32)
         counts = np.zeros((n, self.C), np.float32)
         t_last = np.zeros(n, np.float32)
@@ -409,11 +412,11 @@ class Mapper:
 
     @property
     def live_voxels(self) -> int:
-        return int(kquery.count_voxels(self.fields))
+        return int(kquery.count_active(self.fields.ell))
 
     @property
     def live_blocks(self) -> int:
-        return int(kquery.count_blocks(self.fields))
+        return int(kquery.count_active(self.fields.blk))
 
     @property
     def stored_voxels(self) -> int:

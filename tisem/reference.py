@@ -40,6 +40,26 @@ def decay(dt: np.ndarray, cfg: MapperConfig) -> np.ndarray:
     return np.exp(-np.maximum(dt, 0) / tau)
 
 
+def voxel_histograms(xyz: np.ndarray, sel, res: float, num_classes: int):
+    """Steps 1-2 in numpy: the voxels that the points `xyz` (any frame, float64) hit, as
+    (keys, point counts, centroids, class histograms), sorted by key. `sel` carries the
+    points' labels or probabilities (tisem.preprocess.select_points); class 0 adds no evidence."""
+    keys, inv = np.unique(np.floor(xyz / res).astype(np.int64), axis=0, return_inverse=True)
+    inv = inv.reshape(-1)
+    nv = len(keys)
+    npts = np.bincount(inv, minlength=nv)
+    centroid = np.stack([np.bincount(inv, xyz[:, a], nv) for a in range(3)], 1) / npts[:, None]
+    hist = np.zeros((nv, num_classes))
+    if sel.labels is not None:
+        ok = sel.labels > 0
+        np.add.at(hist, (inv[ok], sel.labels[ok]), 1.0)
+    else:
+        p = sel.probs.astype(np.float64).copy()
+        p[:, 0] = 0
+        np.add.at(hist, inv, p)
+    return keys, npts, centroid, hist
+
+
 class ReferenceMapper:
     """Same interface as `Mapper` for integrate/query/snapshot-like access (no window)."""
 
@@ -84,20 +104,7 @@ class ReferenceMapper:
             self.origin_vox = (np.floor(T[:3, 3] / self.res).astype(np.int64) // TOP) * TOP
             self.t0 = float(scan.stamp_s)
         local = to_frame(sel.points_sensor, T, self.origin_vox * self.res)
-        vox = np.floor(local / self.res).astype(np.int64)
-        keys, inv = np.unique(vox, axis=0, return_inverse=True)
-        inv = inv.reshape(-1)
-        nv = len(keys)
-        npts = np.bincount(inv, minlength=nv)
-        centroid = np.stack([np.bincount(inv, local[:, a], nv) for a in range(3)], 1) / npts[:, None]
-        hist = np.zeros((nv, self.C))
-        if sel.labels is not None:
-            ok = sel.labels > 0
-            np.add.at(hist, (inv[ok], sel.labels[ok]), 1.0)
-        else:
-            p = sel.probs.astype(np.float64).copy()
-            p[:, 0] = 0
-            np.add.at(hist, inv, p)
+        keys, npts, centroid, hist = voxel_histograms(local, sel, self.res, self.C)
         total = hist.sum(axis=1)
         keep = (npts >= cfg.min_points) & (total > 0)
         h = hist[keep]
