@@ -426,6 +426,29 @@ def test_evict_and_reload_round_trip_exactly(taichi_cpu):
     np.testing.assert_array_equal(live[3][order], before.ell_m)                  # ell
 
 
+def test_points_on_voxel_faces_find_the_same_voxel_live_and_stored(taichi_cpu):
+    """A query point exactly on a voxel face lands in the same voxel whether that voxel is live
+    (the kernel floors float32 local coordinates) or stored (the host looks it up): both read
+    one float32 local array, so the answers agree point for point."""
+    cfg = config()
+    mapper = Mapper(cfg)
+    for s in drive([0.0, 1.0], seed=3):
+        mapper.integrate(s)
+    snap = mapper.snapshot()
+    corner = snap.keys.astype(np.float64) * cfg.resolution_m     # lower corners, world metres
+    half = cfg.resolution_m / 2
+    faces = np.concatenate([corner, corner + [half, half, 0.0], corner + [0.0, half, half],
+                            corner + [half, 0.0, half]])
+    live_labels, live_probs = mapper.query(faces)
+    assert mapper.stored_voxels == 0
+    mapper.integrate(drive([300.0], seed=4, t0=101.0)[0])     # everything goes to the store
+    assert mapper.stored_voxels == len(snap)
+    stored_labels, stored_probs = mapper.query(faces)
+    np.testing.assert_array_equal(stored_labels, live_labels)
+    # (the kernel normalises in float32, the store's path in float64)
+    np.testing.assert_allclose(stored_probs, live_probs, rtol=0, atol=1e-6)
+
+
 def test_small_window_equals_window_holding_everything(taichi_cpu):
     """Out 40 m and back at 10 m per scan with a 25 m window (everything leaves and comes back)
     gives the same map as a 64 m window that never evicts: labels and queries identical,
