@@ -45,8 +45,3 @@ def select_points(scan: Scan, cfg: MapperConfig) -> SelectedPoints:
     return SelectedPoints(pts[keep], labels, probs, len(pts) - n_finite,
                           n_finite - int(np.count_nonzero(keep)))
 
-
-def to_frame(points: np.ndarray, T: np.ndarray, offset_m: np.ndarray | None = None) -> np.ndarray:
-    """float64 points transformed by T (then shifted by -offset_m, to a local origin)."""
-    t = T[:3, 3] if offset_m is None else T[:3, 3] - offset_m
-    return points.astype(np.float64) @ T[:3, :3].T + t

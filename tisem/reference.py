@@ -12,8 +12,8 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from tisem.config import MapperConfig
-from tisem.preprocess import select_points, to_frame
-from tisem.scan import Scan
+from tisem.preprocess import select_points
+from tisem.scan import Scan, to_frame
 from kernels.bki import MIN_UPDATE
 from kernels.layout import TOP
 
