@@ -208,14 +208,20 @@ def predicted_switch(alpha: float, k: int) -> int:
     return n
 
 
+def street_map(seed, **cfg):
+    """A fresh runtime and map in the given mode that has seen the street (plane_story at
+    t = 10 s): (cfg, mapper, rng, plane result)."""
+    fresh_runtime()
+    cfg = small_config(min_range_m=1.0, **cfg)
+    mapper = Mapper(cfg)
+    rng = np.random.default_rng(seed)
+    return cfg, mapper, rng, plane_story(mapper, rng, 10.0)
+
+
 @pytest.fixture(scope="module")
 def st_map():
     """st, tau 2 s: the street (t = 10 s), then the class switch of the probe (t = 20 s)."""
-    fresh_runtime()
-    cfg = small_config(mode="st", tau_s=2.0, min_range_m=1.0)
-    mapper = Mapper(cfg)
-    rng = np.random.default_rng(2)
-    plane = plane_story(mapper, rng, 10.0)
+    cfg, mapper, rng, plane = street_map(2, mode="st", tau_s=2.0)
     n_star = predicted_switch(math.exp(-0.1 / cfg.tau_s), K_A["st"])
     switch = switch_story(mapper, 20.0, [0.0, -17.0, 0.5], K_A["st"], n_star + 2)
     return _finish(SimpleNamespace(cfg=cfg, plane=plane, switch=switch))
@@ -224,11 +230,7 @@ def st_map():
 @pytest.fixture(scope="module")
 def adaptive_map():
     """adaptive: the street, then the probe with as many B scans as A scans and one more."""
-    fresh_runtime()
-    cfg = small_config(mode="adaptive", min_range_m=1.0)
-    mapper = Mapper(cfg)
-    rng = np.random.default_rng(3)
-    plane = plane_story(mapper, rng, 10.0)
+    cfg, mapper, rng, plane = street_map(3, mode="adaptive")
     switch = switch_story(mapper, 20.0, [0.0, -17.0, 0.5], K_A["adaptive"], K_A["adaptive"] + 1)
     return _finish(SimpleNamespace(cfg=cfg, plane=plane, switch=switch))
 
@@ -236,11 +238,7 @@ def adaptive_map():
 @pytest.fixture(scope="module")
 def bki_map():
     """bki: the street, then labels vs probabilities in regions 1-3."""
-    fresh_runtime()
-    cfg = small_config(mode="bki", min_range_m=1.0)
-    mapper = Mapper(cfg)
-    rng = np.random.default_rng(4)
-    plane = plane_story(mapper, rng, 10.0)
+    cfg, mapper, rng, plane = street_map(4, mode="bki")
     probs = probs_story(mapper, rng, 20.0)
     return _finish(SimpleNamespace(cfg=cfg, plane=plane, probs=probs, snap=mapper.snapshot()))
 

@@ -28,6 +28,13 @@ from tisem.store import KEY_LIMIT, BlockStore
 log = logging.getLogger(__name__)
 
 FAR_M = 1.0e6   # query coordinates are clamped to this (int32 voxel indices at any resolution)
+
+
+def _ivec(a) -> ti.Vector:
+    """An integer array (voxel or block indices) as a Taichi kernel vector argument."""
+    return ti.Vector([int(x) for x in a])
+
+
 STAGES = ("preprocess", "window", "rasterize", "filter", "entropy", "kernel", "clear")
 
 
@@ -116,6 +123,7 @@ class Mapper:
         self.profile = profile
         self.stage_seconds = {s: 0.0 for s in STAGES}
         self._buf = _Buffers()
+        self._cap_state: dict | None = None   # _fit_cap's bookkeeping, from the first scan on
         # empty stand-ins for the kind of evidence a scan does not carry (labels or probs)
         self._no_labels = np.zeros(0, np.int32)
         self._no_probs = np.zeros((0, self.C), np.float32)
@@ -141,7 +149,7 @@ class Mapper:
         self._move_window(center, rep)
         clock("window")
         geometry = (ti.Matrix(R.tolist()), ti.Vector(t_local.tolist()),
-                    ti.Vector(center.tolist()), ti.Vector(self._limit.tolist()),
+                    _ivec(center), _ivec(self._limit),
                     cfg.min_range_m ** 2, cfg.max_range_m ** 2, cfg.min_z_m, cfg.max_z_m,
                     1.0 / self.res, cfg.min_points)
         if probs is None:
@@ -154,8 +162,8 @@ class Mapper:
         rep.dropped_window = int(stats[rasterize.OUT_OF_WINDOW])
         rep.dropped_far = int(stats[rasterize.IMPLAUSIBLY_FAR]) - rep.dropped_nonfinite
         clock("rasterize")
-        center_v = ti.Vector(center.tolist())
-        center_blk = ti.Vector(np.floor_divide(center, LEAF).tolist())
+        center_v = _ivec(center)
+        center_blk = _ivec(np.floor_divide(center, LEAF))
         stamp = self.scans + 1
         n = training.assign_slots(m, center_blk, stamp, self._reach_blk)
         clock("filter")
@@ -271,30 +279,29 @@ class Mapper:
         the blocks and top cells they leave empty; returns how many voxels moved."""
         m = self.fields
         st = self._cap_state
-        vec = lambda a: ti.Vector([int(x) for x in a])
         old_blk = np.floor_divide(self.center_vox, LEAF)
         blocks = np.zeros((max(st["now"], 1), 3), np.int32)
-        n = window.find_leaving_blocks(m, vec(old_blk), vec(new_center), vec(half), blocks)
+        n = window.find_leaving_blocks(m, _ivec(old_blk), _ivec(new_center), _ivec(half), blocks)
         if n == 0:
             return 0
         if n > len(blocks):   # (st["now"] is exact; this is a guard)
             blocks = np.zeros((n, 3), np.int32)
-            n = window.find_leaving_blocks(m, vec(old_blk), vec(new_center), vec(half), blocks)
+            n = window.find_leaving_blocks(m, _ivec(old_blk), _ivec(new_center), _ivec(half), blocks)
         cap = n * LEAF ** 3
         keys = np.zeros((cap, 3), np.int32)
         counts = np.zeros((cap, self.C), np.float32)
         t_last = np.zeros(cap, np.float32)
         ell = np.zeros(cap, np.float32)
         left = np.zeros(n, np.int32)
-        nv = window.export_leaving(m, vec(self.center_vox), vec(new_center), vec(half), blocks, n,
-                                   keys, counts, t_last, ell, left)
+        nv = window.export_leaving(m, _ivec(self.center_vox), _ivec(new_center), _ivec(half),
+                                   blocks, n, keys, counts, t_last, ell, left)
         self.store.put(keys[:nv], counts[:nv], t_last[:nv], ell[:nv], box=(new_center, half))
         st["freed"] = window.free_empty_blocks(m, blocks, n, left)
         # a top cell can only fall wholly outside when the box's range of top cells changes
         tops = np.r_[np.floor_divide(new_center - half, TOP), np.floor_divide(new_center + half, TOP)]
         if st.get("tops") is None or np.any(tops != st["tops"]):
-            window.free_far_top_cells(m, vec(np.floor_divide(self.center_vox, TOP)),
-                                      vec(new_center), vec(half))
+            window.free_far_top_cells(m, _ivec(np.floor_divide(self.center_vox, TOP)),
+                                      _ivec(new_center), _ivec(half))
             st["tops"] = tops
         return int(nv)
 
@@ -309,7 +316,7 @@ class Mapper:
         kernel reach does not fit.
         """
         m = self.fields
-        st = self.__dict__.get("_cap_state")
+        st = self._cap_state
         if st is None:   # the configured window; headroom: the most blocks a scan has added
             st = self._cap_state = {"full": self.half_vox.copy(), "headroom": 0, "live": None,
                                     "shrunk": False}
@@ -330,9 +337,8 @@ class Mapper:
             return full
         rings = np.zeros(int(full_blk[0]) + 1, np.int32)
         if self.center_vox is not None:
-            vec = lambda a: ti.Vector([int(x) for x in a])
-            window.blocks_by_ring(m, vec(np.floor_divide(self.center_vox, LEAF)), vec(center_blk),
-                                  vec(full_blk), rings)
+            window.blocks_by_ring(m, _ivec(np.floor_divide(self.center_vox, LEAF)),
+                                  _ivec(center_blk), _ivec(full_blk), rings)
         within = np.cumsum(rings + stored)      # blocks within ring r: the box of half 4r holds
         fits = np.flatnonzero(within <= budget)
         r = int(fits.max()) if len(fits) else -1
@@ -378,9 +384,8 @@ class Mapper:
                         -FAR_M, FAR_M).astype(np.float32)
         inside = np.zeros(n, np.int32)
         out_prob = probs if with_probs else np.zeros((0, self.C), np.float32)
-        kquery.query(self.fields, local, ti.Vector(self.center_vox.tolist()),
-                     ti.Vector(self.half_vox.tolist()), 1.0 / self.res, labels, inside, out_prob,
-                     int(with_probs))
+        kquery.query(self.fields, local, _ivec(self.center_vox), _ivec(self.half_vox),
+                     1.0 / self.res, labels, inside, out_prob, int(with_probs))
         rest = finite & (inside == 0)
         if len(self.store) and rest.any():
             # the voxel index exactly as the kernel computes it (float32 local * 1/res), so a
@@ -405,7 +410,7 @@ class Mapper:
         t_last = np.zeros(n, np.float32)
         ell = np.zeros(n, np.float32)
         if n:
-            center = ti.Vector([int(x) for x in self.center_vox])
+            center = _ivec(self.center_vox)
             got = kquery.export_voxels(m, center, keys, counts, t_last, ell)
             assert got == n, f"export found {got} voxels, count found {n}"
         return keys, counts, t_last, ell

@@ -21,8 +21,8 @@ segment keeps only what the window asks before every scan, so that a scan that t
 reads nothing: its blocks' coordinates (int16 offsets, for `count_blocks_by_ring` and for
 finding what the window covers), each block's voxel extent (2 B, which tells for all but a few
 blocks that the face cuts whether the window holds any of its voxels) and which blocks are still
-here: ~9 B per block, 0.6-1.1 B per voxel (measured: tests/test_window.py). The store keeps every segment's bounding box, so it
-only looks inside the few segments that overlap the window.
+here: ~9 B per block, 0.6-1.1 B per voxel (measured: tests/test_window.py). The store keeps
+every segment's bounding box, so it only looks inside the few segments that overlap the window.
 
 Keys are voxel indices relative to the map origin; |key| <= KEY_LIMIT per axis (packed in
 21 bits), which at 0.2 m is +-209 km around the first scan.
