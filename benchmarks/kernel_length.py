@@ -5,7 +5,8 @@
 
 Every row maps the same scans with plain accumulation (modes `bki` and `adaptive`, so the only
 difference is the kernel length) in a fresh Taichi runtime; the first scan, which compiles the
-kernels, is timed apart. Accuracy and mIoU follow the final-map protocol (SPEC §3). The `st`
+kernels, is timed apart. The kernels take turns over `--repeats` rounds and the times are
+medians over all of them, so a drift in the machine's speed does not favour one row. Accuracy and mIoU follow the final-map protocol (SPEC §3). The `st`
 row (adaptive + decay, the default) is added for reference.
 """
 from __future__ import annotations
@@ -31,46 +32,67 @@ def parse_args(argv=None):
     p.add_argument("--scans", type=int, default=None, help="use at most this many scans of --data")
     p.add_argument("--arch", choices=("cpu", "cuda"), default="cpu")
     p.add_argument("--threads", type=int, default=2)
+    p.add_argument("--repeats", type=int, default=3,
+                   help="rounds in which every kernel maps the scans once, taking turns")
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE")
     p.add_argument("--json", type=Path, help="write the rows as JSON here")
     return p.parse_args(argv)
 
 
-def rows_for(scans, label: str, args) -> list[dict]:
+def map_once(scans, cfg, args):
+    """Map the scans in a fresh runtime: (seconds per scan, the first compiling; final metrics)."""
     import taichi as ti
     from tisem.backend import init_taichi
-    from tisem.config import load_config
     from tisem.evaluate import Confusion
     from tisem.mapper import Mapper
 
+    init_taichi(args.arch, threads=args.threads)
+    mapper = Mapper(cfg)
+    seconds = []
+    for scan in scans:
+        ti.sync()
+        t0 = time.perf_counter()
+        mapper.integrate(scan)
+        ti.sync()
+        seconds.append(time.perf_counter() - t0)
+    conf = Confusion(mapper.C)
+    for scan in scans:
+        labels, _ = mapper.query(scan.points_world(), with_probs=False)
+        conf.add(scan.gt_labels, labels)
+    return seconds, conf.metrics()
+
+
+def rows_for(scans, label: str, args) -> list[dict]:
+    """One row per kernel. The kernels take turns, `--repeats` rounds of each, so that a machine
+    whose speed drifts over minutes slows every kernel alike; times are medians over all rounds."""
+    from tisem.config import load_config
+
     settings = [(f"fixed {v} vox", ["mode=bki", f"ell_fixed_vox={v}"]) for v in FIXED_VOXELS]
     settings += [("adaptive", ["mode=adaptive"]), ("adaptive + decay (st)", ["mode=st"])]
+    configs = [load_config(None, [*args.overrides, *sets]).mapper for _, sets in settings]
+    steady = [[] for _ in settings]     # per kernel: steady-state seconds of every round
+    totals = [[] for _ in settings]     # per kernel: seconds for the N steady scans, per round
+    compile_s = [[] for _ in settings]
+    metrics = [None] * len(settings)
+    for rnd in range(args.repeats):
+        for k, ((name, _), cfg) in enumerate(zip(settings, configs)):
+            seconds, metrics[k] = map_once(scans, cfg, args)
+            rest = seconds[1:] if len(seconds) > 1 else seconds
+            steady[k] += rest
+            totals[k].append(float(np.sum(rest)))
+            compile_s[k].append(seconds[0] - median(rest))
+            print(f"  {label} (round {rnd + 1}/{args.repeats}): {name:>22}  "
+                  f"{1000 * median(rest):7.1f} ms/scan  acc {metrics[k]['accuracy']:.4f}  "
+                  f"mIoU {metrics[k]['miou']:.4f}", flush=True)
     rows = []
-    for name, sets in settings:
-        cfg = load_config(None, [*args.overrides, *sets]).mapper
-        init_taichi(args.arch, threads=args.threads)
-        mapper = Mapper(cfg)
-        seconds = []
-        for scan in scans:
-            ti.sync()
-            t0 = time.perf_counter()
-            mapper.integrate(scan)
-            ti.sync()
-            seconds.append(time.perf_counter() - t0)
-        conf = Confusion(mapper.C)
-        for scan in scans:
-            labels, _ = mapper.query(scan.points_world(), with_probs=False)
-            conf.add(scan.gt_labels, labels)
-        m = conf.metrics()
-        steady = seconds[1:] if len(seconds) > 1 else seconds
+    for k, ((name, _), cfg) in enumerate(zip(settings, configs)):
         length = (f"{cfg.ell_fixed_vox * cfg.resolution_m:.1f} m" if cfg.mode == "bki"
                   else f"{cfg.ell_min_m:.1f}-{cfg.ell_max_m:.1f} m")
         rows.append({"data": label, "kernel": name, "length": length,
-                     "seconds_per_scan": median(steady), "seconds_total": float(np.sum(steady)),
-                     "compile_seconds": seconds[0] - median(steady), "scans": len(scans),
-                     "accuracy": m["accuracy"], "miou": m["miou"]})
-        print(f"  {label}: {name:>22}  {1000 * rows[-1]['seconds_per_scan']:7.1f} ms/scan  "
-              f"acc {m['accuracy']:.4f}  mIoU {m['miou']:.4f}", flush=True)
+                     "seconds_per_scan": median(steady[k]), "seconds_total": median(totals[k]),
+                     "compile_seconds": median(compile_s[k]), "scans": len(scans),
+                     "rounds": args.repeats,
+                     "accuracy": metrics[k]["accuracy"], "miou": metrics[k]["miou"]})
     return rows
 
 

@@ -1,0 +1,62 @@
+"""The mapping benchmarks run with tiny arguments (so they never rot); no timing is checked.
+
+Each maps a four-scan synthetic sequence written by apps/make_synthetic.py (the benchmarks start
+their own Taichi runtimes, one map each)."""
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from benchmarks import kernel_length, modes, throughput
+from tisem.mapper import STAGES
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="module")
+def tiny_sequence(tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("bench") / "street"
+    subprocess.run([sys.executable, str(REPO / "apps" / "make_synthetic.py"), "--out", str(out),
+                    "--scans", "4", "--points-per-ring", "128", "--no-progress"],
+                   check=True, capture_output=True)
+    return out
+
+
+def test_throughput_benchmark_runs(tiny_sequence, tmp_path, capsys):
+    out = tmp_path / "t.json"
+    assert throughput.main(["--data", str(tiny_sequence), "--scans", "3",
+                            "--reference-scans", "1", "--json", str(out)]) == 0
+    r = json.loads(out.read_text())
+    assert set(r["stages"]) == {*STAGES, "query"}
+    assert r["scans"] == 3 and r["seconds_per_scan"] > 0 and r["active_voxels"] > 0
+    assert r["arch"] == "cpu" and r["threads"] == 2 and r["peak_rss_mb"] > 0
+    assert r["speedup_vs_numpy"] == pytest.approx(
+        r["reference_seconds_per_scan"] / r["seconds_per_scan"])
+    assert "| **mapping, end to end** |" in capsys.readouterr().out
+
+
+def test_kernel_length_benchmark_runs(tiny_sequence, tmp_path, capsys):
+    out = tmp_path / "k.json"
+    assert kernel_length.main(["--data", str(tiny_sequence), "--synthetic-scans", "0",
+                               "--repeats", "2", "--json", str(out)]) == 0
+    rows = json.loads(out.read_text())["rows"]
+    assert [r["kernel"] for r in rows] == ["fixed 1 vox", "fixed 2 vox", "fixed 4 vox",
+                                          "fixed 6 vox", "adaptive", "adaptive + decay (st)"]
+    for r in rows:
+        assert r["rounds"] == 2 and r["seconds_per_scan"] > 0
+        assert 0.5 < r["accuracy"] <= 1 and 0 < r["miou"] <= r["accuracy"] + 0.5
+    assert "| fixed 6 vox | 1.2 m |" in capsys.readouterr().out
+
+
+def test_modes_benchmark_runs(tiny_sequence, tmp_path, capsys):
+    out = tmp_path / "m.json"
+    assert modes.main(["--data", str(tiny_sequence), "--modes", "csm", "st",
+                       "--out", str(tmp_path / "runs"), "--json", str(out)]) == 0
+    rows = json.loads(out.read_text())["rows"]
+    assert [r["row"] for r in rows][-2:] == ["csm", "st"]
+    assert all(0.5 < r["accuracy"] <= 1 for r in rows)
+    assert "| st |" in capsys.readouterr().out
