@@ -5,13 +5,15 @@ within its own kernel length L(v), then folds the sum into its counters. The wor
 grows with L(v)^3, so low-entropy voxels (short kernels) are cheap: the adaptive kernel pays
 only where the map is uncertain. No atomics: each voxel is written by one thread.
 
-Training points are sorted by leaf block (kernels/training.py), so a voxel visits only the
-training points of the blocks its kernel sphere touches, not every voxel cell within reach.
+Training points are sorted by leaf block, and the blocks of each (x, y) column of the table lie
+one after another in z (kernels/training.py): a voxel reads, per column its kernel sphere
+touches, the one slice of blocks the sphere reaches in z, not every voxel cell within reach.
 """
 import math
 
 import taichi as ti
 
+from kernels.entropy import fresh_length
 from kernels.fusion import fuse_voxel
 from kernels.layout import LEAF
 
@@ -60,6 +62,7 @@ def axis_gap(x, lo, width):
 @ti.kernel
 def gather_update(m: ti.template(), center: ti.types.vector(3, ti.i32), stamp: ti.i32,
                   t: ti.f32, inv_tau: ti.f32, resolution: ti.f32, sigma0: ti.f32,
+                  prior: ti.f32, ell_min: ti.f32, ell_max: ti.f32,
                   xyz: ti.types.ndarray(dtype=ti.f32, ndim=2),     # (K, 3) training points
                   hist: ti.types.ndarray(dtype=ti.f32, ndim=2),    # (K, C) block-sorted
                   classes: ti.types.ndarray(dtype=ti.i32, ndim=1),  # (K,) bit c: hist[:, c] > 0
@@ -78,6 +81,11 @@ def gather_update(m: ti.template(), center: ti.types.vector(3, ti.i32), stamp: t
                 local = ti.Vector([q // (LEAF * LEAF), (q // LEAF) % LEAF, q % LEAF])
                 u = B * LEAF + local
                 ell = m.ell[u]
+                fresh = m.slot[u]
+                if fresh > 0:    # evidence in this scan (adaptive modes): its length first
+                    ell = fresh_length(m, u, hist, fresh - 1, t, inv_tau, prior, ell_min, ell_max)
+                    m.ell[u] = ell
+                    m.slot[u] = 0
                 if ell > 0:
                     centre = corner + (local.cast(ti.f32) + 0.5) * resolution
                     ell2 = ell * ell
@@ -86,37 +94,38 @@ def gather_update(m: ti.template(), center: ti.types.vector(3, ti.i32), stamp: t
                     hi = ti.floor((centre + ell) / blk_m, ti.i32)
                     acc = ti.Vector([0.0] * m.C)
                     # plain nested loops (ti.ndrange would flatten them with an integer division
-                    # and modulo per iteration), pruned axis by axis with the separable distance
-                    # from the voxel centre to each block's box
+                    # and modulo per iteration) over the table's columns, pruned with the
+                    # distance from the voxel centre to each column's box in x and y; the z-range
+                    # of blocks the sphere reaches there is one slice (training.assign_slots)
                     for bx in range(lo[0], hi[0] + 1):
                         gx = axis_gap(centre[0], bx * blk_m, blk_m)
                         for by in range(lo[1], hi[1] + 1):
                             gy = axis_gap(centre[1], by * blk_m, blk_m)
                             gxy = gx * gx + gy * gy
                             if gxy < ell2:
-                                for bz in range(lo[2], hi[2] + 1):
-                                    gz = axis_gap(centre[2], bz * blk_m, blk_m)
-                                    cell = base + ti.Vector([bx, by, bz])
-                                    # inside the table by construction: training blocks lie
-                                    # within the scan's limit, receivers within NEAR + reach of
-                                    # one, their kernels within reach more; the table's margin
-                                    # (Mapper) is wider than that
-                                    assert m.in_table(cell)
-                                    if gxy + gz * gz < ell2:
-                                        start = m.b_start[cell]
-                                        for p in range(start, start + m.b_count[cell]):
-                                            d = ti.Vector([xyz[p, 0], xyz[p, 1], xyz[p, 2]]) - centre
-                                            d2 = d.dot(d)
-                                            if d2 < ell2:
-                                                k = sparse_kernel_of_r2(m, d2 * inv_ell2)
-                                                c1 = single[p]
-                                                if c1 > 0:      # one class: the common case
-                                                    acc[c1] += k * hist[p, c1]
-                                                else:
-                                                    mask = classes[p]
-                                                    for c in ti.static(range(1, m.C)):
-                                                        if mask & (1 << c):
-                                                            acc[c] += k * hist[p, c]
+                                dz = ti.sqrt(ell2 - gxy)
+                                zlo = ti.max(ti.floor((centre[2] - dz) / blk_m, ti.i32), lo[2])
+                                zhi = ti.min(ti.floor((centre[2] + dz) / blk_m, ti.i32), hi[2])
+                                # inside the table by construction: training blocks lie within
+                                # the scan's limit, receivers within NEAR + reach of one, their
+                                # kernels within reach more; the table's margin (Mapper) is
+                                # wider than that
+                                first = base + ti.Vector([bx, by, zlo])
+                                last = base + ti.Vector([bx, by, zhi])
+                                assert m.in_table(first) and m.in_table(last)
+                                for p in range(m.b_start[first], m.b_start[last] + m.b_count[last]):
+                                    d = ti.Vector([xyz[p, 0], xyz[p, 1], xyz[p, 2]]) - centre
+                                    d2 = d.dot(d)
+                                    if d2 < ell2:
+                                        k = sparse_kernel_of_r2(m, d2 * inv_ell2)
+                                        c1 = single[p]
+                                        if c1 > 0:      # one class: the common case
+                                            acc[c1] += k * hist[p, c1]
+                                        else:
+                                            mask = classes[p]
+                                            for c in ti.static(range(1, m.C)):
+                                                if mask & (1 << c):
+                                                    acc[c] += k * hist[p, c]
                     acc *= sigma0
                     if acc.sum() > MIN_UPDATE:
                         fuse_voxel(m, u, acc, t, inv_tau)

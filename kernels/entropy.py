@@ -3,6 +3,8 @@ import math
 
 import taichi as ti
 
+from kernels.fusion import decay_factor
+
 LN2 = math.log(2.0)
 
 
@@ -45,3 +47,14 @@ def normalized_entropy(p, num_real: ti.template()):
 def adaptive_length(p, ell_min, ell_max, num_real: ti.template()):
     """L(v) = L_min + (L_max - L_min) * normalised entropy of p(c|v)."""
     return ell_min + (ell_max - ell_min) * normalized_entropy(p, num_real)
+
+
+@ti.func
+def fresh_length(m: ti.template(), u, hist: ti.template(), row, t, inv_tau, prior, ell_min, ell_max):
+    """Kernel length of map voxel u given this scan's evidence hist[row, :]: the entropy of
+    p(c|v) = prior + decayed counters + the scan's histogram (steps 4-5)."""
+    alpha = decay_factor(t - m.t_last[u], inv_tau)
+    p = ti.Vector([0.0] * m.C)
+    for c in ti.static(range(m.C)):
+        p[c] = prior + alpha * m.counts[u, c] + hist[row, c]
+    return adaptive_length(p, ell_min, ell_max, m.C - 1)

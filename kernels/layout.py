@@ -64,15 +64,18 @@ class MapFields:
         # one SNode tree per map, built and finalised here
         fb = ti.FieldsBuilder()
 
-        # map layer: ~88 B per active voxel (20 x f32 counters, t_last, ell) + bitmask
+        # map layer: ~92 B per active voxel (20 x f32 counters, t_last, ell, slot) + bitmask
         self.counts = ti.field(ti.f32)
         self.t_last = ti.field(ti.f32)
         self.ell = ti.field(ti.f32)     # > 0 for every active voxel: doubles as the activity test
+        # 1 + the voxel's row in this scan's training arrays while the scan is fused, else 0
+        # (kernels/training.py writes it, kernels/bki.py computes the kernel length and clears it)
+        self.slot = ti.field(ti.i32)
         self.top = fb.pointer(ti.ijk, top_shape)
         self.blk = self.top.pointer(ti.ijk, MID)
         self.vox = self.blk.bitmasked(ti.ijk, LEAF)
         self.vox.dense(ti.l, self.C).place(self.counts)
-        self.vox.place(self.t_last, self.ell)
+        self.vox.place(self.t_last, self.ell, self.slot)
 
         # scan layer: per voxel the scan's histogram, coordinate sum and point count
         self.s_hist = ti.field(ti.f32)
@@ -84,6 +87,10 @@ class MapFields:
         self.s_vox.dense(ti.l, self.C).place(self.s_hist)
         self.s_vox.dense(ti.l, 3).place(self.s_sum)
         self.s_vox.place(self.s_npts)
+        # the last scan that used each scan-layer block: a block is reset voxel by voxel after
+        # use and kept while scans keep hitting it, as freeing one costs a 6 KB zero-fill
+        self.s_stamp = ti.field(ti.i32)
+        self.s_blk.place(self.s_stamp)
 
         # the scan's training points per leaf block (count, first slot in the block-sorted
         # arrays): a dense table centred on the sensor, since the kernel update looks these up
@@ -92,6 +99,11 @@ class MapFields:
         self.b_count = ti.field(ti.i32)
         self.b_start = ti.field(ti.i32)
         fb.dense(ti.ijk, tuple(2 * h + 1 for h in self.table_half)).place(self.b_count, self.b_start)
+        # training voxels per (x, y) column of the table: assign_slots lays each column's blocks
+        # out one after another in z, so the kernel update reads a column's z-range of blocks
+        # as one contiguous slice instead of one slice per block
+        self.col_count = ti.field(ti.i32)
+        fb.dense(ti.ij, tuple(2 * h + 1 for h in self.table_half[:2])).place(self.col_count)
         # which map blocks the scan's kernels can reach: per NEAR x NEAR x NEAR table cells, the
         # last scan with a training block within reach (kernels/training.py marks it). A dense
         # read per map block replaces a sparse is_active test per (training block, neighbour).
@@ -99,9 +111,7 @@ class MapFields:
         fb.dense(ti.ijk, tuple(2 * h // NEAR + 1 for h in self.table_half)).place(self.near)
 
         self.counter = ti.field(ti.i32)
-        self.stats = ti.field(ti.i32)       # per-scan point statistics (kernels/rasterize.py)
         fb.place(self.counter)
-        fb.dense(ti.i, 4).place(self.stats)
         self.kernel_lut = ti.field(ti.f32)  # g(r) sampled in r^2 (kernels/bki.py)
         fb.dense(ti.i, KERNEL_TABLE + 1).place(self.kernel_lut)
         self._tree = fb.finalize()

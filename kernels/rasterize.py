@@ -9,7 +9,7 @@ import taichi as ti
 
 from kernels.layout import LEAF
 
-# slots of the per-scan point statistics (m.stats)
+# what happened to a point (locate), and the slots of rasterize's returned counts
 USED, OUT_OF_RANGE, OUT_OF_WINDOW, IMPLAUSIBLY_FAR = 0, 1, 2, 3
 FAR_M = 1000.0   # no LiDAR returns from this far: such points are corrupt data, not range
 
@@ -21,24 +21,20 @@ def to_local(R, p, t):
 
 
 @ti.func
-def locate(m: ti.template(), p, R, t, center, limit, min_r2, max_r2, min_z, max_z, inv_res):
-    """Whether sensor-frame point p may be used, its world voxel and its local coordinates."""
-    ok = 0
+def locate(p, R, t, center, limit, min_r2, max_r2, min_z, max_z, inv_res):
+    """What becomes of sensor-frame point p (USED, OUT_OF_RANGE, OUT_OF_WINDOW or
+    IMPLAUSIBLY_FAR, a kind of out of range), its world voxel and its local coordinates."""
+    fate = USED
     q = to_local(R, p, t)
     w = ti.floor(q * inv_res, ti.i32)
     r2 = p.dot(p)
     if r2 < min_r2 or r2 > max_r2 or p[2] < min_z or p[2] > max_z:
-        ti.atomic_add(m.stats[OUT_OF_RANGE], 1)
-        if r2 > FAR_M * FAR_M:
-            ti.atomic_add(m.stats[IMPLAUSIBLY_FAR], 1)
+        fate = IMPLAUSIBLY_FAR if r2 > FAR_M * FAR_M else OUT_OF_RANGE
     else:
         off = ti.abs(w - center)
         if off[0] > limit[0] or off[1] > limit[1] or off[2] > limit[2]:
-            ti.atomic_add(m.stats[OUT_OF_WINDOW], 1)
-        else:
-            ok = 1
-            ti.atomic_add(m.stats[USED], 1)
-    return ok, w, q
+            fate = OUT_OF_WINDOW
+    return fate, w, q
 
 
 @ti.func
@@ -51,6 +47,7 @@ def add_point(m: ti.template(), w, q, center, min_points):
         center_blk = ti.floor(center / LEAF, ti.i32)
         i, _ = m.table_index(ti.floor(w / LEAF, ti.i32), center_blk)
         ti.atomic_add(m.b_count[i], 1)
+        ti.atomic_add(m.col_count[i[0], i[1]], 1)
     for a in ti.static(range(3)):
         m.s_sum[u, a] += q[a]
     return u
@@ -65,13 +62,25 @@ def rasterize(m: ti.template(),
               R: ti.types.matrix(3, 3, ti.f32), t: ti.types.vector(3, ti.f32),
               center: ti.types.vector(3, ti.i32), limit: ti.types.vector(3, ti.i32),
               min_r2: ti.f32, max_r2: ti.f32, min_z: ti.f32, max_z: ti.f32, inv_res: ti.f32,
-              min_points: ti.i32):
-    for i in ti.static(range(4)):
-        m.stats[i] = 0
+              min_points: ti.i32) -> ti.types.vector(4, ti.i32):
+    """Returns the number of points per fate (index USED, OUT_OF_RANGE, ...); implausibly far
+    points are also counted as out of range."""
+    # kernel-scope counters: Taichi keeps them per thread and adds them up at the end, where
+    # one shared atomic counter per point made the two threads fight over a cache line
+    out_of_range = 0
+    out_of_window = 0
+    far = 0
     for n in range(pts.shape[0]):
         p = ti.Vector([pts[n, 0], pts[n, 1], pts[n, 2]])
-        ok, w, q = locate(m, p, R, t, center, limit, min_r2, max_r2, min_z, max_z, inv_res)
-        if ok:
+        fate, w, q = locate(p, R, t, center, limit, min_r2, max_r2, min_z, max_z, inv_res)
+        if fate == OUT_OF_RANGE:
+            out_of_range += 1
+        elif fate == IMPLAUSIBLY_FAR:
+            out_of_range += 1
+            far += 1
+        elif fate == OUT_OF_WINDOW:
+            out_of_window += 1
+        else:
             u = add_point(m, w, q, center, min_points)
             if ti.static(use_probs):
                 for c in ti.static(range(1, m.C)):
@@ -79,20 +88,17 @@ def rasterize(m: ti.template(),
                         m.s_hist[u, c] += prob[n, c]
             elif label[n] > 0:  # train id 0 (unlabeled) counts as a point but adds no evidence
                 m.s_hist[u, label[n]] += 1.0
+    return ti.Vector([pts.shape[0] - out_of_range - out_of_window, out_of_range, out_of_window, far])
 
 
 @ti.kernel
-def clear_scan_layer(m: ti.template(), center_blk: ti.types.vector(3, ti.i32)):
-    """Zero the training table cells of every scan-layer leaf block (only those can have been
-    used) and free the block (its memory is recycled zero-filled); clear_scan_top follows."""
-    for B in ti.grouped(m.s_blk):
-        i, _ = m.table_index(m.s_unwrap_blk(B, center_blk), center_blk)
-        m.b_count[i] = 0
-        m.b_start[i] = 0
-        ti.deactivate(m.s_blk, [B[0], B[1], B[2]])
+def free_idle_blocks(m: ti.template(), stamp: ti.i32):
+    """Free the scan-layer blocks the scan with `stamp` did not use (their voxels were reset
+    when last used; freeing recycles the memory zero-filled).
 
-
-@ti.kernel
-def clear_scan_top(m: ti.template()):
-    for I in ti.grouped(m.s_top):
-        ti.deactivate(m.s_top, [I[0], I[1], I[2]])
+    The blocks the scan used stay allocated for the next scans, which mostly hit the same
+    ones again. Top cells stay too: they are at most (scan extent / 32)^3 cells of 4 KB.
+    """
+    for B in ti.grouped(m.s_stamp):
+        if m.s_stamp[B] != stamp:
+            ti.deactivate(m.s_blk, ti.cast(B, ti.i32))

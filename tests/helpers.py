@@ -186,7 +186,7 @@ class StageRecorder:
 
     def _after_rasterize(self, kernel):
         def wrapped(m, pts, *args):
-            kernel(m, pts, *args)
+            fates = kernel(m, pts, *args)
             cap = max(int(pts.shape[0]), 1)
             keys, npts = np.zeros((cap, 3), np.int32), np.zeros(cap, np.int32)
             sums, hist = np.zeros((cap, 3), np.float32), np.zeros((cap, m.C), np.float32)
@@ -200,17 +200,20 @@ class StageRecorder:
             centroid = sums[:n].astype(np.float64) / npts[:n, None] + mp.origin_vox * mp.res
             keys, npts, centroid, hist = _sorted_by_key(keys, npts[:n], centroid, hist[:n])
             self.scan_layer.append(dict(keys=keys, npts=npts, centroid=centroid, hist=hist))
+            return fates
         return wrapped
 
     def _after_training(self, kernel):
         def wrapped(m, *args):
             n = kernel(m, *args)
-            # each block's slice may end in unused slots (voxels without evidence): the written
-            # points are the first b_count of each slice
+            # every slot of every block's slice is written; voxels without evidence get an
+            # unreachable filler, the others are the training points
             count, start = m.b_count.to_numpy().ravel(), m.b_start.to_numpy().ravel()
             used = count > 0
             rows = np.concatenate([np.arange(s, s + c) for s, c in zip(start[used], count[used])]
                                   or [np.zeros(0, np.int64)])
+            assert len(np.unique(rows)) == len(rows), "two blocks' slices overlap"
+            rows = rows[args[-4][rows, 0] < training.UNREACHABLE_M / 2]
             assert len(rows) == n, f"write_training reported {n} points, the table holds {len(rows)}"
             xyz, hist = args[-4][rows], args[-3][rows]
             mp = self.mapper

@@ -153,33 +153,31 @@ class Mapper:
                     cfg.min_range_m ** 2, cfg.max_range_m ** 2, cfg.min_z_m, cfg.max_z_m,
                     1.0 / self.res, cfg.min_points)
         if probs is None:
-            rasterize.rasterize(m, pts, labels, self._no_probs, False, *geometry)
+            stats = rasterize.rasterize(m, pts, labels, self._no_probs, False, *geometry)
         else:
-            rasterize.rasterize(m, pts, self._no_labels, probs, True, *geometry)
-        stats = m.stats.to_numpy()
+            stats = rasterize.rasterize(m, pts, self._no_labels, probs, True, *geometry)
         rep.used = int(stats[rasterize.USED])
         rep.dropped_range = int(stats[rasterize.OUT_OF_RANGE]) - rep.dropped_nonfinite
         rep.dropped_window = int(stats[rasterize.OUT_OF_WINDOW])
         rep.dropped_far = int(stats[rasterize.IMPLAUSIBLY_FAR]) - rep.dropped_nonfinite
         clock("rasterize")
         center_v = _ivec(center)
-        center_blk = _ivec(np.floor_divide(center, LEAF))
         stamp = self.scans + 1
-        n = training.assign_slots(m, center_blk, stamp, self._reach_blk)
+        n = training.assign_slots(m, stamp, self._reach_blk)
         clock("filter")
         train = self._buf.training(max(n, 1), self.C)
+        ell_min = cfg.ell_min_m if cfg.adaptive else cfg.ell_fixed_vox * self.res
         n = training.write_training(
-            m, center_v, t_rel, self._inv_tau, cfg.min_points, int(cfg.point_weight == "unit"), cfg.prior,
-            cfg.ell_min_m if cfg.adaptive else cfg.ell_fixed_vox * self.res, cfg.ell_max_m,
+            m, center_v, stamp, t_rel, cfg.min_points, int(cfg.point_weight == "unit"), ell_min,
             int(cfg.adaptive), int(not cfg.uses_kernel), *train)
         rep.training_voxels = int(n)
         clock("entropy")
         if cfg.uses_kernel and n:
-            bki.gather_update(m, center_v, stamp, t_rel, self._inv_tau,
-                              self.res, cfg.sigma0, *train)
+            bki.gather_update(m, center_v, stamp, t_rel, self._inv_tau, self.res, cfg.sigma0,
+                              cfg.prior, ell_min, cfg.ell_max_m, *train)
         clock("kernel")
-        rasterize.clear_scan_layer(m, center_blk)
-        rasterize.clear_scan_top(m)
+        training.clear_table(m)
+        rasterize.free_idle_blocks(m, stamp)
         clock("clear")
         self._finish(scan)
         return rep
@@ -210,7 +208,9 @@ class Mapper:
         cfg = self.config
         where = f"scan {scan.index}" + (f" ({scan.name})" if scan.name else "")
         pts = np.ascontiguousarray(scan.points_sensor, dtype=np.float32)
-        finite = np.isfinite(pts).all(axis=1)
+        finite_xyz = np.isfinite(pts)
+        # (a flat all() is ~30x cheaper than the per-row one, and scans are almost always clean)
+        finite = np.ones(len(pts), bool) if finite_xyz.all() else finite_xyz.all(axis=1)
         rep.dropped_nonfinite = int(len(pts) - np.count_nonzero(finite))
         if rep.dropped_nonfinite:
             pts = pts.copy()
