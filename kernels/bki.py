@@ -59,6 +59,61 @@ def axis_gap(x, lo, width):
     return ti.max(lo - x, 0.0) + ti.max(x - lo - width, 0.0)
 
 
+@ti.func
+def update_voxel(m: ti.template(), u, centre, base, blk_m, t, inv_tau, sigma0, prior, ell_min,
+                 ell_max, xyz: ti.template(), hist: ti.template(), classes: ti.template(),
+                 single: ti.template()):
+    """One live voxel: its kernel length if the scan brought it evidence, the kernel-weighted
+    sum over the training points within that length, and the fusion."""
+    ell = m.ell[u]         # 0 where the voxel is not live (a free cell of a live block)
+    fresh = m.slot[u]
+    if fresh > 0:    # evidence in this scan (adaptive modes): its length first
+        ell = fresh_length(m, u, hist, fresh - 1, t, inv_tau, prior, ell_min, ell_max)
+        m.ell[u] = ell
+        m.slot[u] = 0
+    if ell > 0:
+        ell2 = ell * ell
+        inv_ell2 = 1.0 / ell2
+        lo = ti.floor((centre - ell) / blk_m, ti.i32)
+        hi = ti.floor((centre + ell) / blk_m, ti.i32)
+        acc = ti.Vector([0.0] * m.C)
+        # plain nested loops (ti.ndrange would flatten them with an integer division and
+        # modulo per iteration) over the table's columns, pruned with the distance from the
+        # voxel centre to each column's box in x and y; the z-range of blocks the sphere
+        # reaches there is one slice (training.assign_slots)
+        for bx in range(lo[0], hi[0] + 1):
+            gx = axis_gap(centre[0], bx * blk_m, blk_m)
+            for by in range(lo[1], hi[1] + 1):
+                gy = axis_gap(centre[1], by * blk_m, blk_m)
+                gxy = gx * gx + gy * gy
+                if gxy < ell2:
+                    dz = ti.sqrt(ell2 - gxy)
+                    zlo = ti.max(ti.floor((centre[2] - dz) / blk_m, ti.i32), lo[2])
+                    zhi = ti.min(ti.floor((centre[2] + dz) / blk_m, ti.i32), hi[2])
+                    # inside the table by construction: training blocks lie within the scan's
+                    # limit, receivers within NEAR + reach of one, their kernels within reach
+                    # more; the table's margin (Mapper) is wider than that
+                    first = base + ti.Vector([bx, by, zlo])
+                    last = base + ti.Vector([bx, by, zhi])
+                    assert m.in_table(first) and m.in_table(last)
+                    for p in range(m.b_start[first], m.b_start[last] + m.b_count[last]):
+                        d = ti.Vector([xyz[p, 0], xyz[p, 1], xyz[p, 2]]) - centre
+                        d2 = d.dot(d)
+                        if d2 < ell2:
+                            k = sparse_kernel_of_r2(m, d2 * inv_ell2)
+                            c1 = single[p]
+                            if c1 > 0:      # one class: the common case
+                                acc[c1] += k * hist[p, c1]
+                            else:
+                                mask = classes[p]
+                                for c in ti.static(range(1, m.C)):
+                                    if mask & (1 << c):
+                                        acc[c] += k * hist[p, c]
+        acc *= sigma0
+        if acc.sum() > MIN_UPDATE:
+            fuse_voxel(m, u, acc, t, inv_tau)
+
+
 @ti.kernel
 def gather_update(m: ti.template(), center: ti.types.vector(3, ti.i32), stamp: ti.i32,
                   t: ti.f32, inv_tau: ti.f32, resolution: ti.f32, sigma0: ti.f32,
@@ -66,66 +121,36 @@ def gather_update(m: ti.template(), center: ti.types.vector(3, ti.i32), stamp: t
                   xyz: ti.types.ndarray(dtype=ti.f32, ndim=2),     # (K, 3) training points
                   hist: ti.types.ndarray(dtype=ti.f32, ndim=2),    # (K, C) block-sorted
                   classes: ti.types.ndarray(dtype=ti.i32, ndim=1),  # (K,) bit c: hist[:, c] > 0
-                  single: ti.types.ndarray(dtype=ti.i32, ndim=1)):  # (K,) the class, if only one
+                  single: ti.types.ndarray(dtype=ti.i32, ndim=1),  # (K,) the class, if only one
+                  per_voxel: ti.template()):
+    """The update of every live voxel a training point can reach.
+
+    `per_voxel` picks the parallel loop: on a CPU one task per leaf block (two threads, and
+    the block's near test done once), on a GPU one thread per voxel (a thread per block would
+    run 64 voxels' gathers one after another on a few thousand threads).
+    """
     blk_m = LEAF * resolution
     center_blk = ti.floor(center / LEAF, ti.i32)
     base = ti.Vector(m.table_half) - center_blk
-    for B in ti.grouped(m.blk):
-        wb = m.unwrap_blk(B, center_blk)
-        i, inside = m.table_index(wb, center_blk)
-        # only blocks a training block can reach (assign_slots marked them; a superset, as the
-        # mark is coarse: the distance tests below decide)
-        if inside and m.near[m.near_index(i)] == stamp:
-            corner = (wb * LEAF).cast(ti.f32) * resolution
-            for q in range(LEAF * LEAF * LEAF):
-                local = ti.Vector([q // (LEAF * LEAF), (q // LEAF) % LEAF, q % LEAF])
-                u = B * LEAF + local
-                ell = m.ell[u]
-                fresh = m.slot[u]
-                if fresh > 0:    # evidence in this scan (adaptive modes): its length first
-                    ell = fresh_length(m, u, hist, fresh - 1, t, inv_tau, prior, ell_min, ell_max)
-                    m.ell[u] = ell
-                    m.slot[u] = 0
-                if ell > 0:
-                    centre = corner + (local.cast(ti.f32) + 0.5) * resolution
-                    ell2 = ell * ell
-                    inv_ell2 = 1.0 / ell2
-                    lo = ti.floor((centre - ell) / blk_m, ti.i32)
-                    hi = ti.floor((centre + ell) / blk_m, ti.i32)
-                    acc = ti.Vector([0.0] * m.C)
-                    # plain nested loops (ti.ndrange would flatten them with an integer division
-                    # and modulo per iteration) over the table's columns, pruned with the
-                    # distance from the voxel centre to each column's box in x and y; the z-range
-                    # of blocks the sphere reaches there is one slice (training.assign_slots)
-                    for bx in range(lo[0], hi[0] + 1):
-                        gx = axis_gap(centre[0], bx * blk_m, blk_m)
-                        for by in range(lo[1], hi[1] + 1):
-                            gy = axis_gap(centre[1], by * blk_m, blk_m)
-                            gxy = gx * gx + gy * gy
-                            if gxy < ell2:
-                                dz = ti.sqrt(ell2 - gxy)
-                                zlo = ti.max(ti.floor((centre[2] - dz) / blk_m, ti.i32), lo[2])
-                                zhi = ti.min(ti.floor((centre[2] + dz) / blk_m, ti.i32), hi[2])
-                                # inside the table by construction: training blocks lie within
-                                # the scan's limit, receivers within NEAR + reach of one, their
-                                # kernels within reach more; the table's margin (Mapper) is
-                                # wider than that
-                                first = base + ti.Vector([bx, by, zlo])
-                                last = base + ti.Vector([bx, by, zhi])
-                                assert m.in_table(first) and m.in_table(last)
-                                for p in range(m.b_start[first], m.b_start[last] + m.b_count[last]):
-                                    d = ti.Vector([xyz[p, 0], xyz[p, 1], xyz[p, 2]]) - centre
-                                    d2 = d.dot(d)
-                                    if d2 < ell2:
-                                        k = sparse_kernel_of_r2(m, d2 * inv_ell2)
-                                        c1 = single[p]
-                                        if c1 > 0:      # one class: the common case
-                                            acc[c1] += k * hist[p, c1]
-                                        else:
-                                            mask = classes[p]
-                                            for c in ti.static(range(1, m.C)):
-                                                if mask & (1 << c):
-                                                    acc[c] += k * hist[p, c]
-                    acc *= sigma0
-                    if acc.sum() > MIN_UPDATE:
-                        fuse_voxel(m, u, acc, t, inv_tau)
+    if ti.static(per_voxel):
+        for u in ti.grouped(m.ell):
+            B = u // LEAF
+            wb = m.unwrap_blk(B, center_blk)
+            i, inside = m.table_index(wb, center_blk)
+            if inside and m.near[m.near_index(i)] == stamp:
+                local = u - B * LEAF
+                centre = ((wb * LEAF + local).cast(ti.f32) + 0.5) * resolution
+                update_voxel(m, u, centre, base, blk_m, t, inv_tau, sigma0, prior, ell_min,
+                             ell_max, xyz, hist, classes, single)
+    else:
+        for B in ti.grouped(m.blk):
+            wb = m.unwrap_blk(B, center_blk)
+            i, inside = m.table_index(wb, center_blk)
+            # only blocks a training block can reach (assign_slots marked them; a superset, as
+            # the mark is coarse: the distance tests decide)
+            if inside and m.near[m.near_index(i)] == stamp:
+                for q in range(LEAF * LEAF * LEAF):
+                    local = ti.Vector([q // (LEAF * LEAF), (q // LEAF) % LEAF, q % LEAF])
+                    centre = ((wb * LEAF + local).cast(ti.f32) + 0.5) * resolution
+                    update_voxel(m, B * LEAF + local, centre, base, blk_m, t, inv_tau, sigma0,
+                                 prior, ell_min, ell_max, xyz, hist, classes, single)

@@ -307,17 +307,20 @@ def _check_map(mapper, ref, tainted: set, where: str, query_pts):
     return good.mean()
 
 
-@pytest.mark.parametrize("mode", list(MODE_CONFIGS))
-def test_stages_match_reference(taichi_cpu, monkeypatch, mode):
+@pytest.mark.parametrize("mode,loop", [(mode, "per block") for mode in MODE_CONFIGS]
+                         + [("st", "per voxel"), ("bki", "per voxel")])
+def test_stages_match_reference(taichi_cpu, monkeypatch, mode, loop):
     """All of `integrate` against the numpy oracle, stage by stage, after every scan.
 
     Seeds alternate between two regions 100 m apart (farther than the window): the live
     window moves away, the first region is compared from the host store, and the third seed
     maps it again with its voxels reloaded (their decay then spans the time away). Odd seeds
-    feed probabilities instead of labels.
+    feed probabilities instead of labels. The kernel update's GPU loop form (one thread per
+    voxel) is checked here on the CPU too.
     """
     cfg = small_config(mode=mode, **MODE_CONFIGS[mode])
     mapper = Mapper(cfg)
+    mapper._per_voxel = loop == "per voxel"
     ref = ReferenceMapper(small_config(mode=mode, **MODE_CONFIGS[mode]))
     rec = StageRecorder(monkeypatch, mapper)
     tainted: set = set()

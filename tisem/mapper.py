@@ -115,6 +115,8 @@ class Mapper:
                                 storage_extent(tuple(int(h) for h in self._limit)),
                                 tuple(int(h) for h in table_half))
         bki.fill_kernel_table(self.fields)
+        # the kernel update's parallel loop: per leaf block on CPUs, per voxel on GPUs
+        self._per_voxel = ti.lang.impl.current_cfg().arch == ti.cuda
         self.origin_vox: np.ndarray | None = None   # global voxel index of local voxel 0
         self.t0: float | None = None               # stamp of the first scan
         self.center_vox: np.ndarray | None = None   # window centre, local voxels
@@ -174,7 +176,7 @@ class Mapper:
         clock("entropy")
         if cfg.uses_kernel and n:
             bki.gather_update(m, center_v, stamp, t_rel, self._inv_tau, self.res, cfg.sigma0,
-                              cfg.prior, ell_min, cfg.ell_max_m, *train)
+                              cfg.prior, ell_min, cfg.ell_max_m, *train, self._per_voxel)
         clock("kernel")
         training.clear_table(m)
         rasterize.free_idle_blocks(m, stamp)
