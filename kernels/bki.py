@@ -66,11 +66,10 @@ def update_voxel(m: ti.template(), u, centre, base, blk_m, t, inv_tau, sigma0, p
     """One live voxel: its kernel length if the scan brought it evidence, the kernel-weighted
     sum over the training points within that length, and the fusion."""
     ell = m.ell[u]         # 0 where the voxel is not live (a free cell of a live block)
-    fresh = m.slot[u]
-    if fresh > 0:    # evidence in this scan (adaptive modes): its length first
-        ell = fresh_length(m, u, hist, fresh - 1, t, inv_tau, prior, ell_min, ell_max)
+    if ell < 0:    # -(1 + its training row): evidence in this scan (adaptive modes), length first
+        ell = fresh_length(m, u, hist, ti.cast(-ell, ti.i32) - 1, t, inv_tau, prior, ell_min,
+                           ell_max)
         m.ell[u] = ell
-        m.slot[u] = 0
     if ell > 0:
         ell2 = ell * ell
         inv_ell2 = 1.0 / ell2

@@ -64,18 +64,18 @@ class MapFields:
         # one SNode tree per map, built and finalised here
         fb = ti.FieldsBuilder()
 
-        # map layer: ~92 B per active voxel (20 x f32 counters, t_last, ell, slot) + bitmask
+        # map layer: ~88 B per active voxel (20 x f32 counters, t_last, ell) + bitmask
         self.counts = ti.field(ti.f32)
         self.t_last = ti.field(ti.f32)
-        self.ell = ti.field(ti.f32)     # > 0 for every active voxel: doubles as the activity test
-        # 1 + the voxel's row in this scan's training arrays while the scan is fused, else 0
-        # (kernels/training.py writes it, kernels/bki.py computes the kernel length and clears it)
-        self.slot = ti.field(ti.i32)
+        # > 0 for every active voxel (doubles as the activity test); while a scan is fused,
+        # -(1 + the voxel's row in the scan's training arrays) for a voxel the scan hit in an
+        # adaptive mode: kernels/training.py writes that, kernels/bki.py turns it into the length
+        self.ell = ti.field(ti.f32)
         self.top = fb.pointer(ti.ijk, top_shape)
         self.blk = self.top.pointer(ti.ijk, MID)
         self.vox = self.blk.bitmasked(ti.ijk, LEAF)
         self.vox.dense(ti.l, self.C).place(self.counts)
-        self.vox.place(self.t_last, self.ell, self.slot)
+        self.vox.place(self.t_last, self.ell)
 
         # scan layer: per voxel the scan's histogram, coordinate sum and point count
         self.s_hist = ti.field(ti.f32)

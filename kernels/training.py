@@ -134,8 +134,9 @@ def write_training(m: ti.template(), center: ti.types.vector(3, ti.i32), stamp: 
                 fuse_voxel(m, u, h, t, 0.0)
             elif adaptive:
                 # the length needs the voxel's counters, which the kernel update reads anyway
-                # (one pass over the map instead of two): it computes the length from the slot
-                m.slot[u] = slot + 1                # writing activates the map voxel
+                # (one pass over the map instead of two): it computes the length from the row
+                # (exact in float32 up to 2^24 rows; writing activates the map voxel)
+                m.ell[u] = -ti.cast(slot + 1, ti.f32)
             else:
                 m.ell[u] = ell_min
     return written

@@ -513,3 +513,20 @@ def test_debug_scan_at_the_edge_of_the_window(debug_map):
     lab, prob = out.edge_random
     assert lab.min() >= 0 and lab.max() < C and np.isfinite(prob).all()
     assert out.snap_size > 0 and out.snap_finite
+
+
+def test_a_scan_with_more_points_than_training_rows_can_count_is_refused(taichi_cpu, monkeypatch):
+    """Training rows pass through float32 (exact below 2^24): a scan that could need more is
+    refused with its name before any kernel runs, and the map is untouched."""
+    import tisem.mapper as mapper_module
+    mapper = Mapper(small_config(mode="st"))
+    rng = np.random.default_rng(0)
+    pts = rng.uniform(-5, 5, (50, 3))
+    labels = np.full(50, ROAD, np.int32)
+    monkeypatch.setattr(mapper_module, "MAX_POINTS", 50)
+    with pytest.raises(ValueError, match="50 points; tisem takes at most 49"):
+        mapper.integrate(Scan(pts, np.eye(4), 0.0, labels=labels, name="big"))
+    assert mapper.live_voxels == 0
+    monkeypatch.setattr(mapper_module, "MAX_POINTS", 51)
+    mapper.integrate(Scan(pts, np.eye(4), 0.0, labels=labels, name="big"))
+    assert mapper.live_voxels > 0

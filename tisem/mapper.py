@@ -28,6 +28,9 @@ from tisem.store import KEY_LIMIT, BlockStore
 log = logging.getLogger(__name__)
 
 FAR_M = 1.0e6   # query coordinates are clamped to this (int32 voxel indices at any resolution)
+# a scan's training rows travel through float32 (kernels/training.py), exact below 2^24; a scan
+# has at most as many training voxels as points
+MAX_POINTS = 2 ** 24
 
 
 def _ivec(a) -> ti.Vector:
@@ -209,6 +212,9 @@ class Mapper:
         """Check the scan's evidence and pose; the kernels do the per-point work (step 1)."""
         cfg = self.config
         where = f"scan {scan.index}" + (f" ({scan.name})" if scan.name else "")
+        if scan.num_points >= MAX_POINTS:
+            raise ValueError(f"{where}: {scan.num_points:,} points; tisem takes at most "
+                             f"{MAX_POINTS - 1:,} per scan")
         pts = np.ascontiguousarray(scan.points_sensor, dtype=np.float32)
         finite_xyz = np.isfinite(pts)
         # (a flat all() is ~30x cheaper than the per-row one, and scans are almost always clean)
