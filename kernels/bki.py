@@ -1,4 +1,5 @@
-"""Steps 6-8: the compact-support sparse kernel, the Bayesian kernel update and its fusion.
+"""Steps 5-8: the adaptive length of the voxels the scan hit, the compact-support sparse kernel,
+the Bayesian kernel update and its fusion.
 
 Gather form: each live map voxel v near the scan sums k(v, p) * h(p) over the training points
 within its own kernel length L(v), then folds the sum into its counters. The work per voxel
@@ -57,6 +58,24 @@ def sparse_kernel_of_r2(m: ti.template(), r2):
 def axis_gap(x, lo, width):
     """Distance along one axis from coordinate x to the interval [lo, lo + width]."""
     return ti.max(lo - x, 0.0) + ti.max(x - lo - width, 0.0)
+
+
+@ti.func
+def reached_block(m: ti.template(), B, center_blk, stamp):
+    """(world index of map leaf block B, whether a training block of the scan with `stamp` can
+    reach it). assign_slots marked the coarse cells: a superset, the distance tests decide."""
+    wb = m.unwrap_blk(B, center_blk)
+    i, inside = m.table_index(wb, center_blk)
+    near = 0
+    if inside and m.near[m.near_index(i)] == stamp:
+        near = 1
+    return wb, near
+
+
+@ti.func
+def voxel_centre(wb, local, resolution):
+    """Local metric coordinates of the centre of voxel `local` of world leaf block wb."""
+    return ((wb * LEAF + local).cast(ti.f32) + 0.5) * resolution
 
 
 @ti.func
@@ -134,22 +153,17 @@ def gather_update(m: ti.template(), center: ti.types.vector(3, ti.i32), stamp: t
     if ti.static(per_voxel):
         for u in ti.grouped(m.ell):
             B = u // LEAF
-            wb = m.unwrap_blk(B, center_blk)
-            i, inside = m.table_index(wb, center_blk)
-            if inside and m.near[m.near_index(i)] == stamp:
+            wb, near = reached_block(m, B, center_blk, stamp)
+            if near:
                 local = u - B * LEAF
-                centre = ((wb * LEAF + local).cast(ti.f32) + 0.5) * resolution
-                update_voxel(m, u, centre, base, blk_m, t, inv_tau, sigma0, prior, ell_min,
-                             ell_max, xyz, hist, classes, single)
+                update_voxel(m, u, voxel_centre(wb, local, resolution), base, blk_m, t, inv_tau,
+                             sigma0, prior, ell_min, ell_max, xyz, hist, classes, single)
     else:
         for B in ti.grouped(m.blk):
-            wb = m.unwrap_blk(B, center_blk)
-            i, inside = m.table_index(wb, center_blk)
-            # only blocks a training block can reach (assign_slots marked them; a superset, as
-            # the mark is coarse: the distance tests decide)
-            if inside and m.near[m.near_index(i)] == stamp:
+            wb, near = reached_block(m, B, center_blk, stamp)
+            if near:
                 for q in range(LEAF * LEAF * LEAF):
                     local = ti.Vector([q // (LEAF * LEAF), (q // LEAF) % LEAF, q % LEAF])
-                    centre = ((wb * LEAF + local).cast(ti.f32) + 0.5) * resolution
-                    update_voxel(m, B * LEAF + local, centre, base, blk_m, t, inv_tau, sigma0,
-                                 prior, ell_min, ell_max, xyz, hist, classes, single)
+                    update_voxel(m, B * LEAF + local, voxel_centre(wb, local, resolution), base,
+                                 blk_m, t, inv_tau, sigma0, prior, ell_min, ell_max, xyz, hist,
+                                 classes, single)

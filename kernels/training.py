@@ -1,5 +1,7 @@
-"""Step 3 and the training points: filter the scan's voxels, give each kept voxel its kernel
-length, and write the training points (centroid + class evidence) sorted by leaf block.
+"""Step 3 and the training points: filter the scan's voxels and write the training points
+(centroid + class evidence) sorted by leaf block. In the adaptive modes each kept voxel's
+kernel length is left to the kernel update (kernels/bki.py), which reads its counters anyway;
+a voxel only gets its training row here.
 
 Sorting by block lets the kernel update visit only the training points of the few blocks
 around a voxel instead of every voxel cell within its kernel length. Three steps: rasterising
