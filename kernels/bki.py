@@ -63,7 +63,7 @@ def axis_gap(x, lo, width):
 @ti.func
 def reached_block(m: ti.template(), B, center_blk, stamp):
     """(world index of map leaf block B, whether a training block of the scan with `stamp` can
-    reach it). assign_slots marked the coarse cells: a superset, the distance tests decide."""
+    reach it). write_training marked the coarse cells: a superset, the distance tests decide."""
     wb = m.unwrap_blk(B, center_blk)
     i, inside = m.table_index(wb, center_blk)
     near = 0
@@ -98,7 +98,7 @@ def update_voxel(m: ti.template(), u, centre, base, blk_m, t, inv_tau, sigma0, p
         # plain nested loops (ti.ndrange would flatten them with an integer division and
         # modulo per iteration) over the table's columns, pruned with the distance from the
         # voxel centre to each column's box in x and y; the z-range of blocks the sphere
-        # reaches there is one slice (training.assign_slots)
+        # reaches there is one slice (training.write_training)
         for bx in range(lo[0], hi[0] + 1):
             gx = axis_gap(centre[0], bx * blk_m, blk_m)
             for by in range(lo[1], hi[1] + 1):
@@ -106,27 +106,33 @@ def update_voxel(m: ti.template(), u, centre, base, blk_m, t, inv_tau, sigma0, p
                 gxy = gx * gx + gy * gy
                 if gxy < ell2:
                     dz = ti.sqrt(ell2 - gxy)
-                    zlo = ti.max(ti.floor((centre[2] - dz) / blk_m, ti.i32), lo[2])
-                    zhi = ti.min(ti.floor((centre[2] + dz) / blk_m, ti.i32), hi[2])
+                    # the table cells of the column's z-range, clipped to the cells that hold
+                    # the scan's points (empty column: nothing left)
+                    col = base + ti.Vector([bx, by, lo[2]])
                     # inside the table by construction: training blocks lie within the scan's
                     # limit, receivers within NEAR + reach of one, their kernels within reach
                     # more; the table's margin (Mapper) is wider than that
-                    first = base + ti.Vector([bx, by, zlo])
-                    last = base + ti.Vector([bx, by, zhi])
-                    assert m.in_table(first) and m.in_table(last)
-                    for p in range(m.b_start[first], m.b_start[last] + m.b_count[last]):
-                        d = ti.Vector([xyz[p, 0], xyz[p, 1], xyz[p, 2]]) - centre
-                        d2 = d.dot(d)
-                        if d2 < ell2:
-                            k = sparse_kernel_of_r2(m, d2 * inv_ell2)
-                            c1 = single[p]
-                            if c1 > 0:      # one class: the common case
-                                acc[c1] += k * hist[p, c1]
-                            else:
-                                mask = classes[p]
-                                for c in ti.static(range(1, m.C)):
-                                    if mask & (1 << c):
-                                        acc[c] += k * hist[p, c]
+                    assert m.in_table(col)
+                    zlo = ti.max(ti.floor((centre[2] - dz) / blk_m, ti.i32), lo[2]) + base[2]
+                    zhi = ti.min(ti.floor((centre[2] + dz) / blk_m, ti.i32), hi[2]) + base[2]
+                    zlo = ti.max(zlo, m.col_lo[col[0], col[1]])
+                    zhi = ti.min(zhi, m.col_hi[col[0], col[1]])
+                    if zlo <= zhi:      # (an empty column: col_lo > col_hi)
+                        first = ti.Vector([col[0], col[1], zlo])
+                        last = ti.Vector([col[0], col[1], zhi])
+                        for p in range(m.b_start[first], m.b_start[last] + m.b_count[last]):
+                            d = ti.Vector([xyz[p, 0], xyz[p, 1], xyz[p, 2]]) - centre
+                            d2 = d.dot(d)
+                            if d2 < ell2:
+                                k = sparse_kernel_of_r2(m, d2 * inv_ell2)
+                                c1 = single[p]
+                                if c1 > 0:      # one class: the common case
+                                    acc[c1] += k * hist[p, c1]
+                                else:
+                                    mask = classes[p]
+                                    for c in ti.static(range(1, m.C)):
+                                        if mask & (1 << c):
+                                            acc[c] += k * hist[p, c]
         acc *= sigma0
         if acc.sum() > MIN_UPDATE:
             fuse_voxel(m, u, acc, t, inv_tau)

@@ -1,12 +1,13 @@
 """The one module that knows the SNode tree.
 
-Two sparse trees of the same shape, indexed by *storage* voxel index u in [0, N):
+The map is one sparse tree indexed by *storage* voxel index u in [0, N):
 
     root.pointer(top cells) -> pointer(8^3 leaf blocks) -> bitmasked(4^3 voxels) -> dense(l, C)
 
-* the map layer: semantic counters sigma[u, c], last-update time t_last[u], kernel length ell[u];
-* the scan layer (cleared after every scan): the scan's class histogram, point count and
-  coordinate sums per voxel, and the kernel-weighted evidence delta[u, c] of the scan.
+holding the semantic counters sigma[u, c], the last-update time t_last[u] and the kernel length
+ell[u]. A scan never touches a sparse node until its training points are written: its points are
+sorted by leaf block in a dense table of the blocks around the sensor (kernels/rasterize.py,
+kernels/training.py), which costs plain integer atomics instead of sparse activations.
 
 Why this shape (measured in shared/notes/taichi-sparse.md): a small two-level pointer top keeps
 struct-fors cheap, 4^3 bitmasked leaves suit surface-like LiDAR data, and the class axis as an
@@ -26,6 +27,24 @@ MID = 8    # leaf blocks per top cell edge
 TOP = LEAF * MID
 KERNEL_TABLE = 4096   # samples of the sparse kernel over r^2 in [0, 1]
 NEAR = 2   # table cells (leaf blocks) per edge of a cell of the coarse `near` table
+EMPTY_LO = 1 << 30   # col_lo of a column without points (any z cell is below it)
+
+
+@ti.func
+def block_and_local(w):
+    """World voxel w -> (its leaf block, its index 0..63 inside the block, z slowest).
+
+    Exact for negative indices (two's complement masks, then an exact division). Sorting a
+    block's voxels by this index puts each z layer of the block in one run.
+    """
+    local = ti.Vector([w[0] & (LEAF - 1), w[1] & (LEAF - 1), w[2] & (LEAF - 1)])
+    return (w - local) // LEAF, (local[2] * LEAF + local[1]) * LEAF + local[0]
+
+
+@ti.func
+def local_of_index(q):
+    """Inverse of the index in block_and_local: the voxel's offset inside its block."""
+    return ti.Vector([q % LEAF, (q // LEAF) % LEAF, q // (LEAF * LEAF)])
 
 
 def _pow2_at_least(n: int) -> int:
@@ -46,21 +65,15 @@ class MapFields:
     """The Taichi fields of one map. Create after `ti.init`; never share across inits."""
 
     def __init__(self, num_classes: int, extent: tuple[int, int, int],
-                 scan_extent: tuple[int, int, int], table_half: tuple[int, int, int]):
-        for n in (*extent, *scan_extent):
+                 table_half: tuple[int, int, int]):
+        for n in extent:
             if n % TOP or n & (n - 1):
-                raise ValueError(f"storage extents {extent}, {scan_extent} must be powers of two "
-                                 f">= {TOP}")
+                raise ValueError(f"storage extent {extent} must be powers of two >= {TOP}")
         self.C = int(num_classes)
         self.N = tuple(int(n) for n in extent)
         self.mask = tuple(n - 1 for n in self.N)
         self.N_blk = tuple(n // LEAF for n in self.N)    # extent in leaf blocks
         self.N_top = tuple(n // TOP for n in self.N)     # extent in top cells
-        top_shape = tuple(n // TOP for n in self.N)
-        # the scan layer only ever holds one scan around the sensor: its own, smaller toroidal
-        # extent keeps the root that every struct-for over it scans small
-        self.NS = tuple(int(n) for n in scan_extent)
-        self.NS_blk = tuple(n // LEAF for n in self.NS)
         # one SNode tree per map, built and finalised here
         fb = ti.FieldsBuilder()
 
@@ -71,39 +84,32 @@ class MapFields:
         # -(1 + the voxel's row in the scan's training arrays) for a voxel the scan hit in an
         # adaptive mode: kernels/training.py writes that, kernels/bki.py turns it into the length
         self.ell = ti.field(ti.f32)
-        self.top = fb.pointer(ti.ijk, top_shape)
+        self.top = fb.pointer(ti.ijk, self.N_top)
         self.blk = self.top.pointer(ti.ijk, MID)
         self.vox = self.blk.bitmasked(ti.ijk, LEAF)
         self.vox.dense(ti.l, self.C).place(self.counts)
         self.vox.place(self.t_last, self.ell)
 
-        # scan layer: per voxel the scan's histogram, coordinate sum and point count
-        self.s_hist = ti.field(ti.f32)
-        self.s_sum = ti.field(ti.f32)
-        self.s_npts = ti.field(ti.i32)
-        self.s_top = fb.pointer(ti.ijk, tuple(n // TOP for n in self.NS))
-        self.s_blk = self.s_top.pointer(ti.ijk, MID)
-        self.s_vox = self.s_blk.bitmasked(ti.ijk, LEAF)
-        self.s_vox.dense(ti.l, self.C).place(self.s_hist)
-        self.s_vox.dense(ti.l, 3).place(self.s_sum)
-        self.s_vox.place(self.s_npts)
-        # the last scan that used each scan-layer block: a block is reset voxel by voxel after
-        # use and kept while scans keep hitting it, as freeing one costs a 6 KB zero-fill
-        self.s_stamp = ti.field(ti.i32)
-        self.s_blk.place(self.s_stamp)
-
-        # the scan's training points per leaf block (count, first slot in the block-sorted
-        # arrays): a dense table centred on the sensor, since the kernel update looks these up
-        # tens of times per voxel and a dense read is several times cheaper than a sparse one
+        # The scan's table: a dense grid of leaf blocks centred on the sensor's block, covering
+        # every block a kept point can fall in plus the blocks a kernel reaches from there.
+        # Per block: the scan's points (count, first slot in the block-sorted point order) and
+        # its training points (count, first slot in the block-sorted training arrays). The kernel
+        # update looks the training slices up tens of times per voxel, and a dense read is
+        # several times cheaper than a sparse one.
         self.table_half = tuple(int(h) for h in table_half)
+        self.table_shape = tuple(2 * h + 1 for h in self.table_half)
+        self.p_count = ti.field(ti.i32)
+        self.p_start = ti.field(ti.i32)
         self.b_count = ti.field(ti.i32)
         self.b_start = ti.field(ti.i32)
-        fb.dense(ti.ijk, tuple(2 * h + 1 for h in self.table_half)).place(self.b_count, self.b_start)
-        # training voxels per (x, y) column of the table: assign_slots lays each column's blocks
-        # out one after another in z, so the kernel update reads a column's z-range of blocks
-        # as one contiguous slice instead of one slice per block
-        self.col_count = ti.field(ti.i32)
-        fb.dense(ti.ij, tuple(2 * h + 1 for h in self.table_half[:2])).place(self.col_count)
+        fb.dense(ti.ijk, self.table_shape).place(self.p_count, self.p_start, self.b_count,
+                                                 self.b_start)
+        # per (x, y) column of the table: the z-range of cells holding points (empty: lo > hi).
+        # Each column's blocks are laid out one after another in z, so the kernel update reads
+        # a column's z-range of blocks as one contiguous slice.
+        self.col_lo = ti.field(ti.i32)
+        self.col_hi = ti.field(ti.i32)
+        fb.dense(ti.ij, self.table_shape[:2]).place(self.col_lo, self.col_hi)
         # which map blocks the scan's kernels can reach: per NEAR x NEAR x NEAR table cells, the
         # last scan with a training block within reach (kernels/training.py marks it). A dense
         # read per map block replaces a sparse is_active test per (training block, neighbour).
@@ -115,11 +121,25 @@ class MapFields:
         self.kernel_lut = ti.field(ti.f32)  # g(r) sampled in r^2 (kernels/bki.py)
         fb.dense(ti.i, KERNEL_TABLE + 1).place(self.kernel_lut)
         self._tree = fb.finalize()
+        self.col_lo.fill(EMPTY_LO)
+        self.col_hi.fill(-1)
 
     @ti.func
     def in_table(self, i):
         return (0 <= i[0] <= 2 * self.table_half[0] and 0 <= i[1] <= 2 * self.table_half[1]
                 and 0 <= i[2] <= 2 * self.table_half[2])
+
+    @ti.func
+    def cell_id(self, i):
+        """Table cell i as one int (z fastest, like the field's own layout)."""
+        return (i[0] * self.table_shape[1] + i[1]) * self.table_shape[2] + i[2]
+
+    @ti.func
+    def cell_of_id(self, f):
+        """Inverse of cell_id."""
+        nz = self.table_shape[2]
+        nyz = self.table_shape[1] * nz
+        return ti.Vector([f // nyz, (f // nz) % self.table_shape[1], f % nz])
 
     @ti.func
     def near_index(self, i):
@@ -166,18 +186,3 @@ class MapFields:
     def unwrap_blk(self, b, center_blk):
         """Map storage leaf block -> world leaf block."""
         return self.unwrap_cells(b, center_blk, self.N_blk)
-
-    @ti.func
-    def s_wrap(self, w):
-        """World voxel -> scan-layer storage voxel."""
-        return self._wrap(w, self.NS)
-
-    @ti.func
-    def s_unwrap(self, u, center):
-        """Scan-layer storage voxel -> world voxel (nearest the sensor's voxel `center`)."""
-        return self.unwrap_cells(u, center, self.NS)
-
-    @ti.func
-    def s_unwrap_blk(self, b, center_blk):
-        """Scan-layer storage leaf block -> world leaf block."""
-        return self.unwrap_cells(b, center_blk, self.NS_blk)

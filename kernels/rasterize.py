@@ -1,17 +1,27 @@
-"""Steps 1-2 of the method: transform, range-check and rasterise a scan into the scan layer.
+"""Steps 1-2 of the method, first half: transform, range-check and sort a scan's points by
+leaf block.
 
 Each point is moved to local map coordinates, dropped if outside the range / height band or the
 live window (checked *before* any field is indexed: Taichi does not check indices in release
-mode), and otherwise added to its voxel's histogram, count and coordinate sum. Non-finite points
-never get here: the mapper moves them out of range first (fast math makes NaN tests unreliable).
+mode), and otherwise counted in its leaf block's cell of the scan's dense table; a counting sort
+then lists every block's points together (`perm`). kernels/training.py sorts each block's
+points by voxel and reduces them to the voxels' histograms, counts and centroids.
+
+Sorting costs two integer atomics per point on a dense table. The scan layer this replaced, a
+sparse tree of per-voxel histograms, paid about ten sparse activations and float atomics per
+point, and a reset of every voxel after the scan.
+Non-finite points never get here: the mapper moves them out of range first (fast math makes
+NaN tests unreliable).
 """
 import taichi as ti
 
-from kernels.layout import LEAF
+from kernels.layout import LEAF, block_and_local
 
-# what happened to a point (locate), and the slots of rasterize's returned counts
+# what happened to a point (locate), and the slots of locate_points's returned counts
 USED, OUT_OF_RANGE, OUT_OF_WINDOW, IMPLAUSIBLY_FAR = 0, 1, 2, 3
 FAR_M = 1000.0   # no LiDAR returns from this far: such points are corrupt data, not range
+EVIDENCE = LEAF ** 3   # bit of a point's voxel code: the point carries class evidence
+DROPPED = -1           # a point's cell when it is not used
 
 
 @ti.func
@@ -38,41 +48,47 @@ def locate(p, R, t, center, limit, min_r2, max_r2, min_z, max_z, inv_res):
 
 
 @ti.func
-def add_point(m: ti.template(), w, q, center, min_points):
-    """Add a point to its voxel; the point that brings the voxel to `min_points` counts the
-    voxel in its leaf block's slot of the training table (step 3's filter, kernels/training.py:
-    exactly one point sees that count, so no separate pass over the voxels is needed)."""
-    u = m.s_wrap(w)
-    if ti.atomic_add(m.s_npts[u], 1) == min_points - 1:
-        center_blk = ti.floor(center / LEAF, ti.i32)
-        i, _ = m.table_index(ti.floor(w / LEAF, ti.i32), center_blk)
-        ti.atomic_add(m.b_count[i], 1)
-        ti.atomic_add(m.col_count[i[0], i[1]], 1)
-    for a in ti.static(range(3)):
-        m.s_sum[u, a] += q[a]
-    return u
+def has_evidence(num_classes: ti.template(), n, label: ti.template(), prob: ti.template(),
+                 use_probs: ti.template()):
+    """Whether point n adds class evidence (train id 0 / class 0 never does)."""
+    ev = 0
+    if ti.static(use_probs):
+        for c in ti.static(range(1, num_classes)):
+            if prob[n, c] > 0:
+                ev = 1
+    elif label[n] > 0:
+        ev = 1
+    return ev
 
 
 @ti.kernel
-def rasterize(m: ti.template(),
-              pts: ti.types.ndarray(dtype=ti.f32, ndim=2),       # (N, 3) sensor frame
-              label: ti.types.ndarray(dtype=ti.i32, ndim=1),     # (N,) train id in [0, C), or
-              prob: ti.types.ndarray(dtype=ti.f32, ndim=2),      # (N, C), class 0 ignored
-              use_probs: ti.template(),                          # which of the two is evidence
-              R: ti.types.matrix(3, 3, ti.f32), t: ti.types.vector(3, ti.f32),
-              center: ti.types.vector(3, ti.i32), limit: ti.types.vector(3, ti.i32),
-              min_r2: ti.f32, max_r2: ti.f32, min_z: ti.f32, max_z: ti.f32, inv_res: ti.f32,
-              min_points: ti.i32) -> ti.types.vector(4, ti.i32):
-    """Returns the number of points per fate (index USED, OUT_OF_RANGE, ...); implausibly far
-    points are also counted as out of range."""
+def locate_points(m: ti.template(),
+                  pts: ti.types.ndarray(dtype=ti.f32, ndim=2),       # (N, 3) sensor frame
+                  label: ti.types.ndarray(dtype=ti.i32, ndim=1),     # (N,) train id in [0, C), or
+                  prob: ti.types.ndarray(dtype=ti.f32, ndim=2),      # (N, C), class 0 ignored
+                  use_probs: ti.template(),                          # which of the two is evidence
+                  R: ti.types.matrix(3, 3, ti.f32), t: ti.types.vector(3, ti.f32),
+                  center: ti.types.vector(3, ti.i32), limit: ti.types.vector(3, ti.i32),
+                  min_r2: ti.f32, max_r2: ti.f32, min_z: ti.f32, max_z: ti.f32, inv_res: ti.f32,
+                  cell: ti.types.ndarray(dtype=ti.i32, ndim=1),      # (N,) out: table cell id
+                  code: ti.types.ndarray(dtype=ti.i32, ndim=1)       # (N,) out: voxel in block
+                  ) -> ti.types.vector(4, ti.i32):
+    """Count every kept point in its block's cell (p_count) and widen its column's z-range.
+
+    Writes each point's cell id (DROPPED if not kept) and its voxel's index in the block, plus
+    EVIDENCE if the point carries class evidence. Returns the number of points per fate (index
+    USED, OUT_OF_RANGE, ...); implausibly far points are also counted as out of range.
+    """
     # kernel-scope counters: Taichi keeps them per thread and adds them up at the end, where
     # one shared atomic counter per point made the two threads fight over a cache line
     out_of_range = 0
     out_of_window = 0
     far = 0
+    center_blk = ti.floor(center / LEAF, ti.i32)
     for n in range(pts.shape[0]):
         p = ti.Vector([pts[n, 0], pts[n, 1], pts[n, 2]])
-        fate, w, q = locate(p, R, t, center, limit, min_r2, max_r2, min_z, max_z, inv_res)
+        fate, w, _ = locate(p, R, t, center, limit, min_r2, max_r2, min_z, max_z, inv_res)
+        cell[n] = DROPPED
         if fate == OUT_OF_RANGE:
             out_of_range += 1
         elif fate == IMPLAUSIBLY_FAR:
@@ -81,24 +97,40 @@ def rasterize(m: ti.template(),
         elif fate == OUT_OF_WINDOW:
             out_of_window += 1
         else:
-            u = add_point(m, w, q, center, min_points)
-            if ti.static(use_probs):
-                for c in ti.static(range(1, m.C)):
-                    if prob[n, c] > 0:
-                        m.s_hist[u, c] += prob[n, c]
-            elif label[n] > 0:  # train id 0 (unlabeled) counts as a point but adds no evidence
-                m.s_hist[u, label[n]] += 1.0
+            blk, q = block_and_local(w)
+            # inside the table: the point is within `limit` of the sensor (see Mapper)
+            i, _ = m.table_index(blk, center_blk)
+            cell[n] = m.cell_id(i)
+            code[n] = q + EVIDENCE * has_evidence(m.C, n, label, prob, use_probs)
+            if ti.atomic_add(m.p_count[i], 1) == 0:     # the block's first point
+                ti.atomic_min(m.col_lo[i[0], i[1]], i[2])
+                ti.atomic_max(m.col_hi[i[0], i[1]], i[2])
     return ti.Vector([pts.shape[0] - out_of_range - out_of_window, out_of_range, out_of_window, far])
 
 
 @ti.kernel
-def free_idle_blocks(m: ti.template(), stamp: ti.i32):
-    """Free the scan-layer blocks the scan with `stamp` did not use (their voxels were reset
-    when last used; freeing recycles the memory zero-filled).
+def point_slots(m: ti.template()) -> ti.i32:
+    """Hand each block its slice of the point order: a column's blocks one after another in z.
+    p_count becomes the fill cursor (scatter_points counts it back up). Returns the total."""
+    m.counter[None] = 0
+    for cx, cy in m.col_lo:
+        lo, hi = m.col_lo[cx, cy], m.col_hi[cx, cy]
+        if lo <= hi:
+            total = 0
+            for cz in range(lo, hi + 1):
+                total += m.p_count[cx, cy, cz]
+            slot = ti.atomic_add(m.counter[None], total)
+            for cz in range(lo, hi + 1):
+                m.p_start[cx, cy, cz] = slot
+                slot += m.p_count[cx, cy, cz]
+                m.p_count[cx, cy, cz] = 0
+    return m.counter[None]
 
-    The blocks the scan used stay allocated for the next scans, which mostly hit the same
-    ones again. Top cells stay too: they are at most (scan extent / 32)^3 cells of 4 KB.
-    """
-    for B in ti.grouped(m.s_stamp):
-        if m.s_stamp[B] != stamp:
-            ti.deactivate(m.s_blk, ti.cast(B, ti.i32))
+
+@ti.kernel
+def scatter_points(m: ti.template(), cell: ti.types.ndarray(dtype=ti.i32, ndim=1),
+                   perm: ti.types.ndarray(dtype=ti.i32, ndim=1)):   # (N,) out: points by block
+    for n in range(cell.shape[0]):
+        if cell[n] != DROPPED:
+            i = m.cell_of_id(cell[n])
+            perm[m.p_start[i] + ti.atomic_add(m.p_count[i], 1)] = n

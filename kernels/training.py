@@ -1,144 +1,207 @@
-"""Step 3 and the training points: filter the scan's voxels and write the training points
-(centroid + class evidence) sorted by leaf block. In the adaptive modes each kept voxel's
-kernel length is left to the kernel update (kernels/bki.py), which reads its counters anyway;
-a voxel only gets its training row here.
+"""Steps 2-3 and the training points: reduce each leaf block's points (sorted by block in
+kernels/rasterize.py) to its voxels, filter them, and write the training points (centroid +
+class evidence) sorted by block. In the adaptive modes each kept voxel's kernel length is left
+to the kernel update (kernels/bki.py), which reads its counters anyway; a voxel only gets its
+training row here.
 
-Sorting by block lets the kernel update visit only the training points of the few blocks
-around a voxel instead of every voxel cell within its kernel length. Three steps: rasterising
-counts per block the voxels with at least `min_points` points (kernels/rasterize.py),
-`assign_slots` hands out each block's slice of the arrays (the blocks of a table column in z
-order, so a column's z-range is one slice), `write_training` fills every slot: the voxels that
-carry class evidence, and an unreachable filler for those with only unlabeled points.
+One task per (x, y) column of the scan's table, with no atomics but one slot reservation:
+for each block of the column, a counting sort of its points by voxel (64 voxels: the counts
+live in registers), which also counts the voxels that pass the filter (>= min_points points,
+some class evidence); then the column reserves its training rows, the blocks in z order, so
+that any z-range of a column is one contiguous slice (kernels/bki.py), and each voxel's run of
+points is summed into its training row.
 """
 import taichi as ti
 
 from kernels.fusion import fuse_voxel
-from kernels.layout import LEAF
+from kernels.layout import EMPTY_LO, LEAF, local_of_index
+from kernels.rasterize import EVIDENCE, to_local
 
-UNREACHABLE_M = 1.0e15   # a filler training point's coordinates: d^2 ~ 3e30, finite in float32
-
-
-@ti.func
-def block_cell(m: ti.template(), I, center):
-    """Table cell of the leaf block holding scan-layer voxel I (always inside: see Mapper)."""
-    center_blk = ti.floor(center / LEAF, ti.i32)
-    i, _ = m.table_index(m.s_unwrap_blk(I // LEAF, center_blk), center_blk)
-    return i
-
-
-@ti.kernel
-def assign_slots(m: ti.template(), stamp: ti.i32, reach_blk: ti.i32) -> ti.i32:
-    """Hand each block its slice of the training arrays, and mark in `near` the coarse cells
-    of every block within `reach_blk` of it (the map blocks the kernel update visits).
-
-    The blocks of one (x, y) column of the table get consecutive slices in z order, so any
-    z-range of a column is one contiguous slice (kernels/bki.py). Every cell of a used column
-    gets its start, empty ones too; clear_table resets them.
-    """
-    m.counter[None] = 0
-    for cx, cy in m.col_count:
-        n = m.col_count[cx, cy]
-        if n > 0:
-            slot = ti.atomic_add(m.counter[None], n)
-            for cz in range(2 * m.table_half[2] + 1):
-                k = m.b_count[cx, cy, cz]
-                m.b_start[cx, cy, cz] = slot
-                if k > 0:
-                    slot += k
-                    m.b_count[cx, cy, cz] = 0     # the fill cursor; write_training counts it back up
-                    # the table's margin (Mapper) keeps the cell +- reach_blk inside it
-                    i = ti.Vector([cx, cy, cz])
-                    lo = m.near_index(i - reach_blk)
-                    hi = m.near_index(i + reach_blk)
-                    for nx in range(lo[0], hi[0] + 1):
-                        for ny in range(lo[1], hi[1] + 1):
-                            for nz in range(lo[2], hi[2] + 1):
-                                m.near[nx, ny, nz] = stamp
-    return m.counter[None]
-
-
-@ti.kernel
-def clear_table(m: ti.template()):
-    """Reset the training table after a scan: every cell of every used column."""
-    for cx, cy in m.col_count:
-        if m.col_count[cx, cy] > 0:
-            m.col_count[cx, cy] = 0
-            for cz in range(2 * m.table_half[2] + 1):
-                m.b_count[cx, cy, cz] = 0
-                m.b_start[cx, cy, cz] = 0
+VOXELS = LEAF ** 3
 
 
 @ti.func
-def reset_scan_voxel(m: ti.template(), I, stamp):
-    """Zero a scan-layer voxel once read and clear its bit; its block, stamped as used by this
-    scan, stays allocated (rasterize.free_idle_blocks)."""
-    for c in ti.static(range(m.C)):
-        m.s_hist[I, c] = 0.0
-    for a in ti.static(range(3)):
-        m.s_sum[I, a] = 0.0
-    m.s_npts[I] = 0
-    ti.deactivate(m.s_vox, I)
-    m.s_stamp[I // LEAF] = stamp
+def sort_block(m: ti.template(), i, min_points, code: ti.template(), perm: ti.template(),
+               perm2: ti.template()):
+    """Counting-sort block i's points by voxel (perm -> perm2, same slice); returns how many of
+    its voxels pass the filter."""
+    s = m.p_start[i]
+    k = m.p_count[i]
+    cnt = ti.Vector([0] * VOXELS, dt=ti.i32)
+    evidence = ti.Vector([0] * VOXELS, dt=ti.i32)
+    for j in range(s, s + k):
+        c = code[perm[j]]
+        q = c % EVIDENCE
+        cnt[q] += 1
+        evidence[q] |= c // EVIDENCE
+    kept = 0
+    offset = s
+    for v in range(VOXELS):
+        n_v = cnt[v]
+        if n_v >= min_points and evidence[v]:
+            kept += 1
+        cnt[v] = offset
+        offset += n_v
+    for j in range(s, s + k):
+        n = perm[j]
+        q = code[n] % EVIDENCE
+        perm2[cnt[q]] = n
+        cnt[q] += 1
+    return kept
+
+
+@ti.func
+def mark_near(m: ti.template(), i, stamp, reach_blk):
+    """Mark the coarse `near` cells of every block within reach_blk of table cell i (the map
+    blocks the kernel update visits); the table's margin (Mapper) keeps them inside it."""
+    lo = m.near_index(i - reach_blk)
+    hi = m.near_index(i + reach_blk)
+    for nx in range(lo[0], hi[0] + 1):
+        for ny in range(lo[1], hi[1] + 1):
+            for nz in range(lo[2], hi[2] + 1):
+                m.near[nx, ny, nz] = stamp
 
 
 @ti.kernel
 def write_training(m: ti.template(), center: ti.types.vector(3, ti.i32), stamp: ti.i32,
-                   t: ti.f32, min_points: ti.i32, unit_weight: ti.i32, ell_min: ti.f32,
-                   adaptive: ti.i32, counting: ti.i32,
+                   reach_blk: ti.i32, t: ti.f32, min_points: ti.i32, unit_weight: ti.i32,
+                   ell_min: ti.f32, adaptive: ti.i32, counting: ti.i32,
+                   pts: ti.types.ndarray(dtype=ti.f32, ndim=2),       # (N, 3) sensor frame
+                   label: ti.types.ndarray(dtype=ti.i32, ndim=1),     # (N,) train ids, or
+                   prob: ti.types.ndarray(dtype=ti.f32, ndim=2),      # (N, C)
+                   use_probs: ti.template(),
+                   R: ti.types.matrix(3, 3, ti.f32), tr: ti.types.vector(3, ti.f32),
+                   code: ti.types.ndarray(dtype=ti.i32, ndim=1),      # (N,) rasterize's codes
+                   perm: ti.types.ndarray(dtype=ti.i32, ndim=1),      # (N,) points by block
+                   perm2: ti.types.ndarray(dtype=ti.i32, ndim=1),     # (N,) scratch: by voxel
                    out_xyz: ti.types.ndarray(dtype=ti.f32, ndim=2),    # (K, 3) centroid, local m
                    out_hist: ti.types.ndarray(dtype=ti.f32, ndim=2),   # (K, C) class evidence
                    out_classes: ti.types.ndarray(dtype=ti.i32, ndim=1),  # (K,) bit c: evidence
                    out_single: ti.types.ndarray(dtype=ti.i32, ndim=1)  # (K,) the one class or 0
                    ) -> ti.i32:
-    """Fill the training arrays; returns how many training points were written."""
+    """Fill the training arrays and the training table; returns how many points were written."""
+    m.counter[None] = 0
     written = 0
-    for I in ti.grouped(m.s_npts):
-        h = ti.Vector([0.0] * m.C)
-        for c in ti.static(range(m.C)):
-            h[c] = m.s_hist[I, c]
-        total = h.sum()
-        npts = m.s_npts[I]
-        centroid = ti.Vector([m.s_sum[I, 0], m.s_sum[I, 1], m.s_sum[I, 2]]) / ti.cast(npts, ti.f32)
-        reset_scan_voxel(m, I, stamp)
-        if npts >= min_points:
-            # rasterize gave every voxel with min_points points a slot; slices are filled end
-            # to end (the kernel update reads a column's blocks as one slice)
-            cell = block_cell(m, I, center)
-            slot = m.b_start[cell] + ti.atomic_add(m.b_count[cell], 1)
-            if total <= 0:
-                # points but no evidence (only unlabeled ones): a filler no kernel reaches
-                for a in ti.static(range(3)):
-                    out_xyz[slot, a] = UNREACHABLE_M
-                out_classes[slot] = 0
-                out_single[slot] = 0
-                continue
-            written += 1
-            u = m.wrap(m.s_unwrap(I, center))       # the same voxel in the map layer
-            if unit_weight:
-                h *= 1.0 / total
-            mask = 0
-            n_classes = 0
-            last = 0
-            for c in ti.static(range(m.C)):
-                out_hist[slot, c] = h[c]
-                if h[c] > 0:
-                    mask |= 1 << c
-                    n_classes += 1
-                    last = c
-            out_classes[slot] = mask
-            # most voxels hold one class: the kernel update then needs one add, not a class loop
-            out_single[slot] = last if n_classes == 1 else 0
-            for a in ti.static(range(3)):
-                out_xyz[slot, a] = centroid[a]
-            if counting:
-                # csm: the voxel's own histogram is the whole update, accumulated without decay
-                m.ell[u] = ell_min                  # any positive value marks the voxel live
-                fuse_voxel(m, u, h, t, 0.0)
-            elif adaptive:
-                # the length needs the voxel's counters, which the kernel update reads anyway
-                # (one pass over the map instead of two): it computes the length from the row
-                # (exact in float32 up to 2^24 rows; writing activates the map voxel)
-                m.ell[u] = -ti.cast(slot + 1, ti.f32)
-            else:
-                m.ell[u] = ell_min
+    center_blk = ti.floor(center / LEAF, ti.i32)
+    base = center_blk - ti.Vector(m.table_half)     # world block of table cell 0
+    for cx, cy in m.col_lo:
+        lo, hi = m.col_lo[cx, cy], m.col_hi[cx, cy]
+        if lo <= hi:
+            total = 0
+            for cz in range(lo, hi + 1):
+                i = ti.Vector([cx, cy, cz])
+                if m.p_count[i] > 0:
+                    kept = sort_block(m, i, min_points, code, perm, perm2)
+                    m.b_count[i] = kept
+                    total += kept
+            if total > 0:
+                written += total
+                slot = ti.atomic_add(m.counter[None], total)
+                for cz in range(lo, hi + 1):
+                    i = ti.Vector([cx, cy, cz])
+                    m.b_start[i] = slot
+                    if m.b_count[i] > 0:
+                        mark_near(m, i, stamp, reach_blk)
+                        slot = write_block(m, i, base + i, slot, t, min_points, unit_weight,
+                                           ell_min, adaptive, counting, pts, label, prob,
+                                           use_probs, R, tr, code, perm2, out_xyz, out_hist,
+                                           out_classes, out_single)
     return written
+
+
+@ti.func
+def write_block(m: ti.template(), i, world_blk, slot, t, min_points, unit_weight, ell_min,
+                adaptive, counting, pts: ti.template(), label: ti.template(),
+                prob: ti.template(), use_probs: ti.template(), R, tr, code: ti.template(),
+                perm2: ti.template(), out_xyz: ti.template(), out_hist: ti.template(),
+                out_classes: ti.template(), out_single: ti.template()):
+    """Sum each voxel's run of points (perm2, sorted by voxel) and write the kept ones' rows
+    from `slot` on; returns the next free slot."""
+    s = m.p_start[i]
+    end = s + m.p_count[i]
+    npts = 0
+    evidence = 0
+    # coordinates are summed relative to the voxel's first point: offsets below a voxel's size
+    # keep float32 sums of thousands of points exact to ~1e-6 m, far from the origin too
+    first = ti.Vector([0.0, 0.0, 0.0])
+    xyz_sum = ti.Vector([0.0, 0.0, 0.0])
+    h = ti.Vector([0.0] * m.C)
+    for j in range(s, end):
+        n = perm2[j]
+        c = code[n]
+        q = c % EVIDENCE
+        x = to_local(R, ti.Vector([pts[n, 0], pts[n, 1], pts[n, 2]]), tr)
+        if npts == 0:
+            first = x
+        npts += 1
+        evidence |= c // EVIDENCE
+        xyz_sum += x - first
+        if ti.static(use_probs):
+            for k in ti.static(range(1, m.C)):
+                h[k] += prob[n, k]
+        elif label[n] > 0:     # train id 0 (unlabeled) counts as a point but adds no evidence
+            h[label[n]] += 1.0
+        next_q = -1
+        if j + 1 < end:
+            next_q = code[perm2[j + 1]] % EVIDENCE
+        if next_q != q:        # the voxel's last point
+            if npts >= min_points and evidence:
+                u = m.wrap(world_blk * LEAF + local_of_index(q))
+                write_row(m, u, slot, first + xyz_sum / ti.cast(npts, ti.f32), h, t, unit_weight,
+                          ell_min, adaptive, counting, out_xyz, out_hist, out_classes,
+                          out_single)
+                slot += 1
+            npts = 0
+            evidence = 0
+            xyz_sum = ti.Vector([0.0, 0.0, 0.0])
+            h = ti.Vector([0.0] * m.C)
+    return slot
+
+
+@ti.func
+def write_row(m: ti.template(), u, slot, centroid, hist, t, unit_weight, ell_min, adaptive,
+              counting, out_xyz: ti.template(), out_hist: ti.template(),
+              out_classes: ti.template(), out_single: ti.template()):
+    """Training row `slot` for map voxel u, and u's mark for the kernel update."""
+    h = hist
+    if unit_weight:
+        h *= 1.0 / h.sum()
+    mask = 0
+    n_classes = 0
+    last = 0
+    for c in ti.static(range(m.C)):
+        out_hist[slot, c] = h[c]
+        if h[c] > 0:
+            mask |= 1 << c
+            n_classes += 1
+            last = c
+    out_classes[slot] = mask
+    # most voxels hold one class: the kernel update then needs one add, not a class loop
+    out_single[slot] = last if n_classes == 1 else 0
+    for a in ti.static(range(3)):
+        out_xyz[slot, a] = centroid[a]
+    if counting:
+        # csm: the voxel's own histogram is the whole update, accumulated without decay
+        m.ell[u] = ell_min                  # any positive value marks the voxel live
+        fuse_voxel(m, u, h, t, 0.0)
+    elif adaptive:
+        # the length needs the voxel's counters, which the kernel update reads anyway (one
+        # pass over the map instead of two): it computes the length from the row (exact in
+        # float32 up to 2^24 rows; writing activates the map voxel)
+        m.ell[u] = -ti.cast(slot + 1, ti.f32)
+    else:
+        m.ell[u] = ell_min
+
+
+@ti.kernel
+def clear_table(m: ti.template()):
+    """Reset the scan's table: every cell of every used column's z-range."""
+    for cx, cy in m.col_lo:
+        lo, hi = m.col_lo[cx, cy], m.col_hi[cx, cy]
+        if lo <= hi:
+            for cz in range(lo, hi + 1):
+                m.p_count[cx, cy, cz] = 0
+                m.b_count[cx, cy, cz] = 0
+                m.b_start[cx, cy, cz] = 0
+            m.col_lo[cx, cy] = EMPTY_LO
+            m.col_hi[cx, cy] = -1

@@ -14,6 +14,7 @@ import numpy as np
 import taichi as ti
 
 from kernels import bki, entropy, rasterize, training
+from kernels.layout import LEAF
 from tisem.backend import init_taichi
 from tisem.config import MapperConfig
 from tisem.reference import voxel_histograms
@@ -140,25 +141,6 @@ def engine_entropy(p, ell_min, ell_max):
     return h.astype(np.float64), ell.astype(np.float64)
 
 
-@ti.kernel
-def _export_scan_layer(m: ti.template(), center: ti.types.vector(3, ti.i32),
-                       keys: ti.types.ndarray(dtype=ti.i32, ndim=2),
-                       npts: ti.types.ndarray(dtype=ti.i32, ndim=1),
-                       sums: ti.types.ndarray(dtype=ti.f32, ndim=2),
-                       hist: ti.types.ndarray(dtype=ti.f32, ndim=2),
-                       count: ti.types.ndarray(dtype=ti.i32, ndim=1)):
-    for I in ti.grouped(m.s_npts):
-        idx = ti.atomic_add(count[0], 1)
-        if idx < keys.shape[0]:
-            w = m.s_unwrap(I, center)
-            for a in ti.static(range(3)):
-                keys[idx, a] = w[a]
-                sums[idx, a] = m.s_sum[I, a]
-            npts[idx] = m.s_npts[I]
-            for c in ti.static(range(m.C)):
-                hist[idx, c] = m.s_hist[I, c]
-
-
 def _sorted_by_key(keys, *arrays):
     order = np.lexsort((keys[:, 2], keys[:, 1], keys[:, 0]))
     return (keys[order],) + tuple(a[order] for a in arrays)
@@ -167,8 +149,10 @@ def _sorted_by_key(keys, *arrays):
 class StageRecorder:
     """Records, for every scan a Mapper integrates, the output of two kernel stages:
 
-    * `scan_layer[i]`: the rasterised scan (steps 1-2) — global voxel keys, point counts,
-      centroids (world metres) and class histograms of every voxel the scan's points hit;
+    * `located[i]`: where steps 1-2 put the scan's points — the global key of every voxel a
+      kept point fell in (decoded from the table cell and voxel code the kernel wrote per
+      point), with its point count and how many of its points carry class evidence; and
+      whether the block sort (`perm`) lists every kept point once, block by block;
     * `training[i]`: the training points after filtering (step 3) — global keys of their
       voxels, centroids (world metres) and class evidence (weighted per `point_weight`).
 
@@ -177,43 +161,55 @@ class StageRecorder:
 
     def __init__(self, monkeypatch, mapper):
         self.mapper = mapper
-        self.scan_layer: list[dict] = []
+        self.located: list[dict] = []
         self.training: list[dict] = []
         self.reloaded = 0        # (for the caller's own bookkeeping)
-        monkeypatch.setattr(rasterize, "rasterize", self._after_rasterize(rasterize.rasterize))
+        monkeypatch.setattr(rasterize, "locate_points", self._after_locate(rasterize.locate_points))
+        monkeypatch.setattr(rasterize, "scatter_points",
+                            self._after_scatter(rasterize.scatter_points))
         monkeypatch.setattr(training, "write_training",
                             self._after_training(training.write_training))
 
-    def _after_rasterize(self, kernel):
-        def wrapped(m, pts, *args):
-            fates = kernel(m, pts, *args)
-            cap = max(int(pts.shape[0]), 1)
-            keys, npts = np.zeros((cap, 3), np.int32), np.zeros(cap, np.int32)
-            sums, hist = np.zeros((cap, 3), np.float32), np.zeros((cap, m.C), np.float32)
-            count = np.zeros(1, np.int32)
+    def _after_locate(self, kernel):
+        def wrapped(m, *args):
+            fates = kernel(m, *args)
+            cell, code = args[-2], args[-1]
+            used = cell != rasterize.DROPPED
             mp = self.mapper
-            _export_scan_layer(m, ti.Vector([int(v) for v in mp.center_vox]), keys, npts, sums,
-                               hist, count)
-            n = int(count[0])
-            assert n <= cap, f"scan layer holds {n} voxels for {cap} points"
-            keys = keys[:n].astype(np.int64) + mp.origin_vox
-            centroid = sums[:n].astype(np.float64) / npts[:n, None] + mp.origin_vox * mp.res
-            keys, npts, centroid, hist = _sorted_by_key(keys, npts[:n], centroid, hist[:n])
-            self.scan_layer.append(dict(keys=keys, npts=npts, centroid=centroid, hist=hist))
+            cells = np.stack(np.unravel_index(cell[used], m.table_shape), axis=1)
+            world_blk = cells - np.array(m.table_half) + np.floor_divide(mp.center_vox, LEAF)
+            q = code[used] % rasterize.EVIDENCE
+            local = np.stack([q % LEAF, (q // LEAF) % LEAF, q // (LEAF * LEAF)], axis=1)
+            keys = world_blk * LEAF + local + mp.origin_vox
+            keys, inv, npts = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
+            labelled = np.bincount(inv.reshape(-1), code[used] // rasterize.EVIDENCE, len(keys))
+            self.located.append(dict(keys=keys, npts=npts, labelled=labelled,
+                                     cell=cell.copy(), used=int(used.sum())))
             return fates
+        return wrapped
+
+    def _after_scatter(self, kernel):
+        def wrapped(m, cell, perm):
+            kernel(m, cell, perm)
+            rec = self.located[-1]
+            order = perm[:rec["used"]]
+            assert np.array_equal(np.sort(order), np.flatnonzero(cell != rasterize.DROPPED)), \
+                "the block sort lost or repeated a point"
+            runs = cell[order]
+            # every block's points in one run: a cell id never comes back after another
+            starts = np.r_[True, runs[1:] != runs[:-1]]
+            assert len(np.unique(runs)) == starts.sum(), "a block's points are split"
         return wrapped
 
     def _after_training(self, kernel):
         def wrapped(m, *args):
             n = kernel(m, *args)
-            # every slot of every block's slice is written; voxels without evidence get an
-            # unreachable filler, the others are the training points
+            # every slot of every block's slice is a training point
             count, start = m.b_count.to_numpy().ravel(), m.b_start.to_numpy().ravel()
             used = count > 0
             rows = np.concatenate([np.arange(s, s + c) for s, c in zip(start[used], count[used])]
                                   or [np.zeros(0, np.int64)])
             assert len(np.unique(rows)) == len(rows), "two blocks' slices overlap"
-            rows = rows[args[-4][rows, 0] < training.UNREACHABLE_M / 2]
             assert len(rows) == n, f"write_training reported {n} points, the table holds {len(rows)}"
             xyz, hist = args[-4][rows], args[-3][rows]
             mp = self.mapper

@@ -2,7 +2,7 @@
 
 * the sparse kernel g(r) table, the entropy and the adaptive length against `tisem.reference`;
 * rasterisation, filtering, entropy and query on a scan of hand-placed points;
-* every stage of `Mapper.integrate` (scan layer, training points, kernel update + fusion,
+* every stage of `Mapper.integrate` (located voxels, training points, kernel update + fusion,
   query) against `tisem.reference.ReferenceMapper` on random scans, for every mode and
   several seeds (set TISEM_TEST_SEEDS="3,4,5" to try others; a failure names its seed).
 """
@@ -115,24 +115,31 @@ def test_rasterize_filter_entropy_query_on_known_points(taichi_cpu, monkeypatch)
     assert (rep.points, rep.used, rep.dropped_nonfinite, rep.dropped_range,
             rep.dropped_window) == (len(sensor), len(world), 2, 3, 0)
 
-    # the scan layer: every hit voxel, with its point count (unlabeled points count) and
-    # histogram (unlabeled points add nothing)
-    layer = rec.scan_layer[0]
+    # located voxels: every hit voxel, with its point count (unlabeled points count) and how
+    # many of its points carry evidence (unlabeled points do not)
+    layer = rec.located[0]
     want_keys = np.array(sorted(k for k, _ in groups.values()))
     np.testing.assert_array_equal(layer["keys"], want_keys)
     for key, lab in groups.values():
         i = np.flatnonzero((layer["keys"] == key).all(axis=1))[0]
         assert layer["npts"][i] == len(lab), key
-        np.testing.assert_array_equal(layer["hist"][i], np.bincount(lab[lab > 0], minlength=C),
-                                      err_msg=str(key))
-    k_world = voxel_keys(world, res)
-    for i, key in enumerate(layer["keys"]):
-        inside = (k_world == key).all(axis=1)
-        np.testing.assert_allclose(layer["centroid"][i], world[inside].mean(axis=0), atol=1e-5)
+        assert layer["labelled"][i] == np.count_nonzero(lab), key
 
-    # the filter: >= min_points points and some class evidence (E has 3 points, 1 labelled)
+    # the filter: >= min_points points and some class evidence (E has 3 points, 1 labelled);
+    # each kept voxel's training point: the centroid of all its points, the histogram of its
+    # labelled ones
     kept = np.array(sorted(groups[g][0] for g in "ABDE"))
-    np.testing.assert_array_equal(rec.training[0]["keys"], kept)
+    got = rec.training[0]
+    np.testing.assert_array_equal(got["keys"], kept)
+    k_world = voxel_keys(world, res)
+    for i, key in enumerate(got["keys"]):
+        g = next(g for g in "ABDE" if groups[g][0] == tuple(key))
+        lab = groups[g][1]
+        np.testing.assert_array_equal(got["hist"][i], np.bincount(lab[lab > 0], minlength=C),
+                                      err_msg=g)
+        inside = (k_world == key).all(axis=1)
+        np.testing.assert_allclose(got["centroid"][i], world[inside].mean(axis=0), atol=1e-5,
+                                   err_msg=g)
     snap = mapper.snapshot()
     np.testing.assert_array_equal(snap.keys, kept)   # only training voxels become map voxels
 
@@ -227,15 +234,14 @@ def random_scans(seed: int, region_x: float, t_start: float, probs: bool):
 
 
 def _check_stages(rec, i, scan, ref, cfg, where):
-    """Steps 1-3 of scan i: the scan layer by hand, the training points by the reference."""
-    keys, npts, centroid, hist = hand_rasterize(scan, cfg)
-    layer = rec.scan_layer[i]
-    np.testing.assert_array_equal(layer["keys"], keys, err_msg=f"{where}: scan-layer voxels")
+    """Steps 1-3 of scan i: the located voxels by hand, the training points by the reference."""
+    keys, npts, _, hist = hand_rasterize(scan, cfg)
+    layer = rec.located[i]
+    np.testing.assert_array_equal(layer["keys"], keys, err_msg=f"{where}: located voxels")
     np.testing.assert_array_equal(layer["npts"], npts, err_msg=f"{where}: points per voxel")
-    np.testing.assert_allclose(layer["centroid"], centroid, rtol=0, atol=CENTROID_ATOL_M,
-                               err_msg=f"{where}: voxel centroids")
-    np.testing.assert_allclose(layer["hist"], hist, rtol=EVIDENCE_RTOL, atol=1e-6,
-                               err_msg=f"{where}: voxel histograms")
+    # (a voxel with evidence has a labelled point, or a point with a positive probability)
+    np.testing.assert_array_equal(layer["labelled"] > 0, hist.sum(axis=1) > 0,
+                                  err_msg=f"{where}: voxels with class evidence")
     r_keys, r_centroid, r_h = ref.rasterize(scan)
     r_keys = r_keys + ref.origin_vox
     order = np.lexsort(r_keys.T[::-1])

@@ -45,7 +45,11 @@ def _ivec(a) -> ti.Vector:
     return ti.Vector([int(x) for x in a])
 
 
-STAGES = ("preprocess", "window", "rasterize", "filter", "entropy", "kernel", "clear")
+# the timed stages of `integrate` (profile=True): checks and the pose; the live window; locating
+# the points and sorting them by leaf block; reducing them to voxels, the filter and the training
+# points; the entropy, kernel length, kernel update and fusion, fused in one pass over the map
+# (kernels/bki.py); resetting the scan's table
+STAGES = ("preprocess", "window", "rasterize", "training", "kernel", "clear")
 
 
 @dataclass
@@ -71,6 +75,20 @@ class _Buffers:
     hist: np.ndarray = field(default_factory=lambda: np.zeros((0, 0), np.float32))
     classes: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int32))
     single: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int32))
+
+    # per point: table cell, voxel code (kernels/rasterize.py), the order by block and by voxel
+    cell: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int32))
+    code: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int32))
+    perm: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int32))
+    perm2: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int32))
+
+    def points(self, n: int):
+        if self.cell.shape[0] < n:
+            cap = max(n, int(self.cell.shape[0] * 1.5))
+            self.cell, self.code, self.perm, self.perm2 = (np.zeros(cap, np.int32)
+                                                           for _ in range(4))
+        # (views of exactly n: the kernels loop over their length)
+        return self.cell[:n], self.code[:n], self.perm[:n], self.perm2[:n]
 
     def training(self, n: int, num_classes: int):
         if self.xyz.shape[0] < n:
@@ -122,7 +140,6 @@ class Mapper:
         # receiving voxel's kernel can reach from there
         table_half = -(-self._limit // LEAF) + 2 * self._reach_blk + 3
         self.fields = MapFields(self.C, storage_extent(tuple(int(h) for h in self.half_vox)),
-                                storage_extent(tuple(int(h) for h in self._limit)),
                                 tuple(int(h) for h in table_half))
         bki.fill_kernel_table(self.fields)
         # the kernel update's parallel loop: per leaf block on CPUs, per voxel on GPUs
@@ -160,36 +177,37 @@ class Mapper:
         clock("preprocess")
         self._move_window(center, rep)
         clock("window")
-        geometry = (ti.Matrix(R.tolist()), ti.Vector(t_local.tolist()),
-                    _ivec(center), _ivec(self._limit),
-                    cfg.min_range_m ** 2, cfg.max_range_m ** 2, cfg.min_z_m, cfg.max_z_m,
-                    1.0 / self.res, cfg.min_points)
-        if probs is None:
-            stats = rasterize.rasterize(m, pts, labels, self._no_probs, False, *geometry)
-        else:
-            stats = rasterize.rasterize(m, pts, self._no_labels, probs, True, *geometry)
+        R_ti, t_ti = ti.Matrix(R.tolist()), ti.Vector(t_local.tolist())
+        evidence = (labels, self._no_probs, False) if probs is None else \
+            (self._no_labels, probs, True)
+        cell, code, perm, perm2 = self._buf.points(len(pts))
+        stats = rasterize.locate_points(
+            m, pts, *evidence, R_ti, t_ti, _ivec(center), _ivec(self._limit),
+            cfg.min_range_m ** 2, cfg.max_range_m ** 2, cfg.min_z_m, cfg.max_z_m, 1.0 / self.res,
+            cell, code)
         rep.used = int(stats[rasterize.USED])
         rep.dropped_range = int(stats[rasterize.OUT_OF_RANGE]) - rep.dropped_nonfinite
         rep.dropped_window = int(stats[rasterize.OUT_OF_WINDOW])
         rep.dropped_far = int(stats[rasterize.IMPLAUSIBLY_FAR]) - rep.dropped_nonfinite
+        rasterize.point_slots(m)
+        rasterize.scatter_points(m, cell, perm)
         clock("rasterize")
         center_v = _ivec(center)
         stamp = self.scans + 1
-        n = training.assign_slots(m, stamp, self._reach_blk)
-        clock("filter")
-        train = self._buf.training(max(n, 1), self.C)
+        # a scan has at most as many training points as kept points
+        train = self._buf.training(max(rep.used, 1), self.C)
         ell_min = cfg.ell_min_m if cfg.adaptive else cfg.ell_fixed_vox * self.res
         n = training.write_training(
-            m, center_v, stamp, t_rel, cfg.min_points, int(cfg.point_weight == "unit"), ell_min,
-            int(cfg.adaptive), int(not cfg.uses_kernel), *train)
+            m, center_v, stamp, self._reach_blk, t_rel, cfg.min_points,
+            int(cfg.point_weight == "unit"), ell_min, int(cfg.adaptive), int(not cfg.uses_kernel),
+            pts, *evidence, R_ti, t_ti, code, perm, perm2, *train)
         rep.training_voxels = int(n)
-        clock("entropy")
+        clock("training")
         if cfg.uses_kernel and n:
             bki.gather_update(m, center_v, stamp, t_rel, self._inv_tau, self.res, cfg.sigma0,
                               cfg.prior, ell_min, cfg.ell_max_m, *train, self._per_voxel)
         clock("kernel")
         training.clear_table(m)
-        rasterize.free_idle_blocks(m, stamp)
         clock("clear")
         self._finish(scan)
         return rep
