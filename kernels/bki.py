@@ -16,7 +16,7 @@ import taichi as ti
 
 from kernels.entropy import fresh_length
 from kernels.fusion import fuse_voxel
-from kernels.layout import LEAF
+from kernels.layout import LEAF, rows_below
 
 # Evidence below this is float noise at the kernel's edge (g -> 0 as d -> L), not an update:
 # counting it would reset t_last and, with alpha = 0, wipe the voxel's history.
@@ -61,6 +61,14 @@ def axis_gap(x, lo, width):
 
 
 @ti.func
+def cell_and_layer(z, inv_res, base_z):
+    """(world voxel, table cell, z layer in its block) of local height z."""
+    v = ti.floor(z * inv_res, ti.i32)
+    layer = v & (LEAF - 1)
+    return v, (v - layer) // LEAF + base_z, layer
+
+
+@ti.func
 def reached_block(m: ti.template(), B, center_blk, stamp):
     """(world index of map leaf block B, whether a training block of the scan with `stamp` can
     reach it). write_training marked the coarse cells: a superset, the distance tests decide."""
@@ -92,6 +100,7 @@ def update_voxel(m: ti.template(), u, centre, base, blk_m, t, inv_tau, sigma0, p
     if ell > 0:
         ell2 = ell * ell
         inv_ell2 = 1.0 / ell2
+        inv_res = LEAF / blk_m
         lo = ti.floor((centre - ell) / blk_m, ti.i32)
         hi = ti.floor((centre + ell) / blk_m, ti.i32)
         acc = ti.Vector([0.0] * m.C)
@@ -106,21 +115,27 @@ def update_voxel(m: ti.template(), u, centre, base, blk_m, t, inv_tau, sigma0, p
                 gxy = gx * gx + gy * gy
                 if gxy < ell2:
                     dz = ti.sqrt(ell2 - gxy)
-                    # the table cells of the column's z-range, clipped to the cells that hold
-                    # the scan's points (empty column: nothing left)
-                    col = base + ti.Vector([bx, by, lo[2]])
+                    # the column's voxel layers the sphere reaches, clipped to the table cells
+                    # that hold the scan's points (an empty column has none: col_lo > col_hi)
+                    col = base + ti.Vector([bx, by, 0])
                     # inside the table by construction: training blocks lie within the scan's
                     # limit, receivers within NEAR + reach of one, their kernels within reach
                     # more; the table's margin (Mapper) is wider than that
                     assert m.in_table(col)
-                    zlo = ti.max(ti.floor((centre[2] - dz) / blk_m, ti.i32), lo[2]) + base[2]
-                    zhi = ti.min(ti.floor((centre[2] + dz) / blk_m, ti.i32), hi[2]) + base[2]
-                    zlo = ti.max(zlo, m.col_lo[col[0], col[1]])
-                    zhi = ti.min(zhi, m.col_hi[col[0], col[1]])
-                    if zlo <= zhi:      # (an empty column: col_lo > col_hi)
+                    _, zlo, llo = cell_and_layer(centre[2] - dz, inv_res, base[2])
+                    _, zhi, lhi = cell_and_layer(centre[2] + dz, inv_res, base[2])
+                    if zlo < m.col_lo[col[0], col[1]]:
+                        zlo = m.col_lo[col[0], col[1]]
+                        llo = 0
+                    if zhi > m.col_hi[col[0], col[1]]:
+                        zhi = m.col_hi[col[0], col[1]]
+                        lhi = LEAF - 1
+                    if zlo <= zhi:
                         first = ti.Vector([col[0], col[1], zlo])
                         last = ti.Vector([col[0], col[1], zhi])
-                        for p in range(m.b_start[first], m.b_start[last] + m.b_count[last]):
+                        start = m.b_start[first] + rows_below(m.b_layers[first], llo)
+                        end = m.b_start[last] + rows_below(m.b_layers[last], lhi + 1)
+                        for p in range(start, end):
                             d = ti.Vector([xyz[p, 0], xyz[p, 1], xyz[p, 2]]) - centre
                             d2 = d.dot(d)
                             if d2 < ell2:

@@ -27,6 +27,7 @@ MID = 8    # leaf blocks per top cell edge
 TOP = LEAF * MID
 KERNEL_TABLE = 4096   # samples of the sparse kernel over r^2 in [0, 1]
 NEAR = 2   # table cells (leaf blocks) per edge of a cell of the coarse `near` table
+LAYER_BITS = 8       # per z layer of a block in b_layers: up to 64 rows (LEAF^3 voxels)
 EMPTY_LO = 1 << 30   # col_lo of a column without points (any z cell is below it)
 
 
@@ -39,6 +40,15 @@ def block_and_local(w):
     """
     local = ti.Vector([w[0] & (LEAF - 1), w[1] & (LEAF - 1), w[2] & (LEAF - 1)])
     return (w - local) // LEAF, (local[2] * LEAF + local[1]) * LEAF + local[0]
+
+
+@ti.func
+def rows_below(layers, layer):
+    """Training rows of a block in its z layers below `layer` (0..LEAF), from b_layers."""
+    n = 0
+    if layer > 0:
+        n = (layers >> (LAYER_BITS * (layer - 1))) & ((1 << LAYER_BITS) - 1)
+    return n
 
 
 @ti.func
@@ -100,10 +110,13 @@ class MapFields:
         self.table_shape = tuple(2 * h + 1 for h in self.table_half)
         self.p_count = ti.field(ti.i32)
         self.p_start = ti.field(ti.i32)
-        self.b_count = ti.field(ti.i32)
+        # the training rows of a block are sorted by voxel, z layer by z layer: b_layers packs
+        # one byte per layer, the rows in that layer and those below it (so its last byte is the
+        # block's row count), and the kernel update reads a column's z-range to the voxel layer
         self.b_start = ti.field(ti.i32)
-        fb.dense(ti.ijk, self.table_shape).place(self.p_count, self.p_start, self.b_count,
-                                                 self.b_start)
+        self.b_layers = ti.field(ti.i32)
+        fb.dense(ti.ijk, self.table_shape).place(self.p_count, self.p_start, self.b_start,
+                                                 self.b_layers)
         # per (x, y) column of the table: the z-range of cells holding points (empty: lo > hi).
         # Each column's blocks are laid out one after another in z, so the kernel update reads
         # a column's z-range of blocks as one contiguous slice.
@@ -148,7 +161,7 @@ class MapFields:
 
     @ti.func
     def table_index(self, world_blk, center_blk):
-        """(index into b_count / b_start, whether the block lies inside the table)."""
+        """(index into the table's fields, whether the block lies inside the table)."""
         i = world_blk - center_blk + ti.Vector(self.table_half)
         return i, self.in_table(i)
 

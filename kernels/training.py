@@ -14,7 +14,7 @@ points is summed into its training row.
 import taichi as ti
 
 from kernels.fusion import fuse_voxel
-from kernels.layout import EMPTY_LO, LEAF, local_of_index
+from kernels.layout import EMPTY_LO, LAYER_BITS, LEAF, local_of_index, rows_below
 from kernels.rasterize import EVIDENCE, to_local
 
 VOXELS = LEAF ** 3
@@ -23,8 +23,8 @@ VOXELS = LEAF ** 3
 @ti.func
 def sort_block(m: ti.template(), i, min_points, code: ti.template(), perm: ti.template(),
                perm2: ti.template()):
-    """Counting-sort block i's points by voxel (perm -> perm2, same slice); returns how many of
-    its voxels pass the filter."""
+    """Counting-sort block i's points by voxel (perm -> perm2, same slice); returns, packed as
+    in b_layers, how many of its voxels pass the filter in each z layer and those below."""
     s = m.p_start[i]
     k = m.p_count[i]
     cnt = ti.Vector([0] * VOXELS, dt=ti.i32)
@@ -35,11 +35,14 @@ def sort_block(m: ti.template(), i, min_points, code: ti.template(), perm: ti.te
         cnt[q] += 1
         evidence[q] |= c // EVIDENCE
     kept = 0
+    layers = 0
     offset = s
-    for v in range(VOXELS):
+    for v in range(VOXELS):       # (voxel index: z slowest, LEAF^2 voxels per layer)
         n_v = cnt[v]
         if n_v >= min_points and evidence[v]:
             kept += 1
+        if v % (LEAF * LEAF) == LEAF * LEAF - 1:
+            layers |= kept << (LAYER_BITS * (v // (LEAF * LEAF)))
         cnt[v] = offset
         offset += n_v
     for j in range(s, s + k):
@@ -47,7 +50,7 @@ def sort_block(m: ti.template(), i, min_points, code: ti.template(), perm: ti.te
         q = code[n] % EVIDENCE
         perm2[cnt[q]] = n
         cnt[q] += 1
-    return kept
+    return layers
 
 
 @ti.func
@@ -91,16 +94,16 @@ def write_training(m: ti.template(), center: ti.types.vector(3, ti.i32), stamp: 
             for cz in range(lo, hi + 1):
                 i = ti.Vector([cx, cy, cz])
                 if m.p_count[i] > 0:
-                    kept = sort_block(m, i, min_points, code, perm, perm2)
-                    m.b_count[i] = kept
-                    total += kept
+                    layers = sort_block(m, i, min_points, code, perm, perm2)
+                    m.b_layers[i] = layers
+                    total += rows_below(layers, LEAF)
             if total > 0:
                 written += total
                 slot = ti.atomic_add(m.counter[None], total)
                 for cz in range(lo, hi + 1):
                     i = ti.Vector([cx, cy, cz])
                     m.b_start[i] = slot
-                    if m.b_count[i] > 0:
+                    if rows_below(m.b_layers[i], LEAF) > 0:
                         mark_near(m, i, stamp, reach_blk)
                         slot = write_block(m, i, base + i, slot, t, min_points, unit_weight,
                                            ell_min, adaptive, counting, pts, label, prob,
@@ -201,7 +204,7 @@ def clear_table(m: ti.template()):
         if lo <= hi:
             for cz in range(lo, hi + 1):
                 m.p_count[cx, cy, cz] = 0
-                m.b_count[cx, cy, cz] = 0
                 m.b_start[cx, cy, cz] = 0
+                m.b_layers[cx, cy, cz] = 0
             m.col_lo[cx, cy] = EMPTY_LO
             m.col_hi[cx, cy] = -1

@@ -14,7 +14,7 @@ import numpy as np
 import taichi as ti
 
 from kernels import bki, entropy, rasterize, training
-from kernels.layout import LEAF
+from kernels.layout import LAYER_BITS, LEAF
 from tisem.backend import init_taichi
 from tisem.config import MapperConfig
 from tisem.reference import voxel_histograms
@@ -205,7 +205,11 @@ class StageRecorder:
         def wrapped(m, *args):
             n = kernel(m, *args)
             # every slot of every block's slice is a training point
-            count, start = m.b_count.to_numpy().ravel(), m.b_start.to_numpy().ravel()
+            layers, start = m.b_layers.to_numpy().ravel(), m.b_start.to_numpy().ravel()
+            count = layers >> (3 * LAYER_BITS)     # (the last layer's byte: all the block's rows)
+            # each layer's byte counts the rows below its end: non-decreasing up the block
+            ends = np.stack([(layers >> (LAYER_BITS * k)) & 255 for k in range(LEAF)], axis=1)
+            assert np.all(np.diff(ends, axis=1) >= 0), "a block's layer ends go down"
             used = count > 0
             rows = np.concatenate([np.arange(s, s + c) for s, c in zip(start[used], count[used])]
                                   or [np.zeros(0, np.int64)])
