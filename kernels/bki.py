@@ -16,7 +16,7 @@ import taichi as ti
 
 from kernels.entropy import fresh_length
 from kernels.fusion import fuse_voxel
-from kernels.layout import LEAF, rows_below
+from kernels.layout import LEAF, LEAF_BITS, rows_below, rows_to
 
 # Evidence below this is float noise at the kernel's edge (g -> 0 as d -> L), not an update:
 # counting it would reset t_last and, with alpha = 0, wipe the voxel's history.
@@ -62,10 +62,10 @@ def axis_gap(x, lo, width):
 
 @ti.func
 def cell_and_layer(z, inv_res, base_z):
-    """(world voxel, table cell, z layer in its block) of local height z."""
+    """(table cell, z layer in its block) of local height z: shifts, as Taichi's integer
+    floor division costs a sign fix-up, and this runs a million times per scan."""
     v = ti.floor(z * inv_res, ti.i32)
-    layer = v & (LEAF - 1)
-    return v, (v - layer) // LEAF + base_z, layer
+    return (v >> LEAF_BITS) + base_z, v & (LEAF - 1)
 
 
 @ti.func
@@ -100,41 +100,41 @@ def update_voxel(m: ti.template(), u, centre, base, blk_m, t, inv_tau, sigma0, p
     if ell > 0:
         ell2 = ell * ell
         inv_ell2 = 1.0 / ell2
-        inv_res = LEAF / blk_m
-        lo = ti.floor((centre - ell) / blk_m, ti.i32)
-        hi = ti.floor((centre + ell) / blk_m, ti.i32)
+        inv_blk = 1.0 / blk_m
+        inv_res = LEAF * inv_blk
+        lo = ti.floor((centre - ell) * inv_blk, ti.i32)
+        hi = ti.floor((centre + ell) * inv_blk, ti.i32)
         acc = ti.Vector([0.0] * m.C)
         # plain nested loops (ti.ndrange would flatten them with an integer division and
         # modulo per iteration) over the table's columns, pruned with the distance from the
-        # voxel centre to each column's box in x and y; the z-range of blocks the sphere
-        # reaches there is one slice (training.write_training)
+        # voxel centre to each column's box in x and y; the voxel layers the sphere reaches
+        # there are one slice of training rows (training.write_training)
         for bx in range(lo[0], hi[0] + 1):
             gx = axis_gap(centre[0], bx * blk_m, blk_m)
+            tx = base[0] + bx
             for by in range(lo[1], hi[1] + 1):
                 gy = axis_gap(centre[1], by * blk_m, blk_m)
                 gxy = gx * gx + gy * gy
                 if gxy < ell2:
                     dz = ti.sqrt(ell2 - gxy)
-                    # the column's voxel layers the sphere reaches, clipped to the table cells
-                    # that hold the scan's points (an empty column has none: col_lo > col_hi)
-                    col = base + ti.Vector([bx, by, 0])
                     # inside the table by construction: training blocks lie within the scan's
                     # limit, receivers within NEAR + reach of one, their kernels within reach
                     # more; the table's margin (Mapper) is wider than that
-                    assert m.in_table(col)
-                    _, zlo, llo = cell_and_layer(centre[2] - dz, inv_res, base[2])
-                    _, zhi, lhi = cell_and_layer(centre[2] + dz, inv_res, base[2])
-                    if zlo < m.col_lo[col[0], col[1]]:
-                        zlo = m.col_lo[col[0], col[1]]
+                    ty = base[1] + by
+                    assert m.in_table(ti.Vector([tx, ty, 0]))
+                    # the lowest and highest voxel layer the sphere reaches here, clipped to
+                    # the cells that hold the scan's points (an empty column: col_lo > col_hi)
+                    zlo, llo = cell_and_layer(centre[2] - dz, inv_res, base[2])
+                    zhi, lhi = cell_and_layer(centre[2] + dz, inv_res, base[2])
+                    if zlo < m.col_lo[tx, ty]:
+                        zlo = m.col_lo[tx, ty]
                         llo = 0
-                    if zhi > m.col_hi[col[0], col[1]]:
-                        zhi = m.col_hi[col[0], col[1]]
+                    if zhi > m.col_hi[tx, ty]:
+                        zhi = m.col_hi[tx, ty]
                         lhi = LEAF - 1
                     if zlo <= zhi:
-                        first = ti.Vector([col[0], col[1], zlo])
-                        last = ti.Vector([col[0], col[1], zhi])
-                        start = m.b_start[first] + rows_below(m.b_layers[first], llo)
-                        end = m.b_start[last] + rows_below(m.b_layers[last], lhi + 1)
+                        start = m.b_start[tx, ty, zlo] + rows_below(m.b_layers[tx, ty, zlo], llo)
+                        end = m.b_start[tx, ty, zhi] + rows_to(m.b_layers[tx, ty, zhi], lhi)
                         for p in range(start, end):
                             d = ti.Vector([xyz[p, 0], xyz[p, 1], xyz[p, 2]]) - centre
                             d2 = d.dot(d)

@@ -22,7 +22,8 @@ into its world index by unwrapping around the window centre (`unwrap`).
 
 import taichi as ti
 
-LEAF = 4   # voxels per leaf block edge
+LEAF_BITS = 2
+LEAF = 1 << LEAF_BITS   # voxels per leaf block edge
 MID = 8    # leaf blocks per top cell edge
 TOP = LEAF * MID
 KERNEL_TABLE = 4096   # samples of the sparse kernel over r^2 in [0, 1]
@@ -44,11 +45,15 @@ def block_and_local(w):
 
 @ti.func
 def rows_below(layers, layer):
-    """Training rows of a block in its z layers below `layer` (0..LEAF), from b_layers."""
-    n = 0
-    if layer > 0:
-        n = (layers >> (LAYER_BITS * (layer - 1))) & ((1 << LAYER_BITS) - 1)
-    return n
+    """Training rows of a block in its z layers below `layer` (0..LEAF-1), from b_layers.
+    Shifted up a byte first, so that layer 0 reads the zero byte (no branch)."""
+    return ((layers << LAYER_BITS) >> (LAYER_BITS * layer)) & ((1 << LAYER_BITS) - 1)
+
+
+@ti.func
+def rows_to(layers, layer):
+    """Training rows of a block in its z layers up to and including `layer` (0..LEAF-1)."""
+    return (layers >> (LAYER_BITS * layer)) & ((1 << LAYER_BITS) - 1)
 
 
 @ti.func

@@ -14,7 +14,7 @@ points is summed into its training row.
 import taichi as ti
 
 from kernels.fusion import fuse_voxel
-from kernels.layout import EMPTY_LO, LAYER_BITS, LEAF, local_of_index, rows_below
+from kernels.layout import EMPTY_LO, LAYER_BITS, LEAF, local_of_index, rows_to
 from kernels.rasterize import EVIDENCE, to_local
 
 VOXELS = LEAF ** 3
@@ -96,14 +96,14 @@ def write_training(m: ti.template(), center: ti.types.vector(3, ti.i32), stamp: 
                 if m.p_count[i] > 0:
                     layers = sort_block(m, i, min_points, code, perm, perm2)
                     m.b_layers[i] = layers
-                    total += rows_below(layers, LEAF)
+                    total += rows_to(layers, LEAF - 1)
             if total > 0:
                 written += total
                 slot = ti.atomic_add(m.counter[None], total)
                 for cz in range(lo, hi + 1):
                     i = ti.Vector([cx, cy, cz])
                     m.b_start[i] = slot
-                    if rows_below(m.b_layers[i], LEAF) > 0:
+                    if rows_to(m.b_layers[i], LEAF - 1) > 0:
                         mark_near(m, i, stamp, reach_blk)
                         slot = write_block(m, i, base + i, slot, t, min_points, unit_weight,
                                            ell_min, adaptive, counting, pts, label, prob,
