@@ -16,7 +16,9 @@ import taichi as ti
 
 from kernels.entropy import fresh_length
 from kernels.fusion import fuse_voxel
-from kernels.layout import LEAF, LEAF_BITS, rows_below, rows_to
+from kernels.layout import LEAF, LEAF_BITS, local_of_index, rows_below, rows_to
+
+VOXELS = LEAF ** 3
 
 # Evidence below this is float noise at the kernel's edge (g -> 0 as d -> L), not an update:
 # counting it would reset t_last and, with alpha = 0, wipe the voxel's history.
@@ -87,12 +89,12 @@ def voxel_centre(wb, local, resolution):
 
 
 @ti.func
-def update_voxel(m: ti.template(), u, centre, base, blk_m, t, inv_tau, sigma0, prior, ell_min,
-                 ell_max, xyz: ti.template(), hist: ti.template(), classes: ti.template(),
-                 single: ti.template()):
-    """One live voxel: its kernel length if the scan brought it evidence, the kernel-weighted
-    sum over the training points within that length, and the fusion."""
-    ell = m.ell[u]         # 0 where the voxel is not live (a free cell of a live block)
+def update_voxel(m: ti.template(), u, ell, centre, base, blk_m, t, inv_tau, sigma0, prior,
+                 ell_min, ell_max, xyz: ti.template(), hist: ti.template(),
+                 classes: ti.template(), single: ti.template()):
+    """One live voxel (ell = m.ell[u], < 0 or > 0): its kernel length if the scan brought it
+    evidence, the kernel-weighted sum over the training points within that length, and the
+    fusion."""
     if ell < 0:    # -(1 + its training row): evidence in this scan (adaptive modes), length first
         ell = fresh_length(m, u, hist, ti.cast(-ell, ti.i32) - 1, t, inv_tau, prior, ell_min,
                            ell_max)
@@ -177,14 +179,21 @@ def gather_update(m: ti.template(), center: ti.types.vector(3, ti.i32), stamp: t
             wb, near = reached_block(m, B, center_blk, stamp)
             if near:
                 local = u - B * LEAF
-                update_voxel(m, u, voxel_centre(wb, local, resolution), base, blk_m, t, inv_tau,
-                             sigma0, prior, ell_min, ell_max, xyz, hist, classes, single)
+                update_voxel(m, u, m.ell[u], voxel_centre(wb, local, resolution), base, blk_m, t,
+                             inv_tau, sigma0, prior, ell_min, ell_max, xyz, hist, classes, single)
     else:
         for B in ti.grouped(m.blk):
             wb, near = reached_block(m, B, center_blk, stamp)
             if near:
-                for q in range(LEAF * LEAF * LEAF):
-                    local = ti.Vector([q // (LEAF * LEAF), (q // LEAF) % LEAF, q % LEAF])
-                    update_voxel(m, B * LEAF + local, voxel_centre(wb, local, resolution), base,
-                                 blk_m, t, inv_tau, sigma0, prior, ell_min, ell_max, xyz, hist,
-                                 classes, single)
+                # the block's 64 lengths first, in an unrolled loop: the compiler then walks
+                # the sparse tree to the block once, not once per cell (0 marks a free cell)
+                ells = ti.Vector([0.0] * VOXELS)
+                for layer in ti.static(range(LEAF)):        # (nested: Taichi warns past 32)
+                    for q in ti.static(range(layer * LEAF * LEAF, (layer + 1) * LEAF * LEAF)):
+                        ells[q] = m.ell[B * LEAF + local_of_index(q)]
+                for q in range(VOXELS):
+                    if ells[q] != 0:
+                        local = local_of_index(q)
+                        update_voxel(m, B * LEAF + local, ells[q], voxel_centre(wb, local, resolution),
+                                     base, blk_m, t, inv_tau, sigma0, prior, ell_min, ell_max, xyz,
+                                     hist, classes, single)
