@@ -17,8 +17,9 @@ import taichi as ti
 
 from kernels.layout import LEAF, block_and_local
 
-# what happened to a point (locate), and the slots of locate_points's returned counts
-USED, OUT_OF_RANGE, OUT_OF_WINDOW, IMPLAUSIBLY_FAR = 0, 1, 2, 3
+# what happened to a point (locate), and the slots of locate_points's returned counts (the
+# last one: how many leaf blocks the kept points fall in)
+USED, OUT_OF_RANGE, OUT_OF_WINDOW, IMPLAUSIBLY_FAR, BLOCKS = 0, 1, 2, 3, 4
 FAR_M = 1000.0   # no LiDAR returns from this far: such points are corrupt data, not range
 EVIDENCE = LEAF ** 3   # bit of a point's voxel code: the point carries class evidence
 DROPPED = -1           # a point's cell when it is not used
@@ -71,14 +72,18 @@ def locate_points(m: ti.template(),
                   center: ti.types.vector(3, ti.i32), limit: ti.types.vector(3, ti.i32),
                   min_r2: ti.f32, max_r2: ti.f32, min_z: ti.f32, max_z: ti.f32, inv_res: ti.f32,
                   cell: ti.types.ndarray(dtype=ti.i32, ndim=1),      # (N,) out: table cell id
-                  code: ti.types.ndarray(dtype=ti.i32, ndim=1)       # (N,) out: voxel in block
-                  ) -> ti.types.vector(4, ti.i32):
-    """Count every kept point in its block's cell (p_count) and widen its column's z-range.
+                  code: ti.types.ndarray(dtype=ti.i32, ndim=1),      # (N,) out: voxel in block
+                  blocks: ti.types.ndarray(dtype=ti.i32, ndim=1)     # (N,) out: occupied cells
+                  ) -> ti.types.vector(5, ti.i32):
+    """Count every kept point in its block's cell (p_count), list the cells that get points
+    (`blocks`, in no particular order) and widen their columns' z-ranges.
 
     Writes each point's cell id (DROPPED if not kept) and its voxel's index in the block, plus
     EVIDENCE if the point carries class evidence. Returns the number of points per fate (index
-    USED, OUT_OF_RANGE, ...); implausibly far points are also counted as out of range.
+    USED, OUT_OF_RANGE, ...; implausibly far points are also counted as out of range) and, at
+    index BLOCKS, the number of occupied cells.
     """
+    m.counter[None] = 0
     # kernel-scope counters: Taichi keeps them per thread and adds them up at the end, where
     # one shared atomic counter per point made the two threads fight over a cache line
     out_of_range = 0
@@ -103,9 +108,11 @@ def locate_points(m: ti.template(),
             cell[n] = m.cell_id(i)
             code[n] = q + EVIDENCE * has_evidence(m.C, n, label, prob, use_probs)
             if ti.atomic_add(m.p_count[i], 1) == 0:     # the block's first point
+                blocks[ti.atomic_add(m.counter[None], 1)] = cell[n]
                 ti.atomic_min(m.col_lo[i[0], i[1]], i[2])
                 ti.atomic_max(m.col_hi[i[0], i[1]], i[2])
-    return ti.Vector([pts.shape[0] - out_of_range - out_of_window, out_of_range, out_of_window, far])
+    return ti.Vector([pts.shape[0] - out_of_range - out_of_window, out_of_range, out_of_window, far,
+                      m.counter[None]])
 
 
 @ti.kernel

@@ -4,12 +4,13 @@ class evidence) sorted by block. In the adaptive modes each kept voxel's kernel 
 to the kernel update (kernels/bki.py), which reads its counters anyway; a voxel only gets its
 training row here.
 
-One task per (x, y) column of the scan's table, with no atomics but one slot reservation:
-for each block of the column, a counting sort of its points by voxel (64 voxels: the counts
-live in registers), which also counts the voxels that pass the filter (>= min_points points,
-some class evidence); then the column reserves its training rows, the blocks in z order, so
-that any z-range of a column is one contiguous slice (kernels/bki.py), and each voxel's run of
-points is summed into its training row.
+Three passes, none with float atomics: `sort_blocks`, one task per occupied leaf block, sorts
+the block's points by voxel (a counting sort over its 64 voxels) and counts the voxels that pass
+the filter (>= min_points points, some class evidence) per z layer; `training_slots`, one task
+per (x, y) column of the scan's table, hands out the rows, a column's blocks one after another
+in z, so that any z-range of a column is one contiguous slice (kernels/bki.py); `write_training`,
+one task per block again, sums each voxel's run of points into its row. Tasks per block rather
+than per column keep thousands of them busy on a GPU.
 """
 import taichi as ti
 
@@ -66,6 +67,38 @@ def mark_near(m: ti.template(), i, stamp, reach_blk):
 
 
 @ti.kernel
+def sort_blocks(m: ti.template(), min_points: ti.i32,
+                blocks: ti.types.ndarray(dtype=ti.i32, ndim=1),    # (B,) occupied cells
+                code: ti.types.ndarray(dtype=ti.i32, ndim=1),      # (N,) rasterize's codes
+                perm: ti.types.ndarray(dtype=ti.i32, ndim=1),      # (N,) points by block
+                perm2: ti.types.ndarray(dtype=ti.i32, ndim=1)):    # (N,) out: by voxel
+    """Sort every occupied block's points by voxel and count its training rows (b_layers)."""
+    for b in range(blocks.shape[0]):
+        i = m.cell_of_id(blocks[b])
+        m.b_layers[i] = sort_block(m, i, min_points, code, perm, perm2)
+
+
+@ti.kernel
+def training_slots(m: ti.template()) -> ti.i32:
+    """Hand each block its slice of the training arrays, the blocks of a column one after
+    another in z (so that any z-range of a column is one slice, kernels/bki.py); every cell of
+    the column's z-range gets its start, empty ones too. Returns the number of rows."""
+    m.counter[None] = 0
+    for cx, cy in m.col_lo:
+        lo, hi = m.col_lo[cx, cy], m.col_hi[cx, cy]
+        if lo <= hi:
+            total = 0
+            for cz in range(lo, hi + 1):
+                total += rows_to(m.b_layers[cx, cy, cz], LEAF - 1)
+            if total > 0:
+                slot = ti.atomic_add(m.counter[None], total)
+                for cz in range(lo, hi + 1):
+                    m.b_start[cx, cy, cz] = slot
+                    slot += rows_to(m.b_layers[cx, cy, cz], LEAF - 1)
+    return m.counter[None]
+
+
+@ti.kernel
 def write_training(m: ti.template(), center: ti.types.vector(3, ti.i32), stamp: ti.i32,
                    reach_blk: ti.i32, t: ti.f32, min_points: ti.i32, unit_weight: ti.i32,
                    ell_min: ti.f32, adaptive: ti.i32, counting: ti.i32,
@@ -74,42 +107,25 @@ def write_training(m: ti.template(), center: ti.types.vector(3, ti.i32), stamp: 
                    prob: ti.types.ndarray(dtype=ti.f32, ndim=2),      # (N, C)
                    use_probs: ti.template(),
                    R: ti.types.matrix(3, 3, ti.f32), tr: ti.types.vector(3, ti.f32),
+                   blocks: ti.types.ndarray(dtype=ti.i32, ndim=1),    # (B,) occupied cells
                    code: ti.types.ndarray(dtype=ti.i32, ndim=1),      # (N,) rasterize's codes
-                   perm: ti.types.ndarray(dtype=ti.i32, ndim=1),      # (N,) points by block
-                   perm2: ti.types.ndarray(dtype=ti.i32, ndim=1),     # (N,) scratch: by voxel
+                   perm2: ti.types.ndarray(dtype=ti.i32, ndim=1),     # (N,) points by voxel
                    out_xyz: ti.types.ndarray(dtype=ti.f32, ndim=2),    # (K, 3) centroid, local m
                    out_hist: ti.types.ndarray(dtype=ti.f32, ndim=2),   # (K, C) class evidence
                    out_classes: ti.types.ndarray(dtype=ti.i32, ndim=1),  # (K,) bit c: evidence
                    out_single: ti.types.ndarray(dtype=ti.i32, ndim=1)  # (K,) the one class or 0
-                   ) -> ti.i32:
-    """Fill the training arrays and the training table; returns how many points were written."""
-    m.counter[None] = 0
-    written = 0
+                   ):
+    """Write every occupied block's training rows into its slice, mark the map voxels they
+    update and the coarse cells near them."""
     center_blk = ti.floor(center / LEAF, ti.i32)
     base = center_blk - ti.Vector(m.table_half)     # world block of table cell 0
-    for cx, cy in m.col_lo:
-        lo, hi = m.col_lo[cx, cy], m.col_hi[cx, cy]
-        if lo <= hi:
-            total = 0
-            for cz in range(lo, hi + 1):
-                i = ti.Vector([cx, cy, cz])
-                if m.p_count[i] > 0:
-                    layers = sort_block(m, i, min_points, code, perm, perm2)
-                    m.b_layers[i] = layers
-                    total += rows_to(layers, LEAF - 1)
-            if total > 0:
-                written += total
-                slot = ti.atomic_add(m.counter[None], total)
-                for cz in range(lo, hi + 1):
-                    i = ti.Vector([cx, cy, cz])
-                    m.b_start[i] = slot
-                    if rows_to(m.b_layers[i], LEAF - 1) > 0:
-                        mark_near(m, i, stamp, reach_blk)
-                        slot = write_block(m, i, base + i, slot, t, min_points, unit_weight,
-                                           ell_min, adaptive, counting, pts, label, prob,
-                                           use_probs, R, tr, code, perm2, out_xyz, out_hist,
-                                           out_classes, out_single)
-    return written
+    for b in range(blocks.shape[0]):
+        i = m.cell_of_id(blocks[b])
+        if rows_to(m.b_layers[i], LEAF - 1) > 0:
+            mark_near(m, i, stamp, reach_blk)
+            write_block(m, i, base + i, m.b_start[i], t, min_points, unit_weight, ell_min,
+                        adaptive, counting, pts, label, prob, use_probs, R, tr, code, perm2,
+                        out_xyz, out_hist, out_classes, out_single)
 
 
 @ti.func

@@ -167,14 +167,19 @@ class StageRecorder:
         monkeypatch.setattr(rasterize, "locate_points", self._after_locate(rasterize.locate_points))
         monkeypatch.setattr(rasterize, "scatter_points",
                             self._after_scatter(rasterize.scatter_points))
+        monkeypatch.setattr(training, "training_slots",
+                            self._after_slots(training.training_slots))
         monkeypatch.setattr(training, "write_training",
                             self._after_training(training.write_training))
 
     def _after_locate(self, kernel):
         def wrapped(m, *args):
             fates = kernel(m, *args)
-            cell, code = args[-2], args[-1]
+            cell, code, blocks = args[-3], args[-2], args[-1]
             used = cell != rasterize.DROPPED
+            listed = blocks[:int(fates[rasterize.BLOCKS])]
+            assert np.array_equal(np.sort(listed), np.unique(cell[used])), \
+                "the list of occupied blocks differs from the points' blocks"
             mp = self.mapper
             cells = np.stack(np.unravel_index(cell[used], m.table_shape), axis=1)
             world_blk = cells - np.array(m.table_half) + np.floor_divide(mp.center_vox, LEAF)
@@ -201,9 +206,16 @@ class StageRecorder:
             assert len(np.unique(runs)) == starts.sum(), "a block's points are split"
         return wrapped
 
+    def _after_slots(self, kernel):
+        def wrapped(m):
+            self._rows = kernel(m)
+            return self._rows
+        return wrapped
+
     def _after_training(self, kernel):
         def wrapped(m, *args):
-            n = kernel(m, *args)
+            kernel(m, *args)
+            n = self._rows
             # every slot of every block's slice is a training point
             layers, start = m.b_layers.to_numpy().ravel(), m.b_start.to_numpy().ravel()
             count = layers >> (3 * LAYER_BITS)     # (the last layer's byte: all the block's rows)
@@ -214,14 +226,13 @@ class StageRecorder:
             rows = np.concatenate([np.arange(s, s + c) for s, c in zip(start[used], count[used])]
                                   or [np.zeros(0, np.int64)])
             assert len(np.unique(rows)) == len(rows), "two blocks' slices overlap"
-            assert len(rows) == n, f"write_training reported {n} points, the table holds {len(rows)}"
+            assert len(rows) == n, f"training_slots handed out {n} rows, the table holds {len(rows)}"
             xyz, hist = args[-4][rows], args[-3][rows]
             mp = self.mapper
             centroid = xyz.astype(np.float64) + mp.origin_vox * mp.res
             keys = np.floor(xyz.astype(np.float64) / mp.res).astype(np.int64) + mp.origin_vox
             keys, centroid, hist = _sorted_by_key(keys, centroid, hist.copy())
             self.training.append(dict(keys=keys, centroid=centroid, hist=hist))
-            return n
         return wrapped
 
 
