@@ -6,9 +6,10 @@ within its own kernel length L(v), then folds the sum into its counters. The wor
 grows with L(v)^3, so low-entropy voxels (short kernels) are cheap: the adaptive kernel pays
 only where the map is uncertain. No atomics: each voxel is written by one thread.
 
-Training points are sorted by leaf block, and the blocks of each (x, y) column of the table lie
-one after another in z (kernels/training.py): a voxel reads, per column its kernel sphere
-touches, the one slice of blocks the sphere reaches in z, not every voxel cell within reach.
+Training points are sorted by leaf block, the blocks of each (x, y) column of the table one
+after another in z, and a block's rows by voxel, z layer by z layer (kernels/training.py): a
+voxel reads, per column its kernel sphere touches, the one slice of rows in the voxel layers
+the sphere reaches there, not every voxel cell within reach.
 """
 import math
 
@@ -19,6 +20,7 @@ from kernels.fusion import fuse_voxel
 from kernels.layout import LEAF, LEAF_BITS, local_of_index, rows_below, rows_to
 
 VOXELS = LEAF ** 3
+HITS = 32    # hit list length: hits are summed in batches, after the distance tests
 
 # Evidence below this is float noise at the kernel's edge (g -> 0 as d -> L), not an update:
 # counting it would reset t_last and, with alpha = 0, wipe the voxel's history.
@@ -89,6 +91,24 @@ def voxel_centre(wb, local, resolution):
 
 
 @ti.func
+def add_hits(m: ti.template(), acc, hit_p, hit_r2, n_hits, inv_ell2, hist: ti.template(),
+             classes: ti.template(), single: ti.template()):
+    """acc + the kernel-weighted evidence of the first n_hits training rows of the hit list."""
+    for h in range(n_hits):
+        p = hit_p[h]
+        k = sparse_kernel_of_r2(m, hit_r2[h] * inv_ell2)
+        c1 = single[p]
+        if c1 > 0:      # one class: the common case
+            acc[c1] += k * hist[p, c1]
+        else:
+            mask = classes[p]
+            for c in ti.static(range(1, m.C)):
+                if mask & (1 << c):
+                    acc[c] += k * hist[p, c]
+    return acc
+
+
+@ti.func
 def update_voxel(m: ti.template(), u, ell, centre, base, blk_m, t, inv_tau, sigma0, prior,
                  ell_min, ell_max, xyz: ti.template(), hist: ti.template(),
                  classes: ti.template(), single: ti.template()):
@@ -107,6 +127,9 @@ def update_voxel(m: ti.template(), u, ell, centre, base, blk_m, t, inv_tau, sigm
         lo = ti.floor((centre - ell) * inv_blk, ti.i32)
         hi = ti.floor((centre + ell) * inv_blk, ti.i32)
         acc = ti.Vector([0.0] * m.C)
+        hit_p = ti.Vector([0] * HITS, dt=ti.i32)    # training rows within L(v) and their d^2
+        hit_r2 = ti.Vector([0.0] * HITS)
+        n_hits = 0
         # plain nested loops (ti.ndrange would flatten them with an integer division and
         # modulo per iteration) over the table's columns, pruned with the distance from the
         # voxel centre to each column's box in x and y; the voxel layers the sphere reaches
@@ -138,18 +161,19 @@ def update_voxel(m: ti.template(), u, ell, centre, base, blk_m, t, inv_tau, sigm
                         start = m.b_start[tx, ty, zlo] + rows_below(m.b_layers[tx, ty, zlo], llo)
                         end = m.b_start[tx, ty, zhi] + rows_to(m.b_layers[tx, ty, zhi], lhi)
                         for p in range(start, end):
+                            # no branch on the distance test, whose outcome no predictor can
+                            # guess (~40 % hits): every candidate is written to the hit list,
+                            # and only a hit moves its end on
                             d = ti.Vector([xyz[p, 0], xyz[p, 1], xyz[p, 2]]) - centre
                             d2 = d.dot(d)
-                            if d2 < ell2:
-                                k = sparse_kernel_of_r2(m, d2 * inv_ell2)
-                                c1 = single[p]
-                                if c1 > 0:      # one class: the common case
-                                    acc[c1] += k * hist[p, c1]
-                                else:
-                                    mask = classes[p]
-                                    for c in ti.static(range(1, m.C)):
-                                        if mask & (1 << c):
-                                            acc[c] += k * hist[p, c]
+                            hit_p[n_hits] = p
+                            hit_r2[n_hits] = d2
+                            n_hits += ti.cast(d2 < ell2, ti.i32)
+                            if n_hits == HITS:
+                                acc = add_hits(m, acc, hit_p, hit_r2, n_hits, inv_ell2, hist,
+                                               classes, single)
+                                n_hits = 0
+        acc = add_hits(m, acc, hit_p, hit_r2, n_hits, inv_ell2, hist, classes, single)
         acc *= sigma0
         if acc.sum() > MIN_UPDATE:
             fuse_voxel(m, u, acc, t, inv_tau)
