@@ -91,9 +91,11 @@ def voxel_centre(wb, local, resolution):
 
 
 @ti.func
-def add_hits(m: ti.template(), acc, hit_p, hit_r2, n_hits, inv_ell2, hist: ti.template(),
-             classes: ti.template(), single: ti.template()):
-    """acc + the kernel-weighted evidence of the first n_hits training rows of the hit list."""
+def add_hits(m: ti.template(), acc: ti.template(), hit_p: ti.template(), hit_r2: ti.template(),
+             n_hits, inv_ell2, hist: ti.template(), classes: ti.template(),
+             single: ti.template()):
+    """Add to acc the kernel-weighted evidence of the first n_hits training rows of the hit
+    list (local vectors by reference: by value, Taichi copied all three at every call)."""
     for h in range(n_hits):
         p = hit_p[h]
         k = sparse_kernel_of_r2(m, hit_r2[h] * inv_ell2)
@@ -105,7 +107,6 @@ def add_hits(m: ti.template(), acc, hit_p, hit_r2, n_hits, inv_ell2, hist: ti.te
             for c in ti.static(range(1, m.C)):
                 if mask & (1 << c):
                     acc[c] += k * hist[p, c]
-    return acc
 
 
 @ti.func
@@ -170,10 +171,10 @@ def update_voxel(m: ti.template(), u, ell, centre, base, blk_m, t, inv_tau, sigm
                             hit_r2[n_hits] = d2
                             n_hits += ti.cast(d2 < ell2, ti.i32)
                             if n_hits == HITS:
-                                acc = add_hits(m, acc, hit_p, hit_r2, n_hits, inv_ell2, hist,
-                                               classes, single)
+                                add_hits(m, acc, hit_p, hit_r2, n_hits, inv_ell2, hist, classes,
+                                         single)
                                 n_hits = 0
-        acc = add_hits(m, acc, hit_p, hit_r2, n_hits, inv_ell2, hist, classes, single)
+        add_hits(m, acc, hit_p, hit_r2, n_hits, inv_ell2, hist, classes, single)
         acc *= sigma0
         if acc.sum() > MIN_UPDATE:
             fuse_voxel(m, u, acc, t, inv_tau)
