@@ -199,7 +199,7 @@ def gather_update(m: ti.template(), center: ti.types.vector(3, ti.i32), stamp: t
     center_blk = ti.floor(center / LEAF, ti.i32)
     base = ti.Vector(m.table_half) - center_blk
     if ti.static(per_voxel):
-        for u in ti.grouped(m.ell):
+        for u in ti.grouped(m.t_last):
             B = u // LEAF
             wb, near = reached_block(m, B, center_blk, stamp)
             if near:

@@ -92,18 +92,23 @@ class MapFields:
         # one SNode tree per map, built and finalised here
         fb = ti.FieldsBuilder()
 
-        # map layer: ~88 B per active voxel (20 x f32 counters, t_last, ell) + bitmask
+        # map layer: 88 B per voxel of a live block (20 x f32 counters, t_last, ell) + bitmask
         self.counts = ti.field(ti.f32)
         self.t_last = ti.field(ti.f32)
-        # > 0 for every active voxel (doubles as the activity test); while a scan is fused,
-        # -(1 + the voxel's row in the scan's training arrays) for a voxel the scan hit in an
-        # adaptive mode: kernels/training.py writes that, kernels/bki.py turns it into the length
+        # > 0 for every live voxel, 0 elsewhere; while a scan is fused, -(1 + the voxel's row in
+        # the scan's training arrays) for a voxel the scan hit in an adaptive mode:
+        # kernels/training.py writes that, kernels/bki.py turns it into the length
         self.ell = ti.field(ti.f32)
         self.top = fb.pointer(ti.ijk, self.N_top)
         self.blk = self.top.pointer(ti.ijk, MID)
+        # the bitmask says which voxels are live: struct-fors over voxels run over t_last
         self.vox = self.blk.bitmasked(ti.ijk, LEAF)
         self.vox.dense(ti.l, self.C).place(self.counts)
-        self.vox.place(self.t_last, self.ell)
+        self.vox.place(self.t_last)
+        # a block's 64 lengths apart from the voxels' counters, in 4 cache lines instead of one
+        # per voxel: the kernel update reads all 64 of every block near the scan to find its
+        # live voxels (~7 of 64), and only then their counters
+        self.blk.dense(ti.ijk, LEAF).place(self.ell)
 
         # The scan's table: a dense grid of leaf blocks centred on the sensor's block, covering
         # every block a kept point can fall in plus the blocks a kernel reaches from there.

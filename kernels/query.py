@@ -43,7 +43,7 @@ def query(m: ti.template(),
 
 @ti.kernel
 def count_active(cells: ti.template()) -> ti.i32:
-    """Active cells of a sparse field or SNode (m.ell: live voxels, m.blk: live leaf blocks)."""
+    """Active cells of a sparse field or SNode (m.t_last: live voxels, m.blk: live blocks)."""
     n = 0
     for I in ti.grouped(cells):
         n += 1
@@ -69,7 +69,7 @@ def export_voxels(m: ti.template(), center: ti.types.vector(3, ti.i32),
                   t_last: ti.types.ndarray(dtype=ti.f32, ndim=1),
                   ell: ti.types.ndarray(dtype=ti.f32, ndim=1)) -> ti.i32:
     m.counter[None] = 0
-    for I in ti.grouped(m.ell):
+    for I in ti.grouped(m.t_last):
         idx = ti.atomic_add(m.counter[None], 1)
         if idx < keys.shape[0]:
             write_row(m, I, m.unwrap(I, center), idx, keys, counts, t_last, ell)

@@ -210,6 +210,10 @@ def write_row(m: ti.template(), u, slot, centroid, hist, t, unit_weight, ell_min
         m.ell[u] = -ti.cast(slot + 1, ti.f32)
     else:
         m.ell[u] = ell_min
+    # u is live from now on (ell is not on the bitmasked node). After the write: in taichi
+    # 1.7.4 ti.activate on a bitmasked cell whose pointer parent is not yet allocated
+    # allocates the parent but leaves the bit clear (tests/test_kernels.py caught it)
+    ti.activate(m.vox, u)
 
 
 @ti.kernel

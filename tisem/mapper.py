@@ -439,7 +439,7 @@ class Mapper:
     def _live_arrays(self):
         self._check_alive()
         m = self.fields
-        n = kquery.count_active(m.ell)
+        n = kquery.count_active(m.t_last)
         keys = np.zeros((n, 3), np.int32)
         counts = np.zeros((n, self.C), np.float32)
         t_last = np.zeros(n, np.float32)
@@ -452,7 +452,7 @@ class Mapper:
 
     @property
     def live_voxels(self) -> int:
-        return int(kquery.count_active(self.fields.ell))
+        return int(kquery.count_active(self.fields.t_last))
 
     @property
     def live_blocks(self) -> int:
