@@ -530,3 +530,12 @@ def test_a_scan_with_more_points_than_training_rows_can_count_is_refused(taichi_
     monkeypatch.setattr(mapper_module, "MAX_POINTS", 51)
     mapper.integrate(Scan(pts, np.eye(4), 0.0, labels=labels, name="big"))
     assert mapper.live_voxels > 0
+
+
+def test_a_range_that_needs_too_big_a_scan_table_is_refused(taichi_cpu):
+    """The scan's table is dense (every leaf block within max_range of the sensor): a range and
+    resolution that need more cells than int32 ids and memory allow are refused up front."""
+    cfg = small_config(max_range_m=900.0, resolution_m=0.02, window_xy_m=910.0, ell_min_m=0.04,
+                       ell_max_m=0.16)
+    with pytest.raises(ValueError, match=r"needs a scan table of [\d,]+ leaf blocks"):
+        Mapper(cfg)

@@ -31,6 +31,10 @@ FAR_M = 1.0e6   # query coordinates are clamped to this (int32 voxel indices at 
 # a scan's training rows travel through float32 (kernels/training.py), exact below 2^24; a scan
 # has at most as many training voxels as points
 MAX_POINTS = 2 ** 24
+# the scan's dense table of leaf blocks around the sensor (kernels/layout.py): 16 B per cell
+# (4 int32 fields; the near table adds an eighth of that), and int32 cell ids
+TABLE_BYTES_PER_CELL = 18
+MAX_TABLE_CELLS = 2 ** 28
 
 
 def _finite_rows(a: np.ndarray) -> np.ndarray:
@@ -136,6 +140,12 @@ class Mapper:
         # the table covers every block a training voxel can fall in, plus the blocks a
         # receiving voxel's kernel can reach from there
         table_half = -(-self._limit // LEAF) + 2 * self._reach_blk + 3
+        cells = int(np.prod(2 * table_half + 1))
+        if cells >= MAX_TABLE_CELLS:    # (cell ids are int32, and the table is dense)
+            raise ValueError(
+                f"max_range_m={cfg.max_range_m} at resolution_m={self.res} needs a scan table of "
+                f"{cells:,} leaf blocks ({cells * TABLE_BYTES_PER_CELL / 2 ** 30:.0f} GiB); tisem "
+                f"takes at most {MAX_TABLE_CELLS:,}: lower max_range_m or raise resolution_m")
         self.fields = MapFields(self.C, storage_extent(tuple(int(h) for h in self.half_vox)),
                                 tuple(int(h) for h in table_half))
         bki.fill_kernel_table(self.fields)
