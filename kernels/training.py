@@ -201,19 +201,20 @@ def write_row(m: ti.template(), u, slot, centroid, hist, t, unit_weight, ell_min
         out_xyz[slot, a] = centroid[a]
     if counting:
         # csm: the voxel's own histogram is the whole update, accumulated without decay
-        m.ell[u] = ell_min                  # any positive value marks the voxel live
+        m.ell[u] = ell_min                  # (any positive length: a live voxel)
         fuse_voxel(m, u, h, t, 0.0)
     elif adaptive:
         # the length needs the voxel's counters, which the kernel update reads anyway (one
         # pass over the map instead of two): it computes the length from the row (exact in
-        # float32 up to 2^24 rows; writing activates the map voxel)
+        # float32 up to 2^24 rows)
         m.ell[u] = -ti.cast(slot + 1, ti.f32)
     else:
         m.ell[u] = ell_min
-    # u is live from now on (ell is not on the bitmasked node). After the write: in taichi
-    # 1.7.4 ti.activate on a bitmasked cell whose pointer parent is not yet allocated
-    # allocates the parent but leaves the bit clear (tests/test_kernels.py caught it)
-    ti.activate(m.vox, u)
+    # u is live from now on: ell is not on the bitmasked node, so a store to a field that is
+    # sets the voxel's bit (t_last keeps its value; a free cell holds 0). Not ti.activate: in
+    # taichi 1.7.4 it leaves the bit clear when it has to allocate the block first (caught by
+    # tests/test_kernels.py), and it warns about int32 indices at every compile
+    m.t_last[u] = m.t_last[u]
 
 
 @ti.kernel

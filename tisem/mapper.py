@@ -131,7 +131,7 @@ class Mapper:
                              f"({bki.MAX_REACH_BLK * LEAF * self.res:.2f} m at {self.res} m voxels)")
         # Points whose voxel is farther than `_limit` from the sensor's are dropped (counted as
         # outside the window), so that (a) a kernel never reaches past the window and (b) every
-        # training voxel fits the scan layer and the training-point table. Any point within
+        # training voxel fits the scan's table of leaf blocks. Any point within
         # max_range is inside in x and y; in z the window bounds it (a tilted sensor's far
         # points can lie well above or below its own height band).
         scan_half = np.array([math.ceil(cfg.max_range_m / self.res) + 1] * 2
