@@ -10,7 +10,7 @@ LN2 = math.log(2.0)
 
 @ti.func
 def fast_log(x):
-    """Natural log of a positive, normal float32 to ~1e-6 relative error, without libm.
+    """Natural log of a positive, normal float32 to ~1e-7 absolute error, without libm.
 
     The entropy takes 19 logs per voxel of every scan; libm's log was a large share of that
     step, while the kernel length needs nowhere near float precision. x = m * 2^e with m in
@@ -21,7 +21,8 @@ def fast_log(x):
     m = ti.bit_cast((bits & 0x007FFFFF) | 0x3F800000, ti.f32)
     t = (m - 1.0) / (m + 1.0)
     t2 = t * t
-    ln_m = 2.0 * t * (1.0 + t2 * (1.0 / 3.0 + t2 * (1.0 / 5.0 + t2 * (1.0 / 7.0 + t2 * (1.0 / 9.0)))))
+    ln_m = 2.0 * t * (1.0 + t2 * (1.0 / 3.0 + t2 * (1.0 / 5.0 + t2 * (1.0 / 7.0 + t2 * (
+        1.0 / 9.0 + t2 * (1.0 / 11.0))))))
     return ln_m + ti.cast(e, ti.f32) * LN2
 
 
@@ -32,15 +33,31 @@ def normalized_entropy(p, num_real: ti.template()):
     Class 0 (unlabeled) never receives evidence, so it is left out of the support: a voxel
     with uniform evidence over the 19 real classes gets exactly 1.
     """
+    return entropy_with_common(p, num_real, -1.0, 0.0)
+
+
+@ti.func
+def entropy_with_common(p, num_real: ti.template(), common, common_plogp):
+    """normalized_entropy, where a class whose p_c equals `common` (the prior, for a class the
+    voxel has no evidence for: most classes of most voxels) adds the precomputed
+    `common_plogp` = common * ln(common) instead of taking a log.
+
+    As H = ln T - (sum_c p_c ln p_c) / T with T = sum_c p_c: one division per voxel, not one
+    per class.
+    """
     total = 0.0
+    plogp = 0.0
     for c in ti.static(range(1, num_real + 1)):
         total += p[c]
+        if p[c] == common:
+            plogp += common_plogp
+        elif p[c] > 0:
+            plogp += p[c] * fast_log(p[c])
     h = 0.0
-    for c in ti.static(range(1, num_real + 1)):
-        q = p[c] / total
-        if q > 1e-30:
-            h -= q * fast_log(q)
-    return h / ti.log(ti.cast(num_real, ti.f32))
+    if total > 0:
+        h = fast_log(total) - plogp / total
+    # (rounding can take the difference a hair past [0, ln(C-1)])
+    return ti.min(ti.max(h / ti.log(ti.cast(num_real, ti.f32)), 0.0), 1.0)
 
 
 @ti.func
@@ -57,4 +74,7 @@ def fresh_length(m: ti.template(), u, hist: ti.template(), row, t, inv_tau, prio
     p = ti.Vector([0.0] * m.C)
     for c in ti.static(range(m.C)):
         p[c] = prior + alpha * m.counts[u, c] + hist[row, c]
-    return adaptive_length(p, ell_min, ell_max, m.C - 1)
+    prior_plogp = 0.0
+    if prior > 0:
+        prior_plogp = prior * fast_log(prior)
+    return ell_min + (ell_max - ell_min) * entropy_with_common(p, m.C - 1, prior, prior_plogp)

@@ -123,22 +123,26 @@ def sample_kernel(mapper, r2):
 
 @ti.kernel
 def _entropy(p: ti.types.ndarray(dtype=ti.f32, ndim=2), ell_min: ti.f32, ell_max: ti.f32,
-             h: ti.types.ndarray(dtype=ti.f32, ndim=1),
-             ell: ti.types.ndarray(dtype=ti.f32, ndim=1)):
+             common: ti.f32, h: ti.types.ndarray(dtype=ti.f32, ndim=1),
+             ell: ti.types.ndarray(dtype=ti.f32, ndim=1),
+             h_common: ti.types.ndarray(dtype=ti.f32, ndim=1)):
     for i in range(p.shape[0]):
         v = ti.Vector([0.0] * C)
         for c in ti.static(range(C)):
             v[c] = p[i, c]
         h[i] = entropy.normalized_entropy(v, C - 1)
         ell[i] = entropy.adaptive_length(v, ell_min, ell_max, C - 1)
+        h_common[i] = entropy.entropy_with_common(v, C - 1, common,
+                                                  common * entropy.fast_log(common))
 
 
-def engine_entropy(p, ell_min, ell_max):
-    """(normalised entropy, adaptive length) of each row of p, by the engine's ti.funcs."""
+def engine_entropy(p, ell_min, ell_max, common=1.0):
+    """(normalised entropy, adaptive length, normalised entropy with the shortcut for classes
+    whose p_c equals `common`) of each row of p, by the engine's ti.funcs."""
     p = np.ascontiguousarray(p, np.float32)
-    h, ell = np.zeros(len(p), np.float32), np.zeros(len(p), np.float32)
-    _entropy(p, ell_min, ell_max, h, ell)
-    return h.astype(np.float64), ell.astype(np.float64)
+    h, ell, h_common = (np.zeros(len(p), np.float32) for _ in range(3))
+    _entropy(p, ell_min, ell_max, common, h, ell, h_common)
+    return h.astype(np.float64), ell.astype(np.float64), h_common.astype(np.float64)
 
 
 def _sorted_by_key(keys, *arrays):

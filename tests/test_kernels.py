@@ -64,9 +64,12 @@ def test_entropy_and_adaptive_length_match_reference(taichi_cpu):
     for alpha in (0.05, 0.5, 5.0):
         rows += list(prior + rng.gamma(alpha, 3.0, (40, C)) * (rng.random((40, C)) < 0.6))
     p = np.array(rows)
-    h, ell = engine_entropy(p, ell_min, ell_max)
+    h, ell, h_prior = engine_entropy(p, ell_min, ell_max, common=prior)
     want = normalized_entropy(p)
     np.testing.assert_allclose(h, want, atol=2e-6)
+    # the shortcut the kernel update takes for classes at the prior (most rows have some)
+    assert np.count_nonzero(p[:, 1:] == np.float32(prior)) > len(p)
+    np.testing.assert_allclose(h_prior, want, atol=2e-6)
     np.testing.assert_allclose(ell, ell_min + (ell_max - ell_min) * want, atol=2e-6)
     assert ell[0] == pytest.approx(ell_max, abs=1e-6) and ell[1] == pytest.approx(ell_max, abs=1e-6)
     assert ell[3] == pytest.approx(ell_min, abs=1e-6)
