@@ -141,22 +141,26 @@ def update_voxel(m: ti.template(), u, ell, centre, base, blk_m, t, inv_tau, sigm
             for by in range(lo[1], hi[1] + 1):
                 gy = axis_gap(centre[1], by * blk_m, blk_m)
                 gxy = gx * gx + gy * gy
-                if gxy < ell2:
+                ty = base[1] + by
+                # inside the table by construction: training blocks lie within the scan's
+                # limit, receivers within NEAR + reach of one, their kernels within reach
+                # more; the table's margin (Mapper) is wider than that
+                assert m.in_table(ti.Vector([tx, ty, 0]))
+                col_lo = m.col_lo[tx, ty]
+                col_hi = m.col_hi[tx, ty]
+                # a column the sphere reaches and that holds points of the scan (most that a
+                # sphere reaches hold none: this test first spares them the rest)
+                if gxy < ell2 and col_lo <= col_hi:
                     dz = ti.sqrt(ell2 - gxy)
-                    # inside the table by construction: training blocks lie within the scan's
-                    # limit, receivers within NEAR + reach of one, their kernels within reach
-                    # more; the table's margin (Mapper) is wider than that
-                    ty = base[1] + by
-                    assert m.in_table(ti.Vector([tx, ty, 0]))
                     # the lowest and highest voxel layer the sphere reaches here, clipped to
-                    # the cells that hold the scan's points (an empty column: col_lo > col_hi)
+                    # the cells that hold the scan's points
                     zlo, llo = cell_and_layer(centre[2] - dz, inv_res, base[2])
                     zhi, lhi = cell_and_layer(centre[2] + dz, inv_res, base[2])
-                    if zlo < m.col_lo[tx, ty]:
-                        zlo = m.col_lo[tx, ty]
+                    if zlo < col_lo:
+                        zlo = col_lo
                         llo = 0
-                    if zhi > m.col_hi[tx, ty]:
-                        zhi = m.col_hi[tx, ty]
+                    if zhi > col_hi:
+                        zhi = col_hi
                         lhi = LEAF - 1
                     if zlo <= zhi:
                         start = m.b_start[tx, ty, zlo] + rows_below(m.b_layers[tx, ty, zlo], llo)
