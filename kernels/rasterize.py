@@ -116,27 +116,10 @@ def locate_points(m: ti.template(),
 
 
 @ti.kernel
-def point_slots(m: ti.template()) -> ti.i32:
-    """Hand each block its slice of the point order: a column's blocks one after another in z.
-    p_count becomes the fill cursor (scatter_points counts it back up). Returns the total."""
-    m.counter[None] = 0
-    for cx, cy in m.col_lo:
-        lo, hi = m.col_lo[cx, cy], m.col_hi[cx, cy]
-        if lo <= hi:
-            total = 0
-            for cz in range(lo, hi + 1):
-                total += m.p_count[cx, cy, cz]
-            slot = ti.atomic_add(m.counter[None], total)
-            for cz in range(lo, hi + 1):
-                m.p_start[cx, cy, cz] = slot
-                slot += m.p_count[cx, cy, cz]
-                m.p_count[cx, cy, cz] = 0
-    return m.counter[None]
-
-
-@ti.kernel
 def scatter_points(m: ti.template(), cell: ti.types.ndarray(dtype=ti.i32, ndim=1),
                    perm: ti.types.ndarray(dtype=ti.i32, ndim=1)):   # (N,) out: points by block
+    """List every kept point in its block's slice (table.column_slots gave the slices, and
+    restarted p_count as the fill cursor that this counts back up)."""
     for n in range(cell.shape[0]):
         if cell[n] != DROPPED:
             i = m.cell_of_id(cell[n])

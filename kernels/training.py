@@ -6,7 +6,7 @@ training row here.
 
 Three passes, none with float atomics: `sort_blocks`, one task per occupied leaf block, sorts
 the block's points by voxel (a counting sort over its 64 voxels) and counts the voxels that pass
-the filter (>= min_points points, some class evidence) per z layer; `training_slots`, one task
+the filter (>= min_points points, some class evidence) per z layer; `table.column_slots`, one task
 per (x, y) column of the scan's table, hands out the rows, a column's blocks one after another
 in z, so that any z-range of a column is one contiguous slice (kernels/bki.py); `write_training`,
 one task per block again, sums each voxel's run of points into its row. Tasks per block rather
@@ -15,7 +15,7 @@ than per column keep thousands of them busy on a GPU.
 import taichi as ti
 
 from kernels.fusion import fuse_voxel
-from kernels.layout import EMPTY_LO, LAYER_BITS, LEAF, local_of_index, rows_to
+from kernels.layout import LAYER_BITS, LEAF, local_of_index, rows_to
 from kernels.rasterize import EVIDENCE, to_local
 
 VOXELS = LEAF ** 3
@@ -76,26 +76,6 @@ def sort_blocks(m: ti.template(), min_points: ti.i32,
     for b in range(blocks.shape[0]):
         i = m.cell_of_id(blocks[b])
         m.b_layers[i] = sort_block(m, i, min_points, code, perm, perm2)
-
-
-@ti.kernel
-def training_slots(m: ti.template()) -> ti.i32:
-    """Hand each block its slice of the training arrays, the blocks of a column one after
-    another in z (so that any z-range of a column is one slice, kernels/bki.py); every cell of
-    the column's z-range gets its start, empty ones too. Returns the number of rows."""
-    m.counter[None] = 0
-    for cx, cy in m.col_lo:
-        lo, hi = m.col_lo[cx, cy], m.col_hi[cx, cy]
-        if lo <= hi:
-            total = 0
-            for cz in range(lo, hi + 1):
-                total += rows_to(m.b_layers[cx, cy, cz], LEAF - 1)
-            if total > 0:
-                slot = ti.atomic_add(m.counter[None], total)
-                for cz in range(lo, hi + 1):
-                    m.b_start[cx, cy, cz] = slot
-                    slot += rows_to(m.b_layers[cx, cy, cz], LEAF - 1)
-    return m.counter[None]
 
 
 @ti.kernel
@@ -215,17 +195,3 @@ def write_row(m: ti.template(), u, slot, centroid, hist, t, unit_weight, ell_min
     # taichi 1.7.4 it leaves the bit clear when it has to allocate the block first (caught by
     # tests/test_kernels.py), and it warns about int32 indices at every compile
     m.t_last[u] = m.t_last[u]
-
-
-@ti.kernel
-def clear_table(m: ti.template()):
-    """Reset the scan's table: every cell of every used column's z-range."""
-    for cx, cy in m.col_lo:
-        lo, hi = m.col_lo[cx, cy], m.col_hi[cx, cy]
-        if lo <= hi:
-            for cz in range(lo, hi + 1):
-                m.p_count[cx, cy, cz] = 0
-                m.b_start[cx, cy, cz] = 0
-                m.b_layers[cx, cy, cz] = 0
-            m.col_lo[cx, cy] = EMPTY_LO
-            m.col_hi[cx, cy] = -1

@@ -13,7 +13,7 @@ import math
 import numpy as np
 import taichi as ti
 
-from kernels import bki, entropy, rasterize, training
+from kernels import bki, entropy, rasterize, table, training
 from kernels.layout import LAYER_BITS, LEAF
 from tisem.backend import init_taichi
 from tisem.config import MapperConfig
@@ -171,8 +171,7 @@ class StageRecorder:
         monkeypatch.setattr(rasterize, "locate_points", self._after_locate(rasterize.locate_points))
         monkeypatch.setattr(rasterize, "scatter_points",
                             self._after_scatter(rasterize.scatter_points))
-        monkeypatch.setattr(training, "training_slots",
-                            self._after_slots(training.training_slots))
+        monkeypatch.setattr(table, "column_slots", self._after_slots(table.column_slots))
         monkeypatch.setattr(training, "write_training",
                             self._after_training(training.write_training))
 
@@ -211,9 +210,11 @@ class StageRecorder:
         return wrapped
 
     def _after_slots(self, kernel):
-        def wrapped(m):
-            self._rows = kernel(m)
-            return self._rows
+        def wrapped(m, count, *args):
+            total = kernel(m, count, *args)
+            if count is table.rows_in:      # (the other call hands out the points' slots)
+                self._rows = total
+            return total
         return wrapped
 
     def _after_training(self, kernel):
@@ -230,7 +231,7 @@ class StageRecorder:
             rows = np.concatenate([np.arange(s, s + c) for s, c in zip(start[used], count[used])]
                                   or [np.zeros(0, np.int64)])
             assert len(np.unique(rows)) == len(rows), "two blocks' slices overlap"
-            assert len(rows) == n, f"training_slots handed out {n} rows, the table holds {len(rows)}"
+            assert len(rows) == n, f"column_slots handed out {n} rows, the table holds {len(rows)}"
             xyz, hist = args[-4][rows], args[-3][rows]
             mp = self.mapper
             centroid = xyz.astype(np.float64) + mp.origin_vox * mp.res

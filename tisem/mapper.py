@@ -17,7 +17,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import taichi as ti
 
-from kernels import bki, query as kquery, rasterize, training, window
+from kernels import bki, query as kquery, rasterize, table, training, window
 from kernels.layout import LEAF, TOP, MapFields, storage_extent
 from tisem import backend
 from tisem.config import MapperConfig
@@ -200,13 +200,13 @@ class Mapper:
         # along columns, as the kernel update will (~1 ms less than the points' order)
         blocks = blocks[:int(stats[rasterize.BLOCKS])]
         blocks.sort()
-        rasterize.point_slots(m)
+        table.column_slots(m, table.points_in, m.p_start, True)
         rasterize.scatter_points(m, cell, perm)
         clock("rasterize")
         center_v = _ivec(center)
         stamp = self.scans + 1
         training.sort_blocks(m, cfg.min_points, blocks, code, perm, perm2)
-        n = training.training_slots(m)
+        n = table.column_slots(m, table.rows_in, m.b_start, False)
         rep.training_voxels = int(n)
         train = self._buf.training(max(n, 1), self.C)
         ell_min = cfg.ell_min_m if cfg.adaptive else cfg.ell_fixed_vox * self.res
@@ -219,7 +219,7 @@ class Mapper:
             bki.gather_update(m, center_v, stamp, t_rel, self._inv_tau, self.res, cfg.sigma0,
                               cfg.prior, ell_min, cfg.ell_max_m, *train, self._per_voxel)
         clock("kernel")
-        training.clear_table(m)
+        table.clear_table(m)
         clock("clear")
         self._finish(scan)
         return rep
