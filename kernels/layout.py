@@ -113,9 +113,9 @@ class MapFields:
         # The scan's table: a dense grid of leaf blocks centred on the sensor's block, covering
         # every block a kept point can fall in plus the blocks a kernel reaches from there.
         # Per block: the scan's points (count, first slot in the block-sorted point order) and
-        # its training points (count, first slot in the block-sorted training arrays). The kernel
-        # update looks the training slices up tens of times per voxel, and a dense read is
-        # several times cheaper than a sparse one.
+        # its training points (first slot in the block-sorted training arrays, rows per z
+        # layer). The kernel update looks the training slices up tens of times per voxel, and a
+        # dense read is several times cheaper than a sparse one.
         self.table_half = tuple(int(h) for h in table_half)
         self.table_shape = tuple(2 * h + 1 for h in self.table_half)
         self.p_count = ti.field(ti.i32)
