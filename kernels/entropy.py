@@ -61,9 +61,15 @@ def entropy_with_common(p, num_real: ti.template(), common, common_plogp):
 
 
 @ti.func
+def length_of(h_norm, ell_min, ell_max):
+    """L(v) = L_min + (L_max - L_min) * H(v), H the normalised entropy of p(c|v)."""
+    return ell_min + (ell_max - ell_min) * h_norm
+
+
+@ti.func
 def adaptive_length(p, ell_min, ell_max, num_real: ti.template()):
-    """L(v) = L_min + (L_max - L_min) * normalised entropy of p(c|v)."""
-    return ell_min + (ell_max - ell_min) * normalized_entropy(p, num_real)
+    """The kernel length of unnormalised p(c|v)."""
+    return length_of(normalized_entropy(p, num_real), ell_min, ell_max)
 
 
 @ti.func
@@ -77,4 +83,4 @@ def fresh_length(m: ti.template(), u, hist: ti.template(), row, t, inv_tau, prio
     prior_plogp = 0.0
     if prior > 0:
         prior_plogp = prior * fast_log(prior)
-    return ell_min + (ell_max - ell_min) * entropy_with_common(p, m.C - 1, prior, prior_plogp)
+    return length_of(entropy_with_common(p, m.C - 1, prior, prior_plogp), ell_min, ell_max)

@@ -36,11 +36,13 @@ EMPTY_LO = 1 << 30   # col_lo of a column without points (any z cell is below it
 def block_and_local(w):
     """World voxel w -> (its leaf block, its index 0..63 inside the block, z slowest).
 
-    Exact for negative indices (two's complement masks, then an exact division). Sorting a
-    block's voxels by this index puts each z layer of the block in one run.
+    Exact for negative indices (arithmetic shifts and two's complement masks; Taichi's integer
+    floor division would add a sign fix-up per point). Sorting a block's voxels by this index
+    puts each z layer of the block in one run.
     """
     local = ti.Vector([w[0] & (LEAF - 1), w[1] & (LEAF - 1), w[2] & (LEAF - 1)])
-    return (w - local) // LEAF, (local[2] * LEAF + local[1]) * LEAF + local[0]
+    blk = ti.Vector([w[0] >> LEAF_BITS, w[1] >> LEAF_BITS, w[2] >> LEAF_BITS])
+    return blk, (local[2] * LEAF + local[1]) * LEAF + local[0]
 
 
 @ti.func

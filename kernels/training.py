@@ -115,7 +115,7 @@ def write_block(m: ti.template(), i, world_blk, slot, t, min_points, unit_weight
                 perm2: ti.template(), out_xyz: ti.template(), out_hist: ti.template(),
                 out_classes: ti.template(), out_single: ti.template()):
     """Sum each voxel's run of points (perm2, sorted by voxel) and write the kept ones' rows
-    from `slot` on; returns the next free slot."""
+    from `slot` on."""
     s = m.p_start[i]
     end = s + m.p_count[i]
     npts = 0
@@ -154,7 +154,6 @@ def write_block(m: ti.template(), i, world_blk, slot, t, min_points, unit_weight
             evidence = 0
             xyz_sum = ti.Vector([0.0, 0.0, 0.0])
             h = ti.Vector([0.0] * m.C)
-    return slot
 
 
 @ti.func

@@ -192,7 +192,7 @@ class StageRecorder:
             keys, inv, npts = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
             labelled = np.bincount(inv.reshape(-1), code[used] // rasterize.EVIDENCE, len(keys))
             self.located.append(dict(keys=keys, npts=npts, labelled=labelled,
-                                     cell=cell.copy(), used=int(used.sum())))
+                                     used=int(used.sum())))
             return fates
         return wrapped
 

@@ -187,9 +187,10 @@ class Mapper:
         R_ti, t_ti = ti.Matrix(R.tolist()), ti.Vector(t_local.tolist())
         evidence = (labels, self._no_probs, False) if probs is None else \
             (self._no_labels, probs, True)
+        center_v = _ivec(center)
         cell, code, perm, perm2, blocks = self._buf.points(len(pts))
         stats = rasterize.locate_points(
-            m, pts, *evidence, R_ti, t_ti, _ivec(center), _ivec(self._limit),
+            m, pts, *evidence, R_ti, t_ti, center_v, _ivec(self._limit),
             cfg.min_range_m ** 2, cfg.max_range_m ** 2, cfg.min_z_m, cfg.max_z_m, 1.0 / self.res,
             cell, code, blocks)
         rep.used = int(stats[rasterize.USED])
@@ -203,7 +204,6 @@ class Mapper:
         table.column_slots(m, table.points_in, m.p_start, True)
         rasterize.scatter_points(m, cell, perm)
         clock("rasterize")
-        center_v = _ivec(center)
         stamp = self.scans + 1
         training.sort_blocks(m, cfg.min_points, blocks, code, perm, perm2)
         n = table.column_slots(m, table.rows_in, m.b_start, False)
