@@ -50,9 +50,9 @@ def parse_args(argv=None):
     return p.parse_args(argv)
 
 
-def _raw_labels(path: Path, finite: np.ndarray, label_type: str) -> np.ndarray:
-    """The raw .label values, for the points the shared reader kept (it drops non-finite)."""
-    raw = np.fromfile(path, dtype="<u4")[finite]
+def _raw_labels(path: Path, label_type: str) -> np.ndarray:
+    """The raw .label values, one per point of the scan (the reader keeps every point)."""
+    raw = np.fromfile(path, dtype="<u4")
     return raw if label_type == "uint32" else (raw & 0xFFFF).astype("<u2")
 
 
@@ -89,14 +89,12 @@ def convert(args) -> dict:
             w.write_transforms([("map", "base_link", stamp_ns, T_map_base)], stamp_ns)
             stem = seq.scan_path(k).stem
             data = np.fromfile(seq.scan_path(k), dtype="<f4").reshape(-1, 4)
-            finite = np.isfinite(data[:, :3]).all(axis=1)
             arr = np.empty(scan.num_points, np.dtype(fields))
             arr["x"], arr["y"], arr["z"] = scan.points_sensor.T
-            arr["intensity"] = data[finite, 3]
-            arr["label"] = _raw_labels(seq.predictions_dir / f"{stem}.label", finite, args.label_type)
+            arr["intensity"] = data[:, 3]
+            arr["label"] = _raw_labels(seq.predictions_dir / f"{stem}.label", args.label_type)
             if seq.has_ground_truth:
-                arr["gt_label"] = _raw_labels(seq.labels_dir / f"{stem}.label", finite,
-                                              args.label_type)
+                arr["gt_label"] = _raw_labels(seq.labels_dir / f"{stem}.label", args.label_type)
             w.write_cloud(args.topic, arr, args.frame_id, stamp_ns, stamp_ns + RECEIVE_LAG_NS,
                           sequence=written)
             written += 1

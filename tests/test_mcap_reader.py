@@ -29,7 +29,7 @@ def test_scans_carry_header_stamp_poses_labels_and_names(tmp_path, compression):
         # the pose is the tf chain at the header stamp, interpolated between 50 Hz samples; at
         # the log time (35 ms later, 5 m/s) it would be 0.175 m off
         assert np.abs(s.T_world_sensor - T).max() < 1e-9
-        assert s.stamp_s == stamp / 1e9 and s.meta["log_time_ns"] - stamp == 35_000_000
+        assert s.stamp_s == stamp / 1e9 and s.source.log_time_ns - stamp == 35_000_000
         assert s.name == f"/velodyne_points@{stamp // 10**9}.{stamp % 10**9:09d}"
         assert np.array_equal(s.points_sensor[:, 1], pts["y"])
         assert np.array_equal(s.labels, raw_to_train(pts["label"])[0])

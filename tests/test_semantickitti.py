@@ -10,7 +10,7 @@ from tisem.errors import DatasetError, ScanError, SkippedScan
 from tisem.io.semantickitti import (SemanticKittiSequence, camera_poses_to_lidar, read_calib_tr,
                                     read_poses, write_predictions)
 from tisem.labels import LEARNING_MAP_INV, raw_to_train
-from tisem.scan import Scan
+from tisem.scan import Scan, finite_rows
 
 # A KITTI-like calibration: camera x = -lidar y, camera y = -lidar z, camera z = lidar x,
 # plus a small lever arm t = (0, -0.08, -0.27).
@@ -97,7 +97,7 @@ def test_real_mini_sequence(kitti_mini):
         assert 122_856 <= s.num_points <= 123_433
         assert s.labels.dtype == np.int32 and s.gt_labels.shape == s.labels.shape
         assert s.labels.min() >= 1 and s.labels.max() <= 19          # predictions never 0
-        assert s.meta["unknown_raw_ids"] == 0 and s.meta["dropped_nonfinite"] == 0
+        assert s.source.unknown_raw_ids == 0 and finite_rows(s.points_sensor).all()
         assert Path(s.name).name == f"{s.index:06d}.bin"
     assert sum(s.num_points for s in scans) == 615_906
     # frame range and `input=labels`
@@ -248,26 +248,29 @@ def test_missing_poses_and_calib(tmp_path):
         SemanticKittiSequence(d3)
 
 
-def test_nonfinite_points_dropped_and_counted(tmp_path):
+def test_nonfinite_points_kept_in_place_for_the_mapper(tmp_path):
+    """The reader keeps every point of the file (the predictions file holds one label per
+    point); which ones are non-finite is decided by one rule, `finite_rows`, that the mapper
+    drops them by and the evaluation ignores them by."""
     d = make_sequence(tmp_path / "seq")
     path = d / "velodyne" / "000000.bin"
     pts = np.fromfile(path, "<f4").reshape(-1, 4)
     pts[3, 0] = np.nan
     pts[10, 2] = np.inf
     pts[11, 1] = -np.inf
-    pts[20, 3] = np.nan            # NaN remission only: the point is kept
+    pts[20, 3] = np.nan            # NaN remission only: the point is finite
     pts.tofile(path)
     gt_as_input = SemanticKittiSequence(d, input="labels")
     s = SemanticKittiSequence(d)[0]
-    assert s.meta["dropped_nonfinite"] == 3 and s.num_points == 47
-    assert np.isfinite(s.points_sensor).all()
     keep = np.ones(50, bool)
     keep[[3, 10, 11]] = False
+    assert s.num_points == 50
+    np.testing.assert_array_equal(finite_rows(s.points_sensor), keep)
     raw = np.fromfile(d / "predictions" / "000000.label", "<u4")
-    np.testing.assert_array_equal(s.labels, raw_to_train(raw)[0][keep])
+    np.testing.assert_array_equal(s.labels, raw_to_train(raw)[0])
     np.testing.assert_array_equal(s.gt_labels, s.labels)
-    np.testing.assert_array_equal(s.points_sensor, pts[keep, :3])
-    assert gt_as_input[0].meta["dropped_nonfinite"] == 3
+    np.testing.assert_array_equal(s.points_sensor[keep], pts[keep, :3])
+    np.testing.assert_array_equal(finite_rows(gt_as_input[0].points_sensor), keep)
     # every point non-finite: a ScanError, the others still load
     pts[:, 1] = np.nan
     pts.tofile(path)
@@ -284,7 +287,7 @@ def test_unknown_raw_ids_map_to_zero_and_are_counted(tmp_path):
     raw[:4] = [2, 999, 65535, (5 << 16) | 12345]
     raw.tofile(lab)
     s = SemanticKittiSequence(d)[0]
-    assert s.meta["unknown_raw_ids"] == 4 and s.meta["unknown_raw_ids_gt"] == 0
+    assert s.source.unknown_raw_ids == 4 and s.source.unknown_gt_ids == 0
     np.testing.assert_array_equal(s.labels[:4], 0)
     assert (s.labels[4:] > 0).all()
 

@@ -32,6 +32,7 @@ import numpy as np
 
 from tisem.config import RunConfig, _apply, mapper_config_from_dict, to_dict
 from tisem.errors import SkippedScan
+from tisem.geometry import block_aligned_origin
 from tisem.io import mapfile
 from tisem.snapshot import MapSnapshot
 
@@ -76,10 +77,9 @@ def _map_file(path: str | os.PathLike) -> Path:
 def _state_from_snapshot(snapshot: MapSnapshot) -> dict:
     """A mapper state for a map file written without one: origin at the block-aligned median
     key (keeps relative keys small), t0 at the oldest update, window at the origin."""
-    from kernels.layout import TOP
     if len(snapshot) == 0:
         return {"origin_vox": None}
-    origin = (np.median(snapshot.keys, axis=0).astype(np.int64) // TOP) * TOP
+    origin = block_aligned_origin(np.median(snapshot.keys, axis=0).astype(np.int64))
     return {"origin_vox": origin.tolist(), "t0": float(snapshot.t_last.min()),
             "center_vox": [0, 0, 0], "scans": 0, "last_stamp_s": None}
 

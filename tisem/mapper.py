@@ -21,7 +21,8 @@ from kernels import bki, query as kquery, rasterize, table, training, window
 from kernels.layout import LEAF, TOP, MapFields, storage_extent
 from tisem import backend
 from tisem.config import MapperConfig
-from tisem.scan import Scan
+from tisem.geometry import block_aligned_origin
+from tisem.scan import Scan, finite_rows
 from tisem.snapshot import MapSnapshot
 from tisem.store import KEY_LIMIT, BlockStore
 
@@ -35,13 +36,6 @@ MAX_POINTS = 2 ** 24
 # (4 int32 fields; the near table adds an eighth of that), and int32 cell ids
 TABLE_BYTES_PER_CELL = 18
 MAX_TABLE_CELLS = 2 ** 28
-
-
-def _finite_rows(a: np.ndarray) -> np.ndarray:
-    """Which rows of a are all finite; a flat all() first, ~30x cheaper than the per-row one,
-    as scans are almost always clean."""
-    finite = np.isfinite(a)
-    return np.ones(len(a), bool) if finite.all() else finite.all(axis=1)
 
 
 def _ivec(a) -> ti.Vector:
@@ -253,7 +247,7 @@ class Mapper:
             raise ValueError(f"{where}: {scan.num_points:,} points; tisem takes at most "
                              f"{MAX_POINTS - 1:,} per scan")
         pts = np.ascontiguousarray(scan.points_sensor, dtype=np.float32)
-        finite = _finite_rows(pts)
+        finite = finite_rows(pts)
         rep.dropped_nonfinite = int(len(pts) - np.count_nonzero(finite))
         if rep.dropped_nonfinite:
             pts = pts.copy()
@@ -279,7 +273,7 @@ class Mapper:
         if self.origin_vox is None:
             # the origin is block-aligned at the first sensor position, so local coordinates stay
             # small (float32 keeps mm precision within ~10 km of it)
-            self.origin_vox = (np.floor(T[:3, 3] / self.res).astype(np.int64) // TOP) * TOP
+            self.origin_vox = block_aligned_origin(np.floor(T[:3, 3] / self.res))
             self.t0 = float(scan.stamp_s)
         t_local = T[:3, 3] - self.origin_vox * self.res
         if np.any(np.abs(t_local) / self.res + self.half_vox > KEY_LIMIT):
@@ -420,7 +414,7 @@ class Mapper:
         probs = np.zeros((n, self.C), np.float32) if with_probs else None
         if self.origin_vox is None or n == 0:
             return labels, probs
-        finite = _finite_rows(pts)
+        finite = finite_rows(pts)
         # local coordinates; far or non-finite points are clamped so their voxel index still fits
         # an int32 in the kernel (they land outside the window either way)
         local = pts - self.origin_vox * self.res

@@ -24,7 +24,7 @@ from tisem.errors import ScanError, SkippedScan
 from tisem.evaluate import Confusion, format_table
 from tisem.io.semantickitti import write_predictions
 from tisem.mapper import Mapper
-from tisem.scan import Scan
+from tisem.scan import Scan, finite_rows
 
 log = logging.getLogger(__name__)
 
@@ -64,9 +64,8 @@ class DropLog:
         self.scans[:0] = saved.get("scans", [])
 
     def add(self, scan: Scan, report) -> None:
-        counts = {"dropped_nonfinite": scan.meta.get("dropped_nonfinite", 0)
-                  + report.dropped_nonfinite,
-                  "unknown_raw_ids": scan.meta.get("unknown_raw_ids", 0),
+        counts = {"dropped_nonfinite": report.dropped_nonfinite,
+                  "unknown_raw_ids": scan.source.unknown_raw_ids if scan.source else 0,
                   "dropped_range": report.dropped_range, "dropped_far": report.dropped_far,
                   "dropped_window": report.dropped_window}
         for k, v in counts.items():
@@ -87,14 +86,13 @@ def _input_labels(scan: Scan) -> np.ndarray:
     return lab
 
 
-def _per_file_point(scan: Scan, labels: np.ndarray) -> np.ndarray:
-    """One label per point of the source file: points the reader dropped (NaN/inf) get 0."""
-    kept = scan.meta.get("kept")
-    if kept is None:
-        return labels
-    full = np.zeros(scan.meta["file_points"], np.int32)
-    full[kept] = labels
-    return full
+def _score(conf: Confusion, scan: Scan, labels: np.ndarray) -> None:
+    """Add a scan's answers to a confusion; non-finite points are no measurement: not scored."""
+    ok = finite_rows(scan.points_sensor)
+    if ok.all():
+        conf.add(scan.gt_labels, labels)
+    else:
+        conf.add(scan.gt_labels[ok], labels[ok])
 
 
 def _reiterable(scans: Iterable) -> bool:
@@ -173,10 +171,10 @@ def run_pipeline(scans: Iterable[Scan | SkippedScan], cfg: RunConfig, out_dir: s
             continue
         trajectory.append(item.T_world_sensor[:3, 3])
         if item.gt_labels is not None:
-            input_conf.add(item.gt_labels, _input_labels(item))
+            _score(input_conf, item, _input_labels(item))
             if cfg.online_eval:
                 labels, _ = mapper.query(item.points_world(), with_probs=False)
-                online.add(item.gt_labels, labels)
+                _score(online, item, labels)
         if keep_in_memory:
             kept.append(item)
         if on_scan is not None:
@@ -195,9 +193,9 @@ def run_pipeline(scans: Iterable[Scan | SkippedScan], cfg: RunConfig, out_dir: s
         if isinstance(item, SkippedScan):
             continue
         labels, _ = mapper.query(item.points_world(), with_probs=False)
-        write_predictions(pred_root, sequence_name, item.index, _per_file_point(item, labels))
+        write_predictions(pred_root, sequence_name, item.index, labels)
         if item.gt_labels is not None:
-            final.add(item.gt_labels, labels)
+            _score(final, item, labels)
 
     mapped = len(seconds)
     metrics = {

@@ -15,7 +15,7 @@ from tisem.config import MapperConfig
 from tisem.preprocess import select_points
 from tisem.scan import Scan, to_frame
 from kernels.bki import MIN_UPDATE
-from kernels.layout import TOP
+from tisem.geometry import block_aligned_origin
 
 
 def sparse_kernel(r: np.ndarray) -> np.ndarray:
@@ -101,7 +101,7 @@ class ReferenceMapper:
         sel = select_points(scan, cfg)
         T = scan.T_world_sensor
         if self.origin_vox is None:
-            self.origin_vox = (np.floor(T[:3, 3] / self.res).astype(np.int64) // TOP) * TOP
+            self.origin_vox = block_aligned_origin(np.floor(T[:3, 3] / self.res))
             self.t0 = float(scan.stamp_s)
         local = to_frame(sel.points_sensor, T, self.origin_vox * self.res)
         keys, npts, centroid, hist = voxel_histograms(local, sel, self.res, self.C)

@@ -43,7 +43,7 @@ from tisem.errors import DatasetError, ScanError, SkippedScan
 from tisem.io import pointcloud2 as pc2
 from tisem.io.tf import POSE_SCHEMAS, TF_SCHEMAS, TfBuffer, TfError, make_transform, pose_edges
 from tisem.labels import NUM_CLASSES, raw_to_train
-from tisem.scan import Scan
+from tisem.scan import McapSource, Scan
 
 log = logging.getLogger(__name__)
 
@@ -732,8 +732,8 @@ class McapScanReader:
                 self.report.unknown_gt_labels += unknown
             return Scan(points_sensor=points, T_world_sensor=T, stamp_s=stamp_ns / 1e9,
                         labels=labels, probs=probs, gt_labels=gt, index=index, name=name,
-                        meta={"topic": self.topic, "frame_id": frame_id, "stamp_ns": stamp_ns,
-                              "log_time_ns": rec.log_time})
+                        source=McapSource(topic=self.topic, frame_id=frame_id,
+                                          stamp_ns=stamp_ns, log_time_ns=rec.log_time))
         except (TfError, pc2.CloudFormatError, ScanError) as e:
             return SkippedScan(index, name, str(e))
         except Exception as e:  # noqa: BLE001 - undecodable bytes raise anything

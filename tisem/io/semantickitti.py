@@ -28,7 +28,7 @@ import numpy as np
 
 from tisem.errors import DatasetError, ScanError, SkippedScan
 from tisem.labels import raw_to_train, train_to_raw
-from tisem.scan import Scan
+from tisem.scan import KittiSource, Scan, finite_rows
 
 __all__ = [
     "SemanticKittiSequence",
@@ -384,15 +384,10 @@ class SemanticKittiSequence:
                         raise ScanError(f"{gt_path}: label count differs from point count: "
                                         f"{raw_gt.size} labels for {n} points in "
                                         f"{bin_path.name}", sid, name)
-            finite = np.isfinite(data[:, :3]).all(axis=1)
-            dropped = int(n - np.count_nonzero(finite))
-            if dropped == n:
+            # non-finite points stay: the mapper drops them (tisem.scan.finite_rows, the one
+            # rule) and the predictions file keeps one label per point of the .bin
+            if not finite_rows(data[:, :3]).any():
                 raise ScanError(f"{bin_path}: all {n} points are non-finite (NaN/inf)", sid, name)
-            if dropped:
-                data = data[finite]
-                raw_in = raw_in[finite]
-                if raw_gt is not None:
-                    raw_gt = raw_in if self.input == "labels" else raw_gt[finite]
             labels, unknown = raw_to_train(raw_in)
             gt = None
             unknown_gt = 0
@@ -409,12 +404,8 @@ class SemanticKittiSequence:
                 gt_labels=gt,
                 index=sid,
                 name=name,
-                meta={"unknown_raw_ids": unknown, "unknown_raw_ids_gt": unknown_gt,
-                      "dropped_nonfinite": dropped, "input": self.input,
-                      "sequence": self.sequence_name,
-                      # which points of the file these are: predictions are written one per
-                      # point of the .bin, as SemanticKITTI tools expect
-                      "file_points": n, "kept": finite if dropped else None},
+                source=KittiSource(unknown_raw_ids=unknown, unknown_gt_ids=unknown_gt,
+                                   sequence=self.sequence_name, input=self.input),
             )
         except ScanError:
             raise

@@ -85,20 +85,13 @@ def _map_predictions_dir(results_dir: Path, sequence_name: str) -> Path:
 
 
 def _map_labels(path: Path, scan) -> np.ndarray | None:
-    """The map's train ids for `scan`'s points, or None when the file is missing/mismatched.
-
-    The reader drops non-finite points; a predictions file may hold one label per velodyne point
-    instead, and is then aligned with the reader's points through the same finiteness mask.
-    """
+    """The map's train ids for `scan`'s points (one per point of the scan file, as the
+    pipeline writes them), or None when the file is missing or has another length."""
     if not path.is_file():
         return None
     raw = np.fromfile(path, dtype="<u4")
     if raw.size != scan.num_points:
-        dropped = int(scan.meta.get("dropped_nonfinite", 0))
-        if not dropped or raw.size != scan.num_points + dropped or not scan.name:
-            return None
-        xyz = np.fromfile(scan.name, dtype="<f4").reshape(-1, 4)[:, :3]
-        raw = raw[np.isfinite(xyz).all(axis=1)]
+        return None
     return raw_to_train(raw)[0]
 
 
