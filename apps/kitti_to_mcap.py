@@ -10,6 +10,7 @@ truth raw ids from labels/ when present, uint32 with the instance in the upper 1
 `/tf_static` (base_link -> velodyne, a non-identity mount, so the chain is really composed).
 Header stamps come from times.txt (or 10 Hz); log times lag 20 ms like a recorder's. zstd
 chunks by default. Scan k of the selected range is message k (`map_mcap.py` numbers by it).
+The conversion itself is `tisem.io.kitti_mcap.write_kitti_mcap`.
 """
 from __future__ import annotations
 
@@ -18,22 +19,10 @@ import logging
 import sys
 from pathlib import Path
 
-import numpy as np
-
 log = logging.getLogger("kitti_to_mcap")
 
-# base_link -> velodyne: the KITTI roof mount (1.73 m up, 0.81 m ahead of the rear axle) with a
-# small yaw and roll, so that no step of the tf chain is an identity by accident
-_yaw, _roll = np.deg2rad(1.5), np.deg2rad(-0.7)
-T_BASE_VELODYNE = np.array([
-    [np.cos(_yaw), -np.sin(_yaw) * np.cos(_roll), np.sin(_yaw) * np.sin(_roll), 0.81],
-    [np.sin(_yaw), np.cos(_yaw) * np.cos(_roll), -np.cos(_yaw) * np.sin(_roll), -0.32],
-    [0.0, np.sin(_roll), np.cos(_roll), 1.73],
-    [0.0, 0.0, 0.0, 1.0]])
-RECEIVE_LAG_NS = 20_000_000
 
-
-def parse_args(argv=None):
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("data", type=Path, help="a sequence folder, or a dataset root with --sequence")
@@ -50,70 +39,22 @@ def parse_args(argv=None):
     return p.parse_args(argv)
 
 
-def _raw_labels(path: Path, label_type: str) -> np.ndarray:
-    """The raw .label values, one per point of the scan (the reader keeps every point)."""
-    raw = np.fromfile(path, dtype="<u4")
-    return raw if label_type == "uint32" else (raw & 0xFFFF).astype("<u2")
-
-
-def convert(args) -> dict:
-    from tisem.errors import SkippedScan
-    from tisem.io.mcap_writer import Ros2McapWriter
-    from tisem.io.semantickitti import SemanticKittiSequence
-    from tisem.io.tf import invert
-
-    seq = SemanticKittiSequence(args.data, sequence=args.sequence, input="predictions",
-                                first=args.first, last=args.last)
-    label_dtype = "<u4" if args.label_type == "uint32" else "<u2"
-    fields = [("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("intensity", "<f4"), ("label", label_dtype)]
-    if seq.has_ground_truth:
-        fields.append(("gt_label", label_dtype))
-    T_velodyne_base = invert(T_BASE_VELODYNE)
-    written, skipped = 0, []
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    with Ros2McapWriter(args.out, compression=args.compression) as w:
-        w.add_metadata("source", {"sequence_dir": str(seq.sequence_dir), "sequence": seq.sequence_name,
-                                  "scan_ids": ",".join(map(str, seq.scan_ids))})
-        static_done = False
-        for k, scan in enumerate(seq):
-            if isinstance(scan, SkippedScan):
-                skipped.append(scan)
-                log.warning("skipped scan %s: %s", scan.index, scan.reason)
-                continue
-            stamp_ns = int(round(scan.stamp_s * 1e9))
-            if not static_done:   # rosbag2 records /tf_static once, latched, at the start
-                w.write_transforms([("base_link", args.frame_id, stamp_ns, T_BASE_VELODYNE)],
-                                   stamp_ns, static=True)
-                static_done = True
-            T_map_base = scan.T_world_sensor @ T_velodyne_base
-            w.write_transforms([("map", "base_link", stamp_ns, T_map_base)], stamp_ns)
-            stem = seq.scan_path(k).stem
-            data = np.fromfile(seq.scan_path(k), dtype="<f4").reshape(-1, 4)
-            arr = np.empty(scan.num_points, np.dtype(fields))
-            arr["x"], arr["y"], arr["z"] = scan.points_sensor.T
-            arr["intensity"] = data[:, 3]
-            arr["label"] = _raw_labels(seq.predictions_dir / f"{stem}.label", args.label_type)
-            if seq.has_ground_truth:
-                arr["gt_label"] = _raw_labels(seq.labels_dir / f"{stem}.label", args.label_type)
-            w.write_cloud(args.topic, arr, args.frame_id, stamp_ns, stamp_ns + RECEIVE_LAG_NS,
-                          sequence=written)
-            written += 1
-    return {"scans": written, "skipped": skipped, "sequence": seq.sequence_name,
-            "path": args.out, "bytes": args.out.stat().st_size}
-
-
-def main(argv=None) -> int:
+def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO,
                         format="%(levelname)s %(name)s: %(message)s")
     from tisem.errors import DatasetError
+    from tisem.io.kitti_mcap import write_kitti_mcap
     try:
-        info = convert(args)
+        result = write_kitti_mcap(args.data, args.out, sequence=args.sequence, first=args.first,
+                                  last=args.last, compression=args.compression,
+                                  label_type=args.label_type, topic=args.topic,
+                                  frame_id=args.frame_id)
     except DatasetError as exc:
         log.error("%s", exc)
         return 2
-    print(f"wrote {info['path']}: {info['scans']} scans of sequence {info['sequence']} "
-          f"({info['bytes'] / 1e6:.1f} MB, {args.compression}), {len(info['skipped'])} skipped")
+    print(f"wrote {result.path}: {result.scans} scans of sequence {result.sequence} "
+          f"({result.size_bytes / 1e6:.1f} MB, {args.compression}), {len(result.skipped)} skipped")
     return 0
 
 

@@ -22,7 +22,7 @@ from tisem.synth.sequence import ROUTES, write_semantickitti
 log = logging.getLogger("make_synthetic")
 
 
-def parse_args(argv=None) -> argparse.Namespace:
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--out", type=Path, required=True, help="sequence folder to write")
@@ -55,7 +55,7 @@ def summarize(seq_dir: Path, num_scans: int) -> dict:
             "accuracy": correct / max(total, 1)}
 
 
-def main(argv=None) -> int:
+def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     cli.setup_logging(args.verbose)
     try:

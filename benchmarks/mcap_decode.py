@@ -26,7 +26,7 @@ from pathlib import Path
 from benchmarks.common import benchmark_main
 
 
-def parse_args(argv=None):
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--scans", type=int, default=20, help="clouds in the log (default 20)")
@@ -47,9 +47,10 @@ def _median_seconds(fn, runs: int) -> float:
     return statistics.median(times)
 
 
-def run(args) -> dict:
-    from tisem.io.mcap_reader import McapRecords, McapScanReader, ReadReport
-    from tisem.io.mcap_writer import write_synthetic_log
+def run(args: argparse.Namespace) -> dict:
+    from tisem.io.mcap_reader import McapScanReader
+    from tisem.io.mcap_records import McapRecords, ReadReport
+    from tisem.synth.mcap_log import write_synthetic_log
 
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
@@ -86,17 +87,18 @@ def table(result: dict) -> str:
     head = ("| codec | scans x points | file MB | records s | survey s | scans s | ms / scan | "
             "M points/s |\n| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: |\n")
     return head + "\n".join(
-        f"| {r['compression']} | {r['scans']} x {r['points'] // r['scans']:,} | {r['file_mb']:.1f} | "
-        f"{r['records_s']:.3f} | {r['survey_s']:.3f} | {r['scans_s']:.3f} | {r['ms_per_scan']:.1f} | "
+        f"| {r['compression']} | {r['scans']} x {r['points'] // r['scans']:,} | "
+        f"{r['file_mb']:.1f} | {r['records_s']:.3f} | {r['survey_s']:.3f} | {r['scans_s']:.3f} | "
+        f"{r['ms_per_scan']:.1f} | "
         f"{r['points_per_s'] / 1e6:.1f} |" for r in result["rows"])
 
 
 def format_result(result: dict) -> str:
-    return (f"MCAP decode, {result['date']}, {result['machine']}, median of {result['runs']} runs\n\n"
-            + table(result))
+    return (f"MCAP decode, {result['date']}, {result['machine']}, "
+            f"median of {result['runs']} runs\n\n" + table(result))
 
 
-def main(argv=None) -> int:
+def main(argv: list[str] | None = None) -> int:
     return benchmark_main(argv, parse_args, run, format_result)
 
 

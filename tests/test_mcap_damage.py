@@ -13,9 +13,9 @@ from mcap.reader import make_reader
 
 from tisem.errors import DatasetError, SkippedScan
 from tisem.io.mcap_reader import McapOptions, McapScanReader
-from tisem.io.mcap_writer import write_synthetic_log
 from tisem.labels import raw_to_train
 from tisem.scan import Scan
+from tisem.synth.mcap_log import write_synthetic_log
 
 N_SCANS = 6
 
@@ -100,7 +100,8 @@ def test_files_cut_before_any_cloud_give_a_clear_error(tmp_path, size):
     full = tmp_path / "full.mcap"
     write_synthetic_log(full, n_scans=2, n_points=50)
     cut(full, tmp_path / "cut.mcap", size)
-    with pytest.raises(DatasetError, match="no point-cloud messages found.*the file is damaged.*cut"):
+    with pytest.raises(DatasetError,
+                       match="no point-cloud messages found.*the file is damaged.*cut"):
         McapScanReader(tmp_path / "cut.mcap")
 
 

@@ -1,5 +1,6 @@
-"""apps/kitti_to_mcap.py and apps/map_mcap.py: a SemanticKITTI sequence through MCAP gives the
-same scans (and, end to end, the same predictions and metrics) as reading the folder."""
+"""tisem.io.kitti_mcap (apps/kitti_to_mcap.py) and apps/map_mcap.py: a SemanticKITTI sequence
+through MCAP gives the same scans (and, end to end, the same predictions and metrics) as reading
+the folder."""
 from __future__ import annotations
 
 import importlib.util
@@ -12,6 +13,7 @@ import numpy as np
 import pytest
 from mcap.reader import make_reader
 
+from tisem.io.kitti_mcap import KittiMcapResult, write_kitti_mcap
 from tisem.io.mcap_reader import McapOptions, McapScanReader
 from tisem.io.semantickitti import SemanticKittiSequence
 from tisem.io.tf import quat_to_matrix
@@ -24,9 +26,6 @@ def load_app(name: str):
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     return module
-
-
-kitti_to_mcap = load_app("kitti_to_mcap")
 
 
 def write_tiny_sequence(root: Path, n_scans: int = 3, n_points: int = 400, seed: int = 0) -> Path:
@@ -56,8 +55,8 @@ def write_tiny_sequence(root: Path, n_scans: int = 3, n_points: int = 400, seed:
     return root
 
 
-def convert(src: Path, out: Path, *extra: str) -> dict:
-    return kitti_to_mcap.convert(kitti_to_mcap.parse_args([str(src), str(out), *extra]))
+def convert(src: Path, out: Path, **options) -> KittiMcapResult:
+    return write_kitti_mcap(src, out, **options)
 
 
 def assert_same_scans(seq_dir: Path, mcap: Path, pose_tol: float) -> None:
@@ -71,11 +70,11 @@ def assert_same_scans(seq_dir: Path, mcap: Path, pose_tol: float) -> None:
         assert np.abs(a.T_world_sensor - b.T_world_sensor).max() < pose_tol
 
 
-@pytest.mark.parametrize("extra", [(), ("--compression", "lz4", "--label-type", "uint16")])
+@pytest.mark.parametrize("extra", [{}, {"compression": "lz4", "label_type": "uint16"}])
 def test_conversion_round_trips_through_the_reader(tmp_path, extra):
     seq = write_tiny_sequence(tmp_path / "seq")
-    info = convert(seq, tmp_path / "out.mcap", *extra)
-    assert info["scans"] == 3 and not info["skipped"]
+    info = convert(seq, tmp_path / "out.mcap", **extra)
+    assert info.scans == 3 and not info.skipped
     assert_same_scans(seq, tmp_path / "out.mcap", pose_tol=1e-12)
     with open(tmp_path / "out.mcap", "rb") as f:
         reader = make_reader(f)
@@ -90,9 +89,21 @@ def test_conversion_round_trips_through_the_reader(tmp_path, extra):
     assert np.abs(mount - np.eye(4)).max() > 0.1          # a real mount, not an identity
 
 
+def test_app_is_the_library_conversion(tmp_path, capsys):
+    seq = write_tiny_sequence(tmp_path / "seq")
+    app = load_app("kitti_to_mcap")
+    assert app.main([str(seq), str(tmp_path / "app.mcap"), "--compression", "lz4",
+                     "--label-type", "uint16", "--first", "1"]) == 0
+    assert "wrote" in capsys.readouterr().out
+    info = convert(seq, tmp_path / "lib.mcap", compression="lz4", label_type="uint16", first=1)
+    assert info.scans == 2
+    assert (tmp_path / "app.mcap").read_bytes() == (tmp_path / "lib.mcap").read_bytes()
+    assert app.main([str(tmp_path / "missing"), str(tmp_path / "x.mcap")]) == 2
+
+
 def test_real_sequence_round_trips(tmp_path, kitti_mini):
     info = convert(kitti_mini, tmp_path / "08.mcap")
-    assert info["scans"] == 5
+    assert info.scans == 5
     # KITTI's rotations are orthonormal only to ~1e-6; tf carries the nearest rotation
     assert_same_scans(kitti_mini, tmp_path / "08.mcap", pose_tol=2e-6)
 

@@ -72,7 +72,8 @@ def test_decode_matches_the_reference(order, layout, itemsize):
 def test_organised_cloud_with_padded_rows():
     h, w, step, pad = 4, 5, 16, 8
     ref = reference(h * w, seed=3)
-    arr = pack(ref, "<", [("x", "f4", 0), ("y", "f4", 4), ("z", "f4", 8), ("label", "u2", 12)], step)
+    arr = pack(ref, "<", [("x", "f4", 0), ("y", "f4", 4), ("z", "f4", 8), ("label", "u2", 12)],
+               step)
     rows = b"".join(arr[r * w:(r + 1) * w].tobytes() + b"\xee" * pad for r in range(h))
     msg = SimpleNamespace(fields=[SimpleNamespace(name=n, offset=o, datatype=d, count=1)
                                   for n, o, d in (("x", 0, 7), ("y", 4, 7), ("z", 8, 7),

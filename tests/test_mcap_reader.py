@@ -6,9 +6,11 @@ import pytest
 
 from tisem.errors import DatasetError, SkippedScan
 from tisem.io.mcap_reader import McapOptions, McapScanReader
-from tisem.io.mcap_writer import (T_BASE_LIDAR, Ros2McapWriter, pose_msg, stamp_msg,
-                                  synthetic_points, synthetic_pose, write_synthetic_log)
+from tisem.io.mcap_writer import Ros2McapWriter, pose_msg
+from tisem.io.stamps import ros_time
 from tisem.labels import raw_to_train
+from tisem.synth.mcap_log import (T_BASE_LIDAR, synthetic_points, synthetic_pose,
+                                  write_synthetic_log)
 
 T0 = 100_000_000_000
 
@@ -25,7 +27,8 @@ def test_scans_carry_header_stamp_poses_labels_and_names(tmp_path, compression):
     assert (reader.topic, reader.frame_id, reader.total) == ("/velodyne_points", "velodyne", 4)
     scans = list(reader)
     assert [s.index for s in scans] == [0, 1, 2, 3]
-    for s, stamp, T, pts in zip(scans, truth["stamps_ns"], truth["T_world_sensor"], truth["points"]):
+    for s, stamp, T, pts in zip(scans, truth["stamps_ns"], truth["T_world_sensor"],
+                                truth["points"]):
         # the pose is the tf chain at the header stamp, interpolated between 50 Hz samples; at
         # the log time (35 ms later, 5 m/s) it would be 0.175 m off
         assert np.abs(s.T_world_sensor - T).max() < 1e-9
@@ -156,7 +159,7 @@ def test_scans_outside_the_tf_range_are_skipped_with_the_reason(tmp_path):
 
 def _odometry(T, stamp, child="base_link"):
     zeros = {"x": 0.0, "y": 0.0, "z": 0.0}
-    return {"header": {"stamp": stamp_msg(stamp), "frame_id": "map"}, "child_frame_id": child,
+    return {"header": {"stamp": ros_time(stamp), "frame_id": "map"}, "child_frame_id": child,
             "pose": {"pose": pose_msg(T), "covariance": [0.0] * 36},
             "twist": {"twist": {"linear": zeros, "angular": zeros}, "covariance": [0.0] * 36}}
 
@@ -175,7 +178,7 @@ def test_pose_topic_instead_of_tf(tmp_path, kind):
                 w.write("/odom", "nav_msgs/msg/Odometry", _odometry(T, t), t)
             else:   # no child frame in the message: the top of the sensor's static mount
                 w.write("/pose", "geometry_msgs/msg/PoseStamped",
-                        {"header": {"stamp": stamp_msg(t), "frame_id": "map"},
+                        {"header": {"stamp": ros_time(t), "frame_id": "map"},
                          "pose": pose_msg(T)}, t)
         w.write_cloud("/points", synthetic_points(10, rng), "velodyne", T0 + 123_000_000,
                       T0 + 150_000_000)
@@ -238,7 +241,7 @@ def test_pose_stamped_of_the_sensor_itself(tmp_path):
         for k in range(3):
             t = T0 + k * 50_000_000
             w.write("/pose", "geometry_msgs/msg/PoseStamped",
-                    {"header": {"stamp": stamp_msg(t), "frame_id": ""},     # empty: the map
+                    {"header": {"stamp": ros_time(t), "frame_id": ""},     # empty: the map
                      "pose": pose_msg(synthetic_pose(k * 0.05))}, t)
         w.write_cloud("/points", synthetic_points(10, np.random.default_rng(0)), "velodyne",
                       T0 + 75_000_000, T0 + 75_000_000)

@@ -54,7 +54,8 @@ def test_map_reads_back_as_the_same_voxels_and_labels(tmp_path, resolution_m):
     assert np.array_equal(pts["label"], snap.labels())
     assert np.array_equal(pts["probability"], snap.confidence().astype(np.float32))
     rgba = np.stack([pts[c] for c in ("red", "green", "blue", "alpha")], 1)
-    assert np.array_equal(rgba[:, :3], CLASS_COLORS_RGB[snap.labels()]) and np.all(rgba[:, 3] == 255)
+    assert np.array_equal(rgba[:, :3], CLASS_COLORS_RGB[snap.labels()])
+    assert np.all(rgba[:, 3] == 255)
     table = {int(k): json.loads(v) for k, v in metadata["semantic_classes"].items()}
     assert [table[i] for i in range(20)] == class_table()
     assert float(metadata["tisem_map"]["resolution_m"]) == resolution_m

@@ -10,8 +10,8 @@ import pytest
 from tisem.labels import LEARNING_MAP_INV, raw_to_train
 from tisem.synth import SyntheticSequence, iter_synthetic, to_scan, write_semantickitti
 from tisem.synth.lidar import Lidar, ray_distances
-from tisem.synth.scene import (SHAPE_KINDS, Boxes, Cylinders, Ellipsoids, ShapeSet, make_rng,
-                               MOVING_CAR, PERSON_INSTANCE)
+from tisem.synth.scene import MOVING_CAR, PERSON_INSTANCE, make_rng
+from tisem.synth.shapes import SHAPE_KINDS, Boxes, Cylinders, Ellipsoids, ShapeSet
 from tisem.synth.sequence import kitti08_tr
 
 SCENE_RAW_IDS = {10, 252, 30, 40, 44, 48, 50, 51, 70, 71, 72, 80, 81}
@@ -148,7 +148,8 @@ def test_moving_car_and_person_move(street):
         return (p @ f.T_world_lidar[:3, :3].T + f.T_world_lidar[:3, 3]).mean(axis=0)
 
     # the moving car, seen in the data: it travels metres in 0.4 s
-    shift = np.linalg.norm(world_centroid(street[4], MOVING_CAR) - world_centroid(street[0], MOVING_CAR))
+    shift = np.linalg.norm(world_centroid(street[4], MOVING_CAR)
+                           - world_centroid(street[0], MOVING_CAR))
     assert shift > 2.0
     # the person walks (their primitives move between scan times)
     seq = SyntheticSequence(5, seed=0)
@@ -206,7 +207,7 @@ def test_loop_revisit_sees_the_same_scene():
     first = seq.frame(0, dynamic=False)
     for i in (250, 500, 750):                 # round the loop: the start's tiles leave the cache
         seq.frame(i, dynamic=False)
-    assert seq.world.tile_id(0.0) not in seq.world._tiles
+    assert seq.world.tile_id(0.0) not in seq.world.cached_tile_ids
     again = seq.frame(revisit, dynamic=False)
     np.testing.assert_array_equal(again.gt_raw, first.gt_raw)
     np.testing.assert_allclose(again.points, first.points, atol=0.2)   # only range noise differs

@@ -16,7 +16,7 @@ from __future__ import annotations
 import itertools
 import json
 from pathlib import Path
-from typing import Iterable
+from typing import BinaryIO, Iterable
 
 import numpy as np
 from mcap.well_known import SchemaEncoding
@@ -27,6 +27,7 @@ from mcap.writer import Writer as McapWriter
 from mcap_ros2._dynamic import serialize_dynamic
 
 from tisem.io.pointcloud2 import array_to_foxglove_cloud, array_to_ros_cloud
+from tisem.io.stamps import ros_time, seconds_to_ns
 from tisem.io.tf import matrix_to_quat
 from tisem.labels import CLASS_COLORS_RGB, class_table
 from tisem.scan import Scan
@@ -87,15 +88,10 @@ def ros2_msgdef(type_name: str) -> str:
     return text + "".join(f"{_SEPARATOR}MSG: {d}\n{_DEPENDENCIES[d]}" for d in deps)
 
 
-def stamp_msg(stamp_ns: int) -> dict:
-    sec, nanosec = divmod(int(stamp_ns), 1_000_000_000)
-    return {"sec": sec, "nanosec": nanosec}
-
-
 def transform_stamped(parent: str, child: str, stamp_ns: int, T_parent_child: np.ndarray) -> dict:
     T = np.asarray(T_parent_child, dtype=np.float64)
     q = matrix_to_quat(T[:3, :3])
-    return {"header": {"stamp": stamp_msg(stamp_ns), "frame_id": parent},
+    return {"header": {"stamp": ros_time(stamp_ns), "frame_id": parent},
             "child_frame_id": child,
             "transform": {"translation": dict(zip("xyz", map(float, T[:3, 3]))),
                           "rotation": dict(zip("xyzw", map(float, q)))}}
@@ -114,10 +110,12 @@ class Ros2McapWriter:
     rosbag2's presets (no chunk CRC; `fastwrite`: no chunks; no summary at all).
     """
 
-    def __init__(self, output, *, compression: str = "zstd", chunk_size: int = 1 << 20,
-                 crcs: bool = True, chunked: bool = True, indexed: bool = True):
+    def __init__(self, output: str | Path | BinaryIO, *, compression: str = "zstd",
+                 chunk_size: int = 1 << 20, crcs: bool = True, chunked: bool = True,
+                 indexed: bool = True) -> None:
         if compression not in COMPRESSION:
-            raise ValueError(f"compression must be one of {sorted(COMPRESSION)}, got {compression!r}")
+            raise ValueError(f"compression must be one of {sorted(COMPRESSION)}, "
+                             f"got {compression!r}")
         self._file = open(output, "wb") if isinstance(output, (str, Path)) else None
         self._writer = McapWriter(
             self._file or output, chunk_size=chunk_size, compression=COMPRESSION[compression],
@@ -164,10 +162,10 @@ class Ros2McapWriter:
             self._file.close()
             self._file = None
 
-    def __enter__(self):
+    def __enter__(self) -> Ros2McapWriter:
         return self
 
-    def __exit__(self, *exc) -> None:
+    def __exit__(self, *exc: object) -> None:
         self.finish()
 
 
@@ -218,7 +216,7 @@ def scan_points(scan: Scan, mapped_labels: np.ndarray) -> np.ndarray:
     return out
 
 
-def write_map_mcap(path, snapshot: MapSnapshot, frame_id: str = "map",
+def write_map_mcap(path: str | Path, snapshot: MapSnapshot, frame_id: str = "map",
                    scans: Iterable[tuple[Scan, np.ndarray]] | None = None, *,
                    compression: str = "zstd", stamp_ns: int | None = None) -> dict:
     """Write the map (and optionally the scans with their mapped labels) as an MCAP file.
@@ -235,9 +233,9 @@ def write_map_mcap(path, snapshot: MapSnapshot, frame_id: str = "map",
     first = next(scans, None)
     if stamp_ns is None:
         if first is not None:
-            stamp_ns = int(round(first[0].stamp_s * 1e9))
+            stamp_ns = seconds_to_ns(first[0].stamp_s)
         else:
-            stamp_ns = int(round(float(snapshot.t_last.max()) * 1e9)) if len(snapshot) else 0
+            stamp_ns = seconds_to_ns(float(snapshot.t_last.max())) if len(snapshot) else 0
     stamp_ns = max(int(stamp_ns), 0)
     n_scans = 0
     with open(path, "wb") as f:
@@ -253,7 +251,7 @@ def write_map_mcap(path, snapshot: MapSnapshot, frame_id: str = "map",
                                                                 stamp_ns),
                              log_time=stamp_ns, publish_time=stamp_ns)
         for scan, mapped in itertools.chain([first] if first is not None else [], scans):
-            t = max(int(round(scan.stamp_s * 1e9)), 0)
+            t = max(seconds_to_ns(scan.stamp_s), 0)
             cloud = array_to_foxglove_cloud(scan_points(scan, mapped), frame_id, t,
                                             T_frame_cloud=scan.T_world_sensor)
             writer.write_message(SCANS_TOPIC, cloud, log_time=t, publish_time=t,
@@ -262,84 +260,3 @@ def write_map_mcap(path, snapshot: MapSnapshot, frame_id: str = "map",
         writer.finish()
     return {"path": str(path), "voxels": len(snapshot), "scans": n_scans,
             "map_topic": MAP_TOPIC, "scans_topic": SCANS_TOPIC}
-
-
-# ---- a synthetic recording (tests, the decode benchmark, trying the tools without data) ------
-
-# the sensor mount of the synthetic log: 1.2 m up, 0.3 m forward, yawed 90 degrees and tilted 2
-_MOUNT = np.array([[0.0, -1.0, 0.0, 0.3], [1.0, 0.0, 0.0, 0.0], [0.0, 0.0, 1.0, 1.2],
-                   [0.0, 0.0, 0.0, 1.0]])
-_TILT = np.array([[1.0, 0.0, 0.0, 0.0], [0.0, np.cos(0.035), -np.sin(0.035), 0.0],
-                  [0.0, np.sin(0.035), np.cos(0.035), 0.0], [0.0, 0.0, 0.0, 1.0]])
-T_BASE_LIDAR = _MOUNT @ _TILT
-
-
-def synthetic_pose(t_s: float, speed_mps: float = 5.0, yaw_rate: float = 0.2) -> np.ndarray:
-    """T_map_base_link: constant velocity along map x and a constant yaw rate (analytic, so
-    interpolated lookups can be checked exactly)."""
-    c, s = np.cos(yaw_rate * t_s), np.sin(yaw_rate * t_s)
-    return np.array([[c, -s, 0, speed_mps * t_s], [s, c, 0, 0.5], [0, 0, 1, 0], [0, 0, 0, 1.0]])
-
-
-def synthetic_points(n_points: int, rng: np.random.Generator, label_dtype="<u2",
-                     extra_fields: tuple = ()) -> np.ndarray:
-    """A ring-structured scan (64 beams) with raw SemanticKITTI labels derived from geometry:
-    road below the sensor, building far away, vegetation between, car nearby."""
-    fields = [("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("intensity", "<f4"),
-              ("label", label_dtype), *extra_fields]
-    arr = np.zeros(n_points, np.dtype(fields))
-    beam = np.arange(n_points) % 64
-    azimuth = np.linspace(0, 2 * np.pi, n_points, endpoint=False)
-    elevation = np.deg2rad(-25 + 28 * beam / 63)
-    rng_m = np.clip(1.7 / np.maximum(np.tan(-elevation), 0.03), 3, 60)
-    rng_m *= 1 + 0.01 * rng.standard_normal(n_points)
-    arr["x"] = rng_m * np.cos(elevation) * np.cos(azimuth)
-    arr["y"] = rng_m * np.cos(elevation) * np.sin(azimuth)
-    arr["z"] = rng_m * np.sin(elevation)
-    arr["intensity"] = rng.random(n_points)
-    # classes by geometry, with 5 % of the labels flipped (a network's noise)
-    raw = np.where(arr["z"] < -1.5, np.where(np.sin(azimuth * 3) > 0.6, 48, 40),
-                   np.where(rng_m > 40, 50, np.where(rng_m < 8, 10, 70)))
-    noise = rng.random(n_points) < 0.05
-    raw[noise] = rng.choice([10, 40, 48, 50, 70, 80], int(noise.sum()))
-    arr["label"] = raw
-    return arr
-
-
-def write_synthetic_log(path, n_scans: int = 5, n_points: int = 2000, *,
-                        compression: str = "zstd", crcs: bool = True, chunked: bool = True,
-                        indexed: bool = True, chunk_size: int = 1 << 20, seed: int = 0,
-                        label_dtype="<u2", tf_rate_hz: float = 50.0, t0_s: float = 100.0,
-                        tf_end_s: float | None = None, topic: str = "/velodyne_points",
-                        frame_id: str = "velodyne") -> dict:
-    """A small ROS 2 recording: /tf_static base_link->velodyne (non-identity), /tf
-    map->base_link at `tf_rate_hz` from `synthetic_pose`, clouds at 10 Hz whose header stamps
-    fall between tf samples and whose log times lag by 35 ms (a recorder's receive time).
-    `tf_end_s` (seconds after the start) stops /tf early: later scans have no pose.
-
-    Returns the truth: {"stamps_ns", "T_world_sensor" (K,4,4), "points" [structured arrays]}.
-    """
-    rng = np.random.default_rng(seed)
-    t0 = int(t0_s * 1e9)
-    scan_stamps = [t0 + 13_000_000 + i * 100_000_000 for i in range(n_scans)]   # off the tf grid
-    t_end = scan_stamps[-1] + 100_000_000 if n_scans else t0
-    if tf_end_s is not None:
-        t_end = min(t_end, t0 + int(tf_end_s * 1e9))
-    tf_stamps = list(range(t0, t_end + 1, int(1e9 / tf_rate_hz)))
-    events = [(t, 0, None) for t in tf_stamps] + [(t + 35_000_000, 1, i)
-                                                  for i, t in enumerate(scan_stamps)]
-    truth = {"stamps_ns": scan_stamps, "points": [],
-             "T_world_sensor": np.array([synthetic_pose((t - t0) / 1e9) @ T_BASE_LIDAR
-                                         for t in scan_stamps]).reshape(-1, 4, 4)}
-    with Ros2McapWriter(path, compression=compression, crcs=crcs, chunked=chunked,
-                        indexed=indexed, chunk_size=chunk_size) as w:
-        w.write_transforms([("base_link", frame_id, t0, T_BASE_LIDAR)], t0, static=True)
-        for log_time, kind, i in sorted(events, key=lambda e: e[:2]):
-            if kind == 0:
-                w.write_transforms([("map", "base_link", log_time,
-                                     synthetic_pose((log_time - t0) / 1e9))], log_time)
-            else:
-                arr = synthetic_points(n_points, rng, label_dtype)
-                truth["points"].append(arr)
-                w.write_cloud(topic, arr, frame_id, scan_stamps[i], log_time, sequence=i)
-    return truth

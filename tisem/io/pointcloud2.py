@@ -6,13 +6,20 @@ itemsize = stride) views the message bytes without copying — whatever the fiel
 padding, point_step or endianness. Only the columns a caller asks for get copied (and
 byte-swapped to native order).
 
-Facts this relies on (notes/mcap-lidar-logs.md §1.2): the two datatype enums differ (signed and
-unsigned are swapped); `count` may be 0 in the wild (means 1); names may repeat or be empty
-(padding); organised clouds may pad rows (`row_step > width * point_step`).
+Facts this relies on, all seen in real recordings: the two datatype enums differ (signed and
+unsigned are swapped); `count` may be 0 (means 1); names may repeat or be empty (padding);
+organised clouds may pad rows (`row_step > width * point_step`).
 """
 from __future__ import annotations
 
+from typing import TYPE_CHECKING, Any, Iterable
+
 import numpy as np
+
+from tisem.io.stamps import ros_time, split_ns
+
+if TYPE_CHECKING:
+    from foxglove_schemas_protobuf.PointCloud_pb2 import PointCloud
 
 # sensor_msgs/PointField: INT8=1 UINT8=2 INT16=3 UINT16=4 INT32=5 UINT32=6 FLOAT32=7 FLOAT64=8
 ROS_DATATYPES = {1: "i1", 2: "u1", 3: "i2", 4: "u2", 5: "i4", 6: "u4", 7: "f4", 8: "f8"}
@@ -24,8 +31,8 @@ class CloudFormatError(ValueError):
     """A cloud's layout is inconsistent (the message says what); the cloud cannot be used."""
 
 
-def fields_dtype(fields, point_step: int, *, big_endian: bool = False,
-                 datatypes: dict = ROS_DATATYPES) -> np.dtype:
+def fields_dtype(fields: Iterable[tuple[str, int, int, int]], point_step: int, *,
+                 big_endian: bool = False, datatypes: dict = ROS_DATATYPES) -> np.dtype:
     """A structured dtype for one point. `fields`: (name, offset, datatype, count) tuples."""
     order = ">" if big_endian else "<"
     names, formats, offsets = [], [], []
@@ -66,14 +73,14 @@ def _view(data, dtype: np.dtype, height: int, width: int, row_step: int) -> np.n
     return rows.reshape(-1)                  # copies: padded rows cannot be one flat view
 
 
-def ros_cloud_to_array(msg) -> np.ndarray:
+def ros_cloud_to_array(msg: Any) -> np.ndarray:
     """A decoded ROS PointCloud2 (attribute access, `data` as bytes) -> 1-D structured array."""
     fields = [(f.name, f.offset, f.datatype, f.count) for f in msg.fields]
     dtype = fields_dtype(fields, msg.point_step, big_endian=bool(msg.is_bigendian))
     return _view(msg.data, dtype, int(msg.height), int(msg.width), int(msg.row_step))
 
 
-def foxglove_cloud_to_array(msg) -> np.ndarray:
+def foxglove_cloud_to_array(msg: Any) -> np.ndarray:
     """A decoded foxglove.PointCloud (protobuf) -> 1-D structured array (always little-endian)."""
     fields = [(f.name, f.offset, f.type, 1) for f in msg.fields]
     dtype = fields_dtype(fields, msg.point_stride, datatypes=FOXGLOVE_DATATYPES)
@@ -113,7 +120,8 @@ def xyz(arr: np.ndarray) -> np.ndarray:
     """
     for name in ("x", "y", "z"):
         if not has_field(arr, name):
-            raise CloudFormatError(f"the cloud has no {name!r} field; it has: {describe_fields(arr)}")
+            raise CloudFormatError(f"the cloud has no {name!r} field; it has: "
+                                   f"{describe_fields(arr)}")
     fx, ox = arr.dtype.fields["x"][:2]
     fy, oy = arr.dtype.fields["y"][:2]
     fz, oz = arr.dtype.fields["z"][:2]
@@ -170,9 +178,8 @@ def array_to_ros_cloud(arr: np.ndarray, frame_id: str, stamp_ns: int) -> dict:
     """
     arr = np.ascontiguousarray(arr)
     fields, order = _fields_of(arr.dtype, ROS_DATATYPES)
-    sec, nanosec = divmod(int(stamp_ns), 1_000_000_000)
     return {
-        "header": {"stamp": {"sec": sec, "nanosec": nanosec}, "frame_id": frame_id},
+        "header": {"stamp": ros_time(stamp_ns), "frame_id": frame_id},
         "height": 1, "width": int(arr.shape[0]),
         "fields": [{"name": n, "offset": o, "datatype": d, "count": c} for n, o, d, c in fields],
         "is_bigendian": order == ">",
@@ -184,7 +191,7 @@ def array_to_ros_cloud(arr: np.ndarray, frame_id: str, stamp_ns: int) -> dict:
 
 
 def array_to_foxglove_cloud(arr: np.ndarray, frame_id: str, stamp_ns: int,
-                            T_frame_cloud: np.ndarray | None = None):
+                            T_frame_cloud: np.ndarray | None = None) -> PointCloud:
     """A 1-D structured array -> foxglove.PointCloud (protobuf). Little-endian only (Foxglove
     reads nothing else); `T_frame_cloud` is the cloud origin in `frame_id` (the `pose` field)."""
     from foxglove_schemas_protobuf.PackedElementField_pb2 import PackedElementField
@@ -202,7 +209,7 @@ def array_to_foxglove_cloud(arr: np.ndarray, frame_id: str, stamp_ns: int,
         raise CloudFormatError("foxglove.PointCloud needs little-endian fields with count 1")
     T = np.eye(4) if T_frame_cloud is None else np.asarray(T_frame_cloud, dtype=np.float64)
     q = matrix_to_quat(T[:3, :3])
-    sec, nanos = divmod(int(stamp_ns), 1_000_000_000)
+    sec, nanos = split_ns(stamp_ns)
     return PointCloud(
         timestamp=Timestamp(seconds=sec, nanos=nanos), frame_id=frame_id,
         pose=Pose(position=Vector3(x=T[0, 3], y=T[1, 3], z=T[2, 3]),

@@ -10,14 +10,16 @@ Semantics follow tf2 so that users get the poses they would get in ROS:
   `ConnectivityError`. Both name the frames and the times involved.
 Stamps are integer nanoseconds (ROS `sec`/`nanosec`), so equal stamps compare exactly.
 
-The adapters at the bottom turn pose messages (TFMessage, Odometry, PoseStamped,
-foxglove.FrameTransform(s)) into edges.
+What pose messages (TFMessage, Odometry, PoseStamped, foxglove.FrameTransform(s)) carry is
+turned into edges by `tisem.io.mcap_messages.pose_edges`.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Collection
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 
 class TfError(LookupError):
@@ -93,7 +95,7 @@ def slerp(q0: np.ndarray, q1: np.ndarray, w: np.ndarray) -> np.ndarray:
     return q / np.linalg.norm(q, axis=-1, keepdims=True)
 
 
-def make_transform(translation, rotation_xyzw) -> np.ndarray:
+def make_transform(translation: ArrayLike, rotation_xyzw: ArrayLike) -> np.ndarray:
     T = np.eye(4)
     T[:3, :3] = quat_to_matrix(rotation_xyzw)
     T[:3, 3] = translation
@@ -171,14 +173,14 @@ class _Edge:
 class TfBuffer:
     """All transforms of a log, looked up at any stamp. See the module docstring."""
 
-    def __init__(self, max_extrapolation_s: float = 0.0):
+    def __init__(self, max_extrapolation_s: float = 0.0) -> None:
         self.max_extrapolation_ns = int(round(max_extrapolation_s * 1e9))
         self._edges: dict[str, _Edge] = {}            # child -> edge to its parent
         self.warnings: list[str] = []                 # conflicts, reported once each
 
     # -- filling
-    def add(self, parent: str, child: str, stamp_ns: int, translation, rotation_xyzw,
-            static: bool = False) -> None:
+    def add(self, parent: str, child: str, stamp_ns: int, translation: ArrayLike,
+            rotation_xyzw: ArrayLike, static: bool = False) -> None:
         parent, child = _frame(parent), _frame(child)
         if not parent or not child or parent == child:
             self._warn(f"ignored a transform with frames {parent!r} -> {child!r}")
@@ -207,7 +209,7 @@ class TfBuffer:
         if text not in self.warnings:
             self.warnings.append(text)
 
-    def promote_constant_edges(self, children=None) -> list[str]:
+    def promote_constant_edges(self, children: Collection[str] | None = None) -> list[str]:
         """Make dynamic edges whose samples never change static (returns their children);
         `children` limits this to those edges.
 
@@ -265,7 +267,7 @@ class TfBuffer:
                 f"{up_s[-1]!r}, {target!r} up to {up_t[-1]!r}; tree: {self.describe()}")
         return up_s[:up_s.index(common)], up_t[:up_t.index(common)]
 
-    def lookup_many(self, target: str, source: str, stamps_ns) -> np.ndarray:
+    def lookup_many(self, target: str, source: str, stamps_ns: ArrayLike) -> np.ndarray:
         """(K, 4, 4) T_target_source at each stamp (a point in `source` -> `target`)."""
         target, source = _frame(target), _frame(source)
         stamps = np.atleast_1d(np.asarray(stamps_ns, dtype=np.int64))
@@ -294,58 +296,3 @@ class TfBuffer:
                     f"{len(e.stamps)} samples {e.stamps[0] / 1e9:.3f}-{e.stamps[-1] / 1e9:.3f} s")
             parts.append(f"{e.parent} -> {child} ({kind})")
         return "; ".join(parts) or "empty"
-
-
-# ---- pose messages -> edges ------------------------------------------------------------------
-
-def _stamp_ns(stamp) -> int:
-    """ROS builtin_interfaces/Time (sec, nanosec) or protobuf Timestamp (seconds, nanos)."""
-    if hasattr(stamp, "nanosec"):
-        return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
-    return int(stamp.seconds) * 1_000_000_000 + int(stamp.nanos)
-
-
-def _xyz(v) -> tuple:
-    return (v.x, v.y, v.z)
-
-
-def _xyzw(q) -> tuple:
-    return (q.x, q.y, q.z, q.w)
-
-
-# schema names of the pose carriers the reader understands
-TF_SCHEMAS = ("tf2_msgs/msg/TFMessage", "foxglove.FrameTransform", "foxglove.FrameTransforms")
-POSE_SCHEMAS = ("nav_msgs/msg/Odometry", "geometry_msgs/msg/PoseStamped",
-                "geometry_msgs/msg/PoseWithCovarianceStamped")
-
-
-def pose_edges(schema_name: str, msg, *, default_parent: str, default_child: str | None):
-    """(parent, child, stamp_ns, xyz, quat) tuples carried by one decoded pose message.
-
-    Odometry names its child (`child_frame_id`); PoseStamped does not, so `default_child` (the
-    frame the user says the pose is of) is used; empty parents mean `default_parent`.
-    """
-    if schema_name == "tf2_msgs/msg/TFMessage":
-        return [(t.header.frame_id, t.child_frame_id, _stamp_ns(t.header.stamp),
-                 _xyz(t.transform.translation), _xyzw(t.transform.rotation))
-                for t in msg.transforms]
-    if schema_name == "foxglove.FrameTransform":
-        msg_list = [msg]
-    elif schema_name == "foxglove.FrameTransforms":
-        msg_list = list(msg.transforms)
-    else:
-        msg_list = None
-    if msg_list is not None:
-        out = []
-        for t in msg_list:
-            q = _xyzw(t.rotation)
-            out.append((t.parent_frame_id, t.child_frame_id, _stamp_ns(t.timestamp),
-                        _xyz(t.translation), q if any(q) else (0, 0, 0, 1)))  # unset = identity
-        return out
-    if schema_name in POSE_SCHEMAS:
-        pose = msg.pose.pose if hasattr(msg.pose, "pose") else msg.pose
-        child = getattr(msg, "child_frame_id", "") or default_child
-        parent = msg.header.frame_id or default_parent
-        return [(parent, child, _stamp_ns(msg.header.stamp), _xyz(pose.position),
-                 _xyzw(pose.orientation))]
-    raise ValueError(f"{schema_name} is not a pose message tisem understands")

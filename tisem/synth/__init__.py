@@ -1,9 +1,12 @@
 """Synthetic labelled LiDAR sequences: a procedural street, a 64-beam LiDAR, noisy labels.
 
-- `scene`: the route, the scene along it in lazily built 50 m tiles, the moving actors
+- `route`: the road as straight and circular segments, by arc length
+- `shapes`: the primitives (boxes, cylinders, ellipsoids) the world is made of
+- `scene`: the routes driven, the scene along them in lazily built 50 m tiles, the moving actors
 - `lidar`: the spinning LiDAR, ray-cast in numpy
 - `noise`: "network" predictions made from ground truth
 - `sequence`: frames, `Scan`s and SemanticKITTI folders
+- `mcap_log`: a small analytic ROS 2 recording for the MCAP reader's tests and benchmark
 """
 from tisem.synth.sequence import (SynthFrame, SyntheticSequence, iter_synthetic, to_scan,
                                   write_semantickitti)

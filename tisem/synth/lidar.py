@@ -11,10 +11,11 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from functools import cached_property
+from typing import Callable
 
 import numpy as np
 
-from tisem.synth.scene import Boxes, Cylinders, Ellipsoids, ShapeSet
+from tisem.synth.shapes import Boxes, Cylinders, Ellipsoids, ShapeSet
 
 # HDL-64E: an upper block of 32 beams at 1/3 degree spacing, a lower one at ~1/2 degree,
 # +2.0 ... -24.8 degrees; ring 0 is the top beam.
@@ -72,8 +73,8 @@ class Lidar:
         return np.stack(np.broadcast_arrays(np.cos(el) * np.cos(az), np.cos(el) * np.sin(az),
                                             np.sin(el)), axis=-1).reshape(-1, 3)
 
-    def cast(self, shapes: ShapeSet, ground_label, T_world_lidar: np.ndarray,
-             rng: np.random.Generator) -> Returns:
+    def cast(self, shapes: ShapeSet, ground_label: Callable[[np.ndarray], np.ndarray],
+             T_world_lidar: np.ndarray, rng: np.random.Generator) -> Returns:
         """Ray-cast one scan. ground_label(xy (n,2)) -> raw ids of ground hits."""
         origin = T_world_lidar[:3, 3]
         R = T_world_lidar[:3, :3]
@@ -211,7 +212,8 @@ def _t_ellipsoids(e: Ellipsoids, idx, origin, d):
 _INTERSECT = {Boxes: _t_boxes, Cylinders: _t_cylinders, Ellipsoids: _t_ellipsoids}
 
 
-def ray_distances(part, idx: np.ndarray, origin: np.ndarray, dirs: np.ndarray) -> np.ndarray:
+def ray_distances(part: Boxes | Cylinders | Ellipsoids, idx: np.ndarray,
+                   origin: np.ndarray, dirs: np.ndarray) -> np.ndarray:
     """Distance along each unit direction dirs[k] from origin to primitive idx[k] of `part`
     (Boxes, Cylinders or Ellipsoids), inf where the ray misses it."""
     return _INTERSECT[type(part)](part, idx, origin, dirs)

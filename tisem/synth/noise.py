@@ -111,7 +111,8 @@ class NoiseModel:
         pred = gt_train.astype(np.int64).copy()
         other = boundary_neighbour(gt_train, ring, col, image_shape)
         at_edge = other >= 0
-        p = self.base_rate + self.far_rate * (range_m / max_range_m) ** 2 + self.boundary_rate * at_edge
+        p = (self.base_rate + self.far_rate * (range_m / max_range_m) ** 2
+             + self.boundary_rate * at_edge)
         wrong = rng.random(n) < p
         bleed = wrong & at_edge & (rng.random(n) < self.bleed_prob)
         pred[bleed] = other[bleed]

@@ -2,8 +2,9 @@
 
 Everything is laid out in *route coordinates* — `s` metres along the road centreline and `u`
 metres to its left — and turned into world coordinates once, when a tile is built. The route
-is a chain of straight and circular segments, so points can be projected back onto it
-analytically (the ground's class is a function of `u`).
+(`tisem.synth.route`) is a chain of straight and circular segments, so points can be projected
+back onto it analytically (the ground's class is a function of `u`); the primitives are
+`tisem.synth.shapes`.
 
 A tile's content is seeded by (seed, tile id) only, so tiles are built lazily, kept in a small
 LRU cache (memory stays bounded however long the drive) and look exactly the same when the
@@ -14,9 +15,13 @@ from __future__ import annotations
 import math
 import zlib
 from collections import OrderedDict
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 
 import numpy as np
+from numpy.typing import ArrayLike
+
+from tisem.synth.route import Route
+from tisem.synth.shapes import ShapeBuilder, ShapeSet
 
 # SemanticKITTI raw ids of what the world contains
 CAR, MOVING_CAR, PERSON = 10, 252, 30
@@ -54,123 +59,16 @@ def _word(key: int | str) -> int:
     return 2 * key if key >= 0 else -2 * key - 1      # negative tile ids (behind the start)
 
 
-# ----------------------------------------------------------------------------- shapes
+# ----------------------------------------------------------------------------- objects
 
-@dataclass
-class _Shapes:
-    """Struct-of-arrays of one primitive kind; `label` is the raw id, `instance` 0 for stuff."""
-
-    label: np.ndarray      # (n,) uint32
-    instance: np.ndarray   # (n,) uint32
-
-    def __len__(self) -> int:
-        return len(self.label)
-
-    @classmethod
-    def concat(cls, parts):
-        return cls(**{f.name: np.concatenate([getattr(p, f.name) for p in parts])
-                      for f in fields(cls)})
-
-    def footprint(self):
-        """Bounding vertical cylinder: (centre_xy (n,2), radius (n,), z_min (n,), z_max (n,)).
-        The LiDAR culls against it by azimuth and elevation before any exact intersection."""
-        raise NotImplementedError
-
-
-@dataclass
-class Boxes(_Shapes):
-    center: np.ndarray     # (n, 3)
-    half: np.ndarray       # (n, 3) half extents along the box's own x (yaw direction), y, z
-    yaw: np.ndarray        # (n,) radians about world z
-
-    def footprint(self):
-        return (self.center[:, :2], np.hypot(self.half[:, 0], self.half[:, 1]),
-                self.center[:, 2] - self.half[:, 2], self.center[:, 2] + self.half[:, 2])
-
-
-@dataclass
-class Cylinders(_Shapes):
-    """Vertical cylinders (poles, trunks, a person's body)."""
-
-    center: np.ndarray     # (n, 2) xy of the axis
-    radius: np.ndarray     # (n,)
-    z0: np.ndarray         # (n,) bottom
-    z1: np.ndarray         # (n,) top
-
-    def footprint(self):
-        return self.center, self.radius, self.z0, self.z1
-
-
-@dataclass
-class Ellipsoids(_Shapes):
-    """Axis-aligned ellipsoids (foliage, bushes, a head)."""
-
-    center: np.ndarray     # (n, 3)
-    radii: np.ndarray      # (n, 3)
-
-    def footprint(self):
-        return (self.center[:, :2], self.radii[:, :2].max(axis=1),
-                self.center[:, 2] - self.radii[:, 2], self.center[:, 2] + self.radii[:, 2])
-
-
-SHAPE_KINDS = (Boxes, Cylinders, Ellipsoids)
-
-
-@dataclass
-class ShapeSet:
-    """All primitives of a piece of the world, one struct-of-arrays per kind."""
-
-    parts: dict  # kind -> _Shapes
-
-    @classmethod
-    def concat(cls, sets) -> "ShapeSet":
-        sets = list(sets)
-        return cls({k: k.concat([s.parts[k] for s in sets]) for k in SHAPE_KINDS})
-
-    def __len__(self) -> int:
-        return sum(len(p) for p in self.parts.values())
-
-
-class _Builder:
-    """Collects primitives in route coordinates (s, u, z); `build` places them in the world."""
-
-    def __init__(self) -> None:
-        self.rows: dict = {k: [] for k in SHAPE_KINDS}
-
-    def box(self, s, u, z, half_along, half_across, half_z, label, instance=0, yaw=0.0):
-        self.rows[Boxes].append((s, u, z, half_along, half_across, half_z, yaw, label, instance))
-
-    def cylinder(self, s, u, radius, z0, z1, label, instance=0):
-        self.rows[Cylinders].append((s, u, radius, z0, z1, label, instance))
-
-    def ellipsoid(self, s, u, z, r_xy, r_z, label, instance=0):
-        self.rows[Ellipsoids].append((s, u, z, r_xy, r_z, label, instance))
-
-    def build(self, route: "Route") -> ShapeSet:
-        parts = {}
-        for kind, rows in self.rows.items():
-            a = np.array(rows, dtype=np.float64).reshape(len(rows), -1 if rows else 9)
-            xy, heading = route.place(a[:, 0], a[:, 1]) if rows else (np.zeros((0, 2)), np.zeros(0))
-            ids = dict(label=a[:, -2].astype(np.uint32), instance=a[:, -1].astype(np.uint32))
-            if kind is Boxes:
-                parts[kind] = Boxes(center=np.column_stack([xy, a[:, 2]]), half=a[:, 3:6],
-                                    yaw=a[:, 6] + heading, **ids)
-            elif kind is Cylinders:
-                parts[kind] = Cylinders(center=xy, radius=a[:, 2], z0=a[:, 3], z1=a[:, 4], **ids)
-            else:
-                parts[kind] = Ellipsoids(center=np.column_stack([xy, a[:, 2]]),
-                                         radii=np.column_stack([a[:, 3], a[:, 3], a[:, 4]]), **ids)
-        return ShapeSet(parts)
-
-
-def add_car(b: _Builder, s: float, u: float, yaw: float, label: int, instance: int) -> None:
+def add_car(b: ShapeBuilder, s: float, u: float, yaw: float, label: int, instance: int) -> None:
     """A car: a body box and a smaller cabin box set back a little (roughly car shaped)."""
     b.box(s, u, 0.65, 2.25, 0.9, 0.5, label, instance, yaw)                          # z 0.15-1.15
     b.box(s - 0.25 * math.cos(yaw), u - 0.25 * math.sin(yaw), 1.43, 1.2, 0.78, 0.28,
           label, instance, yaw)                                                       # z 1.15-1.71
 
 
-def add_tree(b: _Builder, s: float, u: float, rng: np.random.Generator) -> None:
+def add_tree(b: ShapeBuilder, s: float, u: float, rng: np.random.Generator) -> None:
     """A tree: a trunk cylinder up into a foliage ellipsoid whose bottom is 1.4-3 m high
     (low enough that the beams, which look at most 2 degrees up, see the crowns)."""
     z, r_z = rng.uniform(3.2, 4.5), rng.uniform(1.2, 1.8)
@@ -178,115 +76,7 @@ def add_tree(b: _Builder, s: float, u: float, rng: np.random.Generator) -> None:
     b.ellipsoid(s, u, z, rng.uniform(1.5, 2.6), r_z, VEGETATION)
 
 
-# ----------------------------------------------------------------------------- route
-
-@dataclass
-class Route:
-    """A chain of straight (kappa 0) and circular segments, parametrised by arc length s.
-
-    An open route (the street) extends its first and last segments beyond its ends; a
-    closed one (the loop) wraps s modulo its length.
-    """
-
-    s0: np.ndarray         # (k,) arc length at each segment start
-    length: np.ndarray     # (k,)
-    start: np.ndarray      # (k, 2) xy at each segment start
-    heading0: np.ndarray   # (k,)
-    kappa: np.ndarray      # (k,) signed curvature, > 0 turns left
-    closed: bool
-
-    @classmethod
-    def from_segments(cls, segments, closed: bool) -> "Route":
-        """segments: [(length, kappa)], starting at the origin heading along +x."""
-        s0, xy, h = [], [np.zeros(2)], [0.0]
-        s = 0.0
-        for length, kappa in segments:
-            s0.append(s)
-            end, hend = _segment_point(xy[-1], h[-1], kappa, length)
-            xy.append(end)
-            h.append(hend)
-            s += length
-        return cls(np.array(s0), np.array([l for l, _ in segments], dtype=np.float64),
-                   np.array(xy[:-1]), np.array(h[:-1]), np.array([k for _, k in segments],
-                                                                 dtype=np.float64), closed)
-
-    @property
-    def total_m(self) -> float:
-        return float(self.s0[-1] + self.length[-1])
-
-    def wrap(self, s):
-        return np.mod(s, self.total_m) if self.closed else np.asarray(s, dtype=np.float64)
-
-    def frame(self, s):
-        """Centreline xy (n, 2) and heading (n,) at arc lengths s."""
-        s = self.wrap(np.atleast_1d(np.asarray(s, dtype=np.float64)))
-        i = np.clip(np.searchsorted(self.s0, s, side="right") - 1, 0, len(self.s0) - 1)
-        return _segment_point(self.start[i], self.heading0[i], self.kappa[i], s - self.s0[i])
-
-    def place(self, s, u):
-        """World xy (n, 2) and heading (n,) of route coordinates (s, u)."""
-        xy, h = self.frame(s)
-        return xy + np.asarray(u)[:, None] * np.column_stack([-np.sin(h), np.cos(h)]), h
-
-    def project(self, xy: np.ndarray, s_hint: float, reach_m: float = 250.0):
-        """Route coordinates (s, u) of world points near arc length `s_hint`.
-
-        Each candidate segment gives its own (s, u); the one whose foot point is closest wins.
-        Headings are continuous across segment joints, so every point (closer than a turn
-        radius) lies in the span of some segment.
-        """
-        if self.closed:
-            cand = np.arange(len(self.s0))
-        else:
-            cand = np.flatnonzero((self.s0 + self.length > s_hint - reach_m)
-                                  & (self.s0 < s_hint + reach_m))
-            if cand.size == 0:
-                cand = np.array([0 if s_hint < 0 else len(self.s0) - 1])
-        best = np.full(len(xy), np.inf)
-        s_out = np.zeros(len(xy))
-        u_out = np.zeros(len(xy))
-        last = len(self.s0) - 1
-        for j in cand:
-            t, u = _segment_local(xy, self.start[j], self.heading0[j], self.kappa[j], self.length[j])
-            lo = -np.inf if (j == 0 and not self.closed) else 0.0
-            hi = np.inf if (j == last and not self.closed) else self.length[j]
-            dist = np.hypot(t - np.clip(t, lo, hi), u)
-            better = dist < best
-            best[better] = dist[better]
-            s_out[better] = self.s0[j] + t[better]
-            u_out[better] = u[better]
-        return self.wrap(s_out), u_out
-
-
-def _segment_point(start, heading0, kappa, t):
-    """Position and heading after arc length t along a segment (vectorised)."""
-    kappa = np.asarray(kappa, dtype=np.float64)
-    h = heading0 + kappa * t
-    straight = kappa == 0
-    k = np.where(straight, 1.0, kappa)
-    dx = np.where(straight, t * np.cos(heading0), (np.sin(h) - np.sin(heading0)) / k)
-    dy = np.where(straight, t * np.sin(heading0), (np.cos(heading0) - np.cos(h)) / k)
-    return np.asarray(start) + np.stack([dx, dy], axis=-1), h
-
-
-def _segment_local(xy, start, heading0, kappa, length):
-    """(t along, u left) of points relative to one segment, t unclamped."""
-    if kappa == 0:
-        rel = xy - start
-        c, s = math.cos(heading0), math.sin(heading0)
-        return rel[:, 0] * c + rel[:, 1] * s, -rel[:, 0] * s + rel[:, 1] * c
-    # the centre of the arc is on the left for kappa > 0; the foot point's normal points
-    # from the query point to the centre (times sign(kappa))
-    centre = start + np.array([-math.sin(heading0), math.cos(heading0)]) / kappa
-    w = centre - xy
-    rho = np.hypot(w[:, 0], w[:, 1])
-    n = math.copysign(1.0, kappa) * w / np.maximum(rho, 1e-9)[:, None]
-    h = np.arctan2(-n[:, 0], n[:, 1])
-    # pick the branch of the angle nearest the segment's middle
-    half = 0.5 * length
-    dh = np.mod(h - heading0 - kappa * half + np.pi, 2 * np.pi) - np.pi
-    return half + dh / kappa, math.copysign(1.0, kappa) * (1.0 / abs(kappa) - rho)
-
+# ----------------------------------------------------------------------------- routes
 
 def street_route(seed: int, length_m: float) -> Route:
     """A straight-ish street: straights of 80-250 m joined by gentle 6-18 degree bends.
@@ -361,7 +151,7 @@ def build_tile(route: Route, seed: int, tile_id: int) -> Tile:
     """
     rng = make_rng(seed, "tile", tile_id)
     s0 = tile_id * TILE_M
-    b = _Builder()
+    b = ShapeBuilder()
     parking = rng.random(2) < 0.35
     if not parking.any():
         parking[rng.integers(2)] = True
@@ -466,6 +256,12 @@ class World:
     def num_tiles(self) -> int:
         return round(self.route.total_m / TILE_M)
 
+    @property
+    def cached_tile_ids(self) -> tuple[int, ...]:
+        """The ids of the tiles held in the cache, least recently used first (a read-only
+        view: the cache is bounded, and a tile that left it is rebuilt identically)."""
+        return tuple(self._tiles)
+
     def tile(self, tile_id: int) -> Tile:
         tile = self._tiles.pop(tile_id, None)
         if tile is None:
@@ -505,7 +301,7 @@ class World:
     def ego_s(t: float) -> float:
         return SPEED_MPS * t
 
-    def vehicle_pose(self, t) -> np.ndarray:
+    def vehicle_pose(self, t: ArrayLike) -> np.ndarray:
         """(n, 4, 4) poses of the ego vehicle (on the ground, x forward) at times t."""
         t = np.atleast_1d(np.asarray(t, dtype=np.float64))
         xy, h = self.route.place(SPEED_MPS * t, np.full(len(t), EGO_LANE_U))
@@ -524,7 +320,7 @@ class World:
         start again 25 m ahead, so the drive meets them however long it is (one person at any
         time).
         """
-        b = _Builder()
+        b = ShapeBuilder()
         s_car = self.ego_s(t) + 18.0 + 8.0 * math.sin(2 * math.pi * t / 16.0)
         add_car(b, s_car, OTHER_LANE_U, 0.0, MOVING_CAR, MOVING_CAR_INSTANCE)
         t0 = math.floor(t / PERSON_RESPAWN_S) * PERSON_RESPAWN_S

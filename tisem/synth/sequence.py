@@ -17,13 +17,15 @@ from pathlib import Path
 from typing import Iterator
 
 import numpy as np
+from numpy.typing import ArrayLike
 from tqdm import tqdm
 
 from tisem.labels import raw_to_train, train_to_raw
 from tisem.scan import Scan
 from tisem.synth.lidar import Lidar, rotate
 from tisem.synth.noise import NoiseModel
-from tisem.synth.scene import ShapeSet, World, make_rng, make_route
+from tisem.synth.scene import World, make_rng, make_route
+from tisem.synth.shapes import ShapeSet
 
 log = logging.getLogger(__name__)
 
@@ -32,11 +34,19 @@ ROUTES = ("street", "loop")
 
 # KITTI odometry sequence 08's calibration: the projections P0..P3 and the velodyne -> left
 # camera transform Tr, so the written poses exercise a real, non-identity extrinsic.
-KITTI08_P = (
-    "7.070912000000e+02 0.000000000000e+00 6.018873000000e+02 0.000000000000e+00 0.000000000000e+00 7.070912000000e+02 1.831104000000e+02 0.000000000000e+00 0.000000000000e+00 0.000000000000e+00 1.000000000000e+00 0.000000000000e+00",
-    "7.070912000000e+02 0.000000000000e+00 6.018873000000e+02 -3.798145000000e+02 0.000000000000e+00 7.070912000000e+02 1.831104000000e+02 0.000000000000e+00 0.000000000000e+00 0.000000000000e+00 1.000000000000e+00 0.000000000000e+00",
-    "7.070912000000e+02 0.000000000000e+00 6.018873000000e+02 4.688783000000e+01 0.000000000000e+00 7.070912000000e+02 1.831104000000e+02 1.178601000000e-01 0.000000000000e+00 0.000000000000e+00 1.000000000000e+00 6.203223000000e-03",
-    "7.070912000000e+02 0.000000000000e+00 6.018873000000e+02 -3.334597000000e+02 0.000000000000e+00 7.070912000000e+02 1.831104000000e+02 1.930130000000e+00 0.000000000000e+00 0.000000000000e+00 1.000000000000e+00 3.318498000000e-03",
+KITTI08_P = (                       # one 3x4 matrix per camera, row by row
+    "7.070912000000e+02 0.000000000000e+00 6.018873000000e+02 0.000000000000e+00 "
+    "0.000000000000e+00 7.070912000000e+02 1.831104000000e+02 0.000000000000e+00 "
+    "0.000000000000e+00 0.000000000000e+00 1.000000000000e+00 0.000000000000e+00",
+    "7.070912000000e+02 0.000000000000e+00 6.018873000000e+02 -3.798145000000e+02 "
+    "0.000000000000e+00 7.070912000000e+02 1.831104000000e+02 0.000000000000e+00 "
+    "0.000000000000e+00 0.000000000000e+00 1.000000000000e+00 0.000000000000e+00",
+    "7.070912000000e+02 0.000000000000e+00 6.018873000000e+02 4.688783000000e+01 "
+    "0.000000000000e+00 7.070912000000e+02 1.831104000000e+02 1.178601000000e-01 "
+    "0.000000000000e+00 0.000000000000e+00 1.000000000000e+00 6.203223000000e-03",
+    "7.070912000000e+02 0.000000000000e+00 6.018873000000e+02 -3.334597000000e+02 "
+    "0.000000000000e+00 7.070912000000e+02 1.831104000000e+02 1.930130000000e+00 "
+    "0.000000000000e+00 0.000000000000e+00 1.000000000000e+00 3.318498000000e-03",
 )
 KITTI08_TR = np.array([
     -1.857739385241e-03, -9.999659513510e-01, -8.039975204516e-03, -4.784029760483e-03,
@@ -96,7 +106,7 @@ class SyntheticSequence:
             raise IndexError(f"scan {index} out of range for {self.num_scans} scans")
         return self.frame(index % self.num_scans)
 
-    def poses(self, indices=None) -> np.ndarray:
+    def poses(self, indices: ArrayLike | None = None) -> np.ndarray:
         """(n, 4, 4) T_world_lidar of the given scans (default all), without rendering."""
         indices = np.arange(self.num_scans) if indices is None else np.asarray(indices)
         return self.world.vehicle_pose(indices * SCAN_PERIOD_S) @ self._T_vehicle_lidar
@@ -134,10 +144,10 @@ def to_scan(frame: SynthFrame) -> Scan:
     gt, _ = raw_to_train(frame.gt_raw)
     return Scan(points_sensor=frame.points, T_world_sensor=frame.T_world_lidar,
                 stamp_s=frame.stamp_s, labels=pred, gt_labels=gt, index=frame.index,
-                name=f"synthetic/{frame.index:06d}", meta={"remission": frame.remission})
+                name=f"synthetic/{frame.index:06d}")
 
 
-def write_semantickitti(out_dir, num_scans: int, seed: int = 0, route: str = "street",
+def write_semantickitti(out_dir: str | Path, num_scans: int, seed: int = 0, route: str = "street",
                         points_per_ring: int = 1024, progress: bool = True) -> Path:
     """Write a synthetic sequence as one SemanticKITTI sequence folder; returns its path.
 

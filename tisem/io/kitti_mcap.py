@@ -1,0 +1,114 @@
+"""A SemanticKITTI sequence as a ROS 2 MCAP recording, the way rosbag2 would store it.
+
+    from tisem.io.kitti_mcap import write_kitti_mcap
+    result = write_kitti_mcap("../shared/data/semantickitti_08_mini", "08_mini.mcap")
+
+Topics:
+- `/velodyne_points` (sensor_msgs/msg/PointCloud2, frame `velodyne`): x y z intensity float32,
+  `label` = the network's raw SemanticKITTI ids from predictions/, `gt_label` = the ground
+  truth's raw ids from labels/ when present; uint32 with the instance in the upper 16 bits like
+  the .label files, or uint16 semantic ids;
+- `/tf`: map -> base_link at every scan stamp;
+- `/tf_static`: base_link -> velodyne, a non-identity mount, so the chain is really composed.
+Header stamps come from times.txt (or 10 Hz); log times lag 20 ms like a recorder's. Scan k of
+the selected range is message k on the cloud topic (the MCAP reader numbers scans by it).
+"""
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from tisem.errors import SkippedScan
+from tisem.io.mcap_writer import Ros2McapWriter
+from tisem.io.semantickitti import SemanticKittiSequence
+from tisem.io.stamps import seconds_to_ns
+from tisem.io.tf import invert
+
+log = logging.getLogger(__name__)
+
+# base_link -> velodyne: the KITTI roof mount (1.73 m up, 0.81 m ahead of the rear axle) with a
+# small yaw and roll, so that no step of the tf chain is an identity by accident
+_YAW, _ROLL = np.deg2rad(1.5), np.deg2rad(-0.7)
+T_BASE_VELODYNE = np.array([
+    [np.cos(_YAW), -np.sin(_YAW) * np.cos(_ROLL), np.sin(_YAW) * np.sin(_ROLL), 0.81],
+    [np.sin(_YAW), np.cos(_YAW) * np.cos(_ROLL), -np.cos(_YAW) * np.sin(_ROLL), -0.32],
+    [0.0, np.sin(_ROLL), np.cos(_ROLL), 1.73],
+    [0.0, 0.0, 0.0, 1.0]])
+RECEIVE_LAG_NS = 20_000_000
+LABEL_TYPES = {"uint32": "<u4", "uint16": "<u2"}
+
+
+@dataclass(frozen=True)
+class KittiMcapResult:
+    """What `write_kitti_mcap` wrote."""
+
+    path: Path
+    scans: int                      # clouds written
+    skipped: list[SkippedScan]      # scans the SemanticKITTI reader could not use
+    sequence: str                   # the sequence name
+    size_bytes: int
+
+
+def _raw_labels(path: Path, label_type: str) -> np.ndarray:
+    """The raw .label values, one per point of the scan (the reader keeps every point)."""
+    raw = np.fromfile(path, dtype="<u4")
+    return raw if label_type == "uint32" else (raw & 0xFFFF).astype("<u2")
+
+
+def write_kitti_mcap(data: str | Path, out: str | Path, *, sequence: str | None = None,
+                     first: int = 0, last: int | None = None, compression: str = "zstd",
+                     label_type: str = "uint32", topic: str = "/velodyne_points",
+                     frame_id: str = "velodyne") -> KittiMcapResult:
+    """Write scans `first`..`last` (inclusive scan ids) of a SemanticKITTI sequence as MCAP.
+
+    data: a sequence folder, or a dataset root with `sequence` (e.g. "08"). compression: zstd |
+    lz4 | none. label_type: uint32 (raw id | instance << 16, as in .label files) or uint16
+    (raw id only). frame_id: the cloud frame, a child of base_link. Raises `DatasetError`
+    when the sequence cannot be read.
+    """
+    if label_type not in LABEL_TYPES:
+        raise ValueError(f"label_type must be one of {sorted(LABEL_TYPES)}, got {label_type!r}")
+    out = Path(out)
+    seq = SemanticKittiSequence(data, sequence=sequence, input="predictions", first=first,
+                                last=last)
+    fields = [("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("intensity", "<f4"),
+              ("label", LABEL_TYPES[label_type])]
+    if seq.has_ground_truth:
+        fields.append(("gt_label", LABEL_TYPES[label_type]))
+    T_velodyne_base = invert(T_BASE_VELODYNE)
+    written, skipped = 0, []
+    out.parent.mkdir(parents=True, exist_ok=True)
+    with Ros2McapWriter(out, compression=compression) as w:
+        w.add_metadata("source", {"sequence_dir": str(seq.sequence_dir),
+                                  "sequence": seq.sequence_name,
+                                  "scan_ids": ",".join(map(str, seq.scan_ids))})
+        static_done = False
+        for k, scan in enumerate(seq):
+            if isinstance(scan, SkippedScan):
+                skipped.append(scan)
+                log.warning("skipped scan %s: %s", scan.index, scan.reason)
+                continue
+            stamp_ns = seconds_to_ns(scan.stamp_s)
+            if not static_done:   # rosbag2 records /tf_static once, latched, at the start
+                w.write_transforms([("base_link", frame_id, stamp_ns, T_BASE_VELODYNE)],
+                                   stamp_ns, static=True)
+                static_done = True
+            T_map_base = scan.T_world_sensor @ T_velodyne_base
+            w.write_transforms([("map", "base_link", stamp_ns, T_map_base)], stamp_ns)
+            # intensity and raw label ids come from the files: the Scan holds train ids only
+            stem = seq.scan_path(k).stem
+            data_xyzi = np.fromfile(seq.scan_path(k), dtype="<f4").reshape(-1, 4)
+            arr = np.empty(scan.num_points, np.dtype(fields))
+            arr["x"], arr["y"], arr["z"] = scan.points_sensor.T
+            arr["intensity"] = data_xyzi[:, 3]
+            arr["label"] = _raw_labels(seq.predictions_dir / f"{stem}.label", label_type)
+            if seq.has_ground_truth:
+                arr["gt_label"] = _raw_labels(seq.labels_dir / f"{stem}.label", label_type)
+            w.write_cloud(topic, arr, frame_id, stamp_ns, stamp_ns + RECEIVE_LAG_NS,
+                          sequence=written)
+            written += 1
+    return KittiMcapResult(path=out, scans=written, skipped=skipped,
+                           sequence=seq.sequence_name, size_bytes=out.stat().st_size)
