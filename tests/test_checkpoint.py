@@ -1,4 +1,5 @@
-"""Checkpoints, resume (`MappingRun.resume`, both map apps) and `tisem.load_map`.
+"""Checkpoints, resume (`MappingRun.resume`) and `tisem.load_map`; the apps' resume is in
+test_resume_apps.py.
 
 Every test gets its own Taichi runtime (a field of an older runtime must never be touched
 again: taichi aborts the process): the fixture inits
@@ -11,20 +12,18 @@ Scans are small synthetic streets built here with numpy (a few thousand labelled
 from __future__ import annotations
 
 import dataclasses
-import importlib.util
 import json
 import os
 import subprocess
 import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
 
 import tisem
-from helpers import fresh_runtime
+from helpers import fresh_runtime, small_config
 from tisem.checkpoint import checkpoint_file, load_checkpoint, save_checkpoint
-from tisem.config import MapperConfig, RunConfig
+from tisem.config import RunConfig
 from tisem.errors import SkippedScan
 from tisem.io import mapfile
 from tisem.pipeline import run_pipeline
@@ -33,13 +32,6 @@ from tisem.run import MappingRun
 from tisem.scan import Scan
 
 ROAD, SIDEWALK, BUILDING, VEGETATION, POLE = 9, 11, 13, 15, 18
-REPO = Path(__file__).resolve().parents[1]
-
-
-def small_config(**kw) -> MapperConfig:
-    base = dict(max_range_m=20.0, window_xy_m=30.0, window_z_m=12.0, min_z_m=-4.0, max_z_m=4.0)
-    base.update(kw)
-    return MapperConfig(**base)
 
 
 def run_config(**kw) -> RunConfig:
@@ -344,107 +336,6 @@ def test_checkpoint_restores_evicted_blocks(taichi_cpu, tmp_path):
     # and it goes on as the original did
     restored.integrate(scans[5])
     assert_same_map(restored.snapshot(), snap_after)
-
-
-# --------------------------------------------------------------------------- the app
-
-def write_kitti(folder: Path, scans) -> Path:
-    """A SemanticKITTI sequence folder with the given scans (identity Tr, raw ids)."""
-    from tisem.labels import LEARNING_MAP_INV
-    for sub in ("velodyne", "labels", "predictions"):
-        (folder / sub).mkdir(parents=True, exist_ok=True)
-    (folder / "calib.txt").write_text("Tr: " + " ".join(map(str, np.eye(4)[:3].ravel())) + "\n")
-    poses, times = [], []
-    for s in scans:
-        name = f"{s.index:06d}"
-        pts = np.column_stack([s.points_sensor, np.zeros(s.num_points)]).astype("<f4")
-        pts.tofile(folder / "velodyne" / f"{name}.bin")
-        LEARNING_MAP_INV[s.gt_labels].astype("<u4").tofile(folder / "labels" / f"{name}.label")
-        LEARNING_MAP_INV[s.labels].astype("<u4").tofile(folder / "predictions" / f"{name}.label")
-        poses.append(" ".join(f"{v:.12e}" for v in s.T_world_sensor[:3].ravel()))
-        times.append(f"{s.stamp_s:.6e}")
-    (folder / "poses.txt").write_text("\n".join(poses) + "\n")
-    (folder / "times.txt").write_text("\n".join(times) + "\n")
-    return folder
-
-
-def test_map_kitti_checkpoint_and_resume(tmp_path):
-    """The app end to end, each run in its own process (as a real resume is)."""
-    data = write_kitti(tmp_path / "08", make_scans(5, points=1500, seed=6))
-    cfg = tmp_path / "mapper.yaml"
-    cfg.write_text("max_range_m: 20\nwindow_xy_m: 30\nwindow_z_m: 12\nmin_z_m: -4\nmax_z_m: 4\n")
-    app = [sys.executable, str(REPO / "apps" / "map_kitti.py"), "--no-progress",
-           "--threads", "2", "--config", str(cfg)]
-
-    def run(*args):
-        done = subprocess.run(app + [str(a) for a in args], capture_output=True, text=True,
-                              cwd=tmp_path, timeout=300)
-        assert done.returncode == 0, done.stdout + done.stderr
-        return done
-
-    run("--data", data, "--out", tmp_path / "full")
-    # the "crashed" run got to scan 2; the resumed one is told to go on to the end
-    run("--data", data, "--out", tmp_path / "part", "--last", 2, "--checkpoint-every", 3)
-    assert load_checkpoint(tmp_path / "part").last_index == 2
-    done = subprocess.run([sys.executable, str(REPO / "apps" / "map_kitti.py"), "--no-progress",
-                           "--resume", str(tmp_path / "part" / "checkpoint"), "--last", "4"],
-                          capture_output=True, text=True, cwd=tmp_path, timeout=300)
-    assert done.returncode == 0, done.stdout + done.stderr
-
-    full = json.loads((tmp_path / "full" / "metrics.json").read_text())
-    part = json.loads((tmp_path / "part" / "metrics.json").read_text())
-    for key in ("scans", "final", "online", "input", "active_voxels"):
-        assert part[key] == full[key], key
-    a = mapfile.load_map_file(tmp_path / "full" / "map.npz")[0]
-    b = mapfile.load_map_file(tmp_path / "part" / "map.npz")[0]
-    assert_same_map(b, a)
-
-
-def load_app(name: str):
-    spec = importlib.util.spec_from_file_location(name, REPO / "apps" / f"{name}.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
-def test_map_mcap_checkpoint_and_resume(tmp_path):
-    """apps/map_mcap.py interrupted and resumed, each run in its own process: the same
-    predictions, metrics and map as an uninterrupted run. The resumed run is given neither the
-    recording nor its options: it reads them from the checkpoint."""
-    data = write_kitti(tmp_path / "08", make_scans(5, points=1500, seed=7))
-    kitti_to_mcap = load_app("kitti_to_mcap")
-    recording = tmp_path / "drive.mcap"
-    kitti_to_mcap.convert(kitti_to_mcap.parse_args([str(data), str(recording)]))
-    cfg = tmp_path / "mapper.yaml"
-    cfg.write_text("max_range_m: 20\nwindow_xy_m: 30\nwindow_z_m: 12\nmin_z_m: -4\nmax_z_m: 4\n")
-    app = [sys.executable, str(REPO / "apps" / "map_mcap.py"), "--no-progress", "--threads", "2"]
-
-    def run(*args):
-        done = subprocess.run(app + [str(a) for a in args], capture_output=True, text=True,
-                              cwd=tmp_path, timeout=300)
-        assert done.returncode == 0, done.stdout + done.stderr
-        return done
-
-    run(recording, "--gt-field", "gt_label", "--config", cfg, "--out", tmp_path / "full")
-    run(recording, "--gt-field", "gt_label", "--config", cfg, "--out", tmp_path / "part",
-        "--last", 2, "--checkpoint-every", 3)
-    assert load_checkpoint(tmp_path / "part").last_index == 2
-    run("--resume", tmp_path / "part", "--last", 4)
-
-    full = json.loads((tmp_path / "full" / "metrics.json").read_text())
-    part = json.loads((tmp_path / "part" / "metrics.json").read_text())
-    assert full["scans"] == 5 and full["evaluated"]
-    # every figure; of the config, the mapper's (the frame range was extended on resuming)
-    assert ({k: v for k, v in comparable_metrics(part).items() if k != "config"}
-            == {k: v for k, v in comparable_metrics(full).items() if k != "config"})
-    assert part["config"]["mapper"] == full["config"]["mapper"]
-    predictions = [f"sequences/00/predictions/{i:06d}.label" for i in range(5)]
-    for name in predictions:
-        assert (tmp_path / "part" / name).read_bytes() == (tmp_path / "full" / name).read_bytes()
-    a = mapfile.load_map_file(tmp_path / "full" / "map.npz")[0]
-    b = mapfile.load_map_file(tmp_path / "part" / "map.npz")[0]
-    assert_same_map(b, a)
-    assert (tmp_path / "part" / "map.mcap").stat().st_size > 1000
 
 
 def test_import_tisem_is_cheap():
