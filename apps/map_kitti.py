@@ -40,10 +40,8 @@ def map_sequence(args: argparse.Namespace) -> int:
     cfg = plan.cfg
     if args.input:
         cfg.input = args.input
-    data = args.data or plan.source.get("data")
+    data = plan.input_path(args.data, "data", "--data")
     sequence = args.sequence or plan.source.get("sequence")
-    if plan.checkpoint is not None and data is None:
-        raise cli.AppError("resume: the checkpoint does not say where the data is; give --data")
     plan.start(args)
     if data is None:
         from tisem.synth.sequence import write_semantickitti

@@ -105,10 +105,7 @@ def map_recording(args: argparse.Namespace) -> int:
 
     plan = cli.plan_run(args)
     options = recording_options(args, plan)
-    path = args.log or (Path(plan.source["mcap"]) if "mcap" in plan.source else None)
-    if path is None:
-        raise cli.AppError("resume: the checkpoint does not say which recording it read; "
-                           "give it")
+    path = plan.input_path(args.log, "mcap", "the .mcap recording")
     with cli.bad_input():
         reader = McapScanReader(path, options)
     for line in reader.report.lines():

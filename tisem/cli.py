@@ -146,6 +146,16 @@ class RunPlan:
         """What the resumed run's run.json says (data, options, sequence); {} for a new run."""
         return self.checkpoint.source if self.checkpoint is not None else {}
 
+    def input_path(self, given: Path | None, key: str, how_to_give: str) -> Path | None:
+        """The input to read: `given` on the command line, else for a resumed run the one its
+        run.json names under `key` (AppError when it names none), else None."""
+        if given is not None or self.checkpoint is None:
+            return given
+        if self.source.get(key) is None:
+            raise AppError(f"resume: the checkpoint does not say where its input is; give "
+                           f"{how_to_give}")
+        return Path(self.source[key])
+
     def start(self, args: argparse.Namespace) -> None:
         """Start the Taichi backend (first, so that one that cannot start costs nothing), then
         make the results folder: --out, the resumed run's folder, or results/<timestamp>/."""
