@@ -1,9 +1,12 @@
 """Map a LiDAR recording (MCAP) whose points carry labels, and write the map as MCAP.
 
     python apps/map_mcap.py drive.mcap --arch cpu
-    python apps/map_mcap.py drive.mcap --topic /ouster/points --label-field class --label-space train
+    python apps/map_mcap.py drive.mcap --topic /ouster/points --label-field class \
+           --label-space train
     python apps/map_mcap.py drive.mcap --prob-field probs --pose-topic /odom --map-frame odom
     python apps/map_mcap.py 08.mcap --gt-field gt_label --save-scans      # scores like map_kitti.py
+    python apps/map_mcap.py drive.mcap --out results/drive --checkpoint-every 100
+    python apps/map_mcap.py --resume results/drive                       # after a crash: go on
 
 Reads ROS 2 `sensor_msgs/msg/PointCloud2` (cdr) or `foxglove.PointCloud` (protobuf). Poses come
 from /tf + /tf_static (map frame -> the cloud's frame_id at the header stamp, interpolated),
@@ -15,20 +18,34 @@ what `map_kitti.py` writes plus `map.mcap` (topic /semantic_map, open it in Foxg
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import logging
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from tisem import cli
 
+if TYPE_CHECKING:                      # (imported when needed: the help stays fast)
+    from tisem.io.mcap_reader import McapOptions, McapScanReader
+    from tisem.run import RunResult
+
 log = logging.getLogger("map_mcap")
 
+# the recording options: a resumed run reads the recording as it started (run.json "options")
+RECORDING_OPTIONS = {"topic": "--topic", "label_field": "--label-field",
+                     "label_space": "--label-space", "prob_field": "--prob-field",
+                     "gt_field": "--gt-field", "map_frame": "--map-frame",
+                     "pose_topic": "--pose-topic", "pose_child_frame": "--pose-child-frame",
+                     "tf_tolerance_ms": "--tf-tolerance-ms", "sequence_name": "--sequence-name"}
 
-def parse_args(argv=None):
+
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("log", type=Path, help="the .mcap recording")
+    p.add_argument("log", type=Path, nargs="?",
+                   help="the .mcap recording (with --resume: default the one it read)")
     g = p.add_argument_group("recording")
     g.add_argument("--topic", help="point-cloud topic (needed only when there are several)")
     g.add_argument("--label-field", default="label", help="per-point label field (default label)")
@@ -48,62 +65,77 @@ def parse_args(argv=None):
                    help="sequence folder name for the predictions (default 00)")
     g.add_argument("--save-scans", action="store_true",
                    help="also write each scan with its mapped labels into map.mcap")
-    cli.add_common_args(p)
-    return p.parse_args(argv)
+    cli.add_run_args(p)
+    args = cli.parse_run_args(p, argv, kept_on_resume=RECORDING_OPTIONS)
+    if args.log is None and args.resume is None:
+        p.error("the .mcap recording is required (or --resume DIR)")
+    return args
 
 
-def main(argv=None) -> int:
-    args = parse_args(argv)
-    cli.setup_logging(args.verbose)
-    from tisem.errors import DatasetError
-    from tisem.io.mcap_reader import McapOptions, McapScanReader
-
-    try:
-        cfg = cli.run_config_from_args(args)
+def recording_options(args: argparse.Namespace, plan: cli.RunPlan) -> McapOptions:
+    """`McapOptions` from the command line, or those the resumed run read with; the frame
+    range and the class count always come from the run's config."""
+    from tisem.io.mcap_reader import McapOptions
+    cfg = plan.cfg
+    frames = dict(first=cfg.first, last=cfg.last, num_classes=cfg.mapper.num_classes)
+    if plan.checkpoint is not None:
+        stored = plan.source.get("options")
+        if stored is None:
+            raise cli.AppError("resume: the checkpoint does not say how the recording was read")
+        with cli.bad_input("resume: "):
+            try:
+                options = McapOptions(**{**stored, **frames})
+            except TypeError as exc:
+                raise ValueError(f"stored recording options: {exc}") from None
+            options.validate()
+        return options
+    with cli.bad_input("options: "):
         options = McapOptions(
             topic=args.topic, label_field=args.label_field, label_space=args.label_space,
             prob_field=args.prob_field, gt_field=args.gt_field, map_frame=args.map_frame,
             pose_topic=args.pose_topic, pose_child_frame=args.pose_child_frame,
-            tf_tolerance_s=args.tf_tolerance_ms / 1e3, first=cfg.first, last=cfg.last,
-            num_classes=cfg.mapper.num_classes)
+            tf_tolerance_s=args.tf_tolerance_ms / 1e3, **frames)
         options.validate()
-    except (KeyError, ValueError, OSError) as exc:
-        log.error("options: %s", exc)
-        return 2
-    try:
-        reader = McapScanReader(args.log, options)
-    except DatasetError as exc:
-        log.error("%s", exc)
-        return 2
+    return options
+
+
+def map_recording(args: argparse.Namespace) -> int:
+    from tisem.io.mcap_reader import McapScanReader
+    from tisem.report import results_table
+
+    plan = cli.plan_run(args)
+    options = recording_options(args, plan)
+    path = plan.input_path(args.log, "mcap", "the .mcap recording")
+    with cli.bad_input():
+        reader = McapScanReader(path, options)
     for line in reader.report.lines():
-        log.warning("%s: %s", args.log.name, line)
-    log.info("%s: %d scans on %s (frame %s), poses: %s", args.log, reader.total, reader.topic,
+        log.warning("%s: %s", path.name, line)
+    log.info("%s: %d scans on %s (frame %s), poses: %s", path, reader.total, reader.topic,
              reader.frame_id, reader.tf.describe())
 
-    from tisem.pipeline import results_table, run_pipeline
-    out = cli.results_dir(args)
-    try:
-        device = cli.init_backend(args)
-    except cli.BackendError as exc:
-        log.error("%s", exc)
-        return 2
-    result = run_pipeline(reader, cfg, out, sequence_name=args.sequence_name, total=reader.total,
-                          progress=not args.no_progress,
-                          source_info={"mcap": str(args.log.resolve()), "topic": reader.topic,
-                                       "frame_id": reader.frame_id, "options": vars(options),
-                                       "arch": device, "threads": args.threads})
-    map_path = write_map(result, reader, out / "map.mcap", args.save_scans, args.map_frame)
+    plan.start(args)
+    sequence_name = plan.source.get("sequence", "00") if plan.checkpoint else args.sequence_name
+    run = plan.mapping_run(reader, args, sequence_name=sequence_name, total=reader.total,
+                           source_info={"mcap": str(path.resolve()), "topic": reader.topic,
+                                        "frame_id": reader.frame_id,
+                                        "options": vars(options), "arch": plan.device,
+                                        "threads": args.threads})
+    result = run.run(show_progress=not args.no_progress)
+    out = plan.out_dir
+    map_path = write_map(result, reader, out / "map.mcap", args.save_scans, options.map_frame)
     (out / "mcap_report.json").write_text(json.dumps(reader.report.to_dict(), indent=2))
     print(results_table(result.metrics))
-    lines = reader.report.lines()
+    # the run has reported each skipped scan once already: here, only what was lost besides
+    lines = dataclasses.replace(reader.report, skipped=[]).lines()
     if lines:
-        print(f"\n{args.log.name}: not everything could be used:")
+        print(f"\n{path.name}: not everything could be used:")
         print("\n".join(f"  - {line}" for line in lines))
     print(f"\nmap: {map_path} (Foxglove: 3D panel, topic /semantic_map)\nresults in {out}")
     return 0
 
 
-def write_map(result, reader, path: Path, save_scans: bool, frame_id: str) -> Path:
+def write_map(result: RunResult, reader: McapScanReader, path: Path, save_scans: bool,
+              frame_id: str) -> Path:
     """map.mcap from the final map; with `save_scans`, the log is read once more and every scan
     written with its labels looked up in the final map (the same as its predictions file)."""
     from tisem.io.mcap_writer import write_map_mcap
@@ -116,6 +148,10 @@ def write_map(result, reader, path: Path, save_scans: bool, frame_id: str) -> Pa
     info = write_map_mcap(path, result.mapper.snapshot(), frame_id=frame_id, scans=scans)
     log.info("wrote %s: %d voxels, %d scans", path, info["voxels"], info["scans"])
     return path
+
+
+def main(argv: list[str] | None = None) -> int:
+    return cli.run_app(map_recording, parse_args(argv), log)
 
 
 if __name__ == "__main__":

@@ -17,8 +17,9 @@ KITTI_MINI = Path(__file__).resolve().parents[2] / "shared" / "data" / "semantic
 
 def add_data_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--data", type=Path, default=None,
-                   help="SemanticKITTI sequence folder (default: ../shared/data/semantickitti_08_mini "
-                        "when present, else a synthetic street)")
+                   help="SemanticKITTI sequence folder (default: "
+                        "../shared/data/semantickitti_08_mini when present, else a synthetic "
+                        "street)")
     p.add_argument("--synthetic", action="store_true", help="use a synthetic street instead")
     p.add_argument("--arch", choices=("cpu", "cuda"), default="cpu")
     p.add_argument("--threads", type=int, default=2)

@@ -19,7 +19,8 @@ MODES = ("csm", "bki", "spatial", "adaptive", "st")
 
 
 def parse_args(argv=None):
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = argparse.ArgumentParser(description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--data", type=Path, default=None, help="sequence folder (default: mini KITTI)")
     p.add_argument("--sequence", default=None)
     p.add_argument("--modes", nargs="+", default=list(MODES))
@@ -50,7 +51,8 @@ def run(args) -> dict:
         if not rows:
             rows.append({"row": "network input", **m["input"], "seconds_per_scan": None})
         rows.append({"row": mode, **m["final"], "seconds_per_scan": m["seconds_per_scan"]})
-        logging.info("%s: mIoU %.4f accuracy %.4f", mode, m["final"]["miou"], m["final"]["accuracy"])
+        logging.info("%s: mIoU %.4f accuracy %.4f", mode, m["final"]["miou"],
+                     m["final"]["accuracy"])
     return {"data": str(data), "device": device_line(args.arch), "rows": rows}
 
 

@@ -1,6 +1,8 @@
-"""Checkpoints, resume and `tisem.load_map` (issue 5, item 3).
+"""Checkpoints, resume (`MappingRun.resume`) and `tisem.load_map`; the apps' resume is in
+test_resume_apps.py.
 
-Every test gets its own Taichi runtime (shared/notes/taichi-sparse.md §4.5): the fixture inits
+Every test gets its own Taichi runtime (a field of an older runtime must never be touched
+again: taichi aborts the process): the fixture inits
 (`tisem.init_taichi`, i.e. ti.init(arch=ti.cpu, cpu_max_num_threads=2), which also tells tisem
 that a new runtime started), the fixture resets. tisem allows one map per runtime, so a test
 that compares two maps keeps the first one's results as numpy arrays and starts a fresh
@@ -9,33 +11,27 @@ Scans are small synthetic streets built here with numpy (a few thousand labelled
 """
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import subprocess
 import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
 
 import tisem
-from helpers import fresh_runtime
+from helpers import fresh_runtime, small_config
 from tisem.checkpoint import checkpoint_file, load_checkpoint, save_checkpoint
-from tisem.config import MapperConfig, RunConfig
+from tisem.config import RunConfig
 from tisem.errors import SkippedScan
 from tisem.io import mapfile
 from tisem.pipeline import run_pipeline
+from tisem.progress import RunProgress
+from tisem.run import MappingRun
 from tisem.scan import Scan
 
 ROAD, SIDEWALK, BUILDING, VEGETATION, POLE = 9, 11, 13, 15, 18
-REPO = Path(__file__).resolve().parents[1]
-
-
-
-def small_config(**kw) -> MapperConfig:
-    base = dict(max_range_m=20.0, window_xy_m=30.0, window_z_m=12.0, min_z_m=-4.0, max_z_m=4.0)
-    base.update(kw)
-    return MapperConfig(**base)
 
 
 def run_config(**kw) -> RunConfig:
@@ -110,6 +106,11 @@ def comparable_metrics(m: dict) -> dict:
     return {k: v for k, v in m.items() if k not in ("seconds_per_scan", "seconds_total")}
 
 
+def progress_upto(mapper, last_index: int) -> RunProgress:
+    """A progress that says only how far the scans went (a checkpoint of a bare mapper)."""
+    return dataclasses.replace(RunProgress.start(mapper.C), last_index=last_index)
+
+
 def reference_run(scans, cfg, out, q=None):
     """An uninterrupted run, kept as numpy: (snapshot, metrics, trajectory, query result)."""
     full = run_pipeline(scans, cfg, out, progress=False, write_outputs=False)
@@ -160,9 +161,34 @@ def test_resume_equals_uninterrupted(taichi_cpu, tmp_path):
 
     # a generator (iterable once) resumes too: early scans are kept for the final-map pass
     fresh_runtime()
-    gen = run_pipeline((s for s in scans), ckpt.run_config(), tmp_path / "gen", progress=False,
-                       write_outputs=False, resume=ckpt)
+    # (the library's own resume: config, sequence name and cadence from the checkpoint)
+    gen = MappingRun.resume((s for s in scans), ckpt, out_dir=tmp_path / "gen").run(
+        show_progress=False, write_map_files=False)
     assert comparable_metrics(gen.metrics) == comparable_metrics(full_metrics)
+
+
+def test_progress_saves_and_restores_itself():
+    """RunProgress.to_dict() is plain JSON and from_dict() gives back every accumulator."""
+    from tisem.mapper import IntegrationReport
+    progress = RunProgress.start(20)
+    for scan in make_scans(3, points=200):
+        report = IntegrationReport(points=200, dropped_nonfinite=scan.index, dropped_range=7)
+        progress.add_mapped(scan, 0.01 * (scan.index + 1), report)
+        progress.input.add(scan.gt_labels, scan.labels)
+    progress.add_skipped(SkippedScan(3, "bad.bin", "truncated"))
+    saved = json.loads(json.dumps(progress.to_dict()))
+    back = RunProgress.from_dict(saved, 20)
+    assert back.to_dict() == saved
+    np.testing.assert_array_equal(back.input.matrix, progress.input.matrix)
+    assert back.input.matrix.sum() > 0 and back.online.matrix.sum() == 0
+    assert back.seconds == [0.01, 0.02, 0.03] and back.mapped == 3 and back.last_index == 2
+    assert back.skipped == [SkippedScan(3, "bad.bin", "truncated")] and back.was_skipped(3)
+    np.testing.assert_array_equal(back.trajectory_array(), progress.trajectory_array())
+    assert back.drops.totals["dropped_nonfinite"] == 0 + 1 + 2
+    assert back.drops.totals["dropped_range"] == 21
+    assert [s["index"] for s in back.drops.scans] == [1, 2]      # scan 0 lost nothing odd
+    with pytest.raises(ValueError, match="expected 5 classes"):
+        RunProgress.from_dict(saved, 5)
 
 
 def test_resume_refuses_another_mapper_config(taichi_cpu, tmp_path):
@@ -245,7 +271,7 @@ def test_load_map_round_trip(taichi_cpu, tmp_path):
     want_labels, want_probs = result.mapper.query(q)
     want_snap, want_config = result.mapper.snapshot(), result.mapper.config
     assert (want_labels > 0).mean() > 0.5
-    save_checkpoint(tmp_path / "ck", result.mapper, last_index=3)
+    save_checkpoint(tmp_path / "ck", result.mapper, progress_upto(result.mapper, 3))
     del result
 
     for path in (tmp_path / "map.npz", tmp_path, tmp_path / "ck" / mapfile.CHECKPOINT_NAME):
@@ -271,7 +297,8 @@ from tisem.config import MapperConfig
 keys = np.array([[0, 0, 0], [0, 0, 1], [5000, -3000, 7]], np.int64)
 counts = np.zeros((3, 20), np.float32); counts[0, 9] = 2; counts[1, 13] = 1; counts[2, 15] = 3
 cfg = MapperConfig(max_range_m=20, window_xy_m=30, window_z_m=12, min_z_m=-4, max_z_m=4)
-save_map(r"{tmp_path}/bare.npz", MapSnapshot(keys, counts, np.zeros(3), np.full(3, 0.4, np.float32), 0.2), cfg, {{}})
+snap = MapSnapshot(keys, counts, np.zeros(3), np.full(3, 0.4, np.float32), 0.2)
+save_map(r"{tmp_path}/bare.npz", snap, cfg, {{}})
 assert not is_initialized()
 m = tisem.load_map(r"{tmp_path}/bare.npz")
 assert is_initialized()
@@ -292,7 +319,7 @@ def test_checkpoint_restores_evicted_blocks(taichi_cpu, tmp_path):
     assert mapper.stored_voxels > 0 and mapper.live_voxels > 0
     stored, live = mapper.stored_voxels, mapper.live_voxels
     snap, answer = mapper.snapshot(), mapper.query(q)
-    path = save_checkpoint(tmp_path / "checkpoint", mapper, last_index=4)
+    path = save_checkpoint(tmp_path / "checkpoint", mapper, progress_upto(mapper, 4))
     mapper.integrate(scans[5])
     snap_after = mapper.snapshot()
     del mapper
@@ -309,60 +336,6 @@ def test_checkpoint_restores_evicted_blocks(taichi_cpu, tmp_path):
     # and it goes on as the original did
     restored.integrate(scans[5])
     assert_same_map(restored.snapshot(), snap_after)
-
-
-# --------------------------------------------------------------------------- the app
-
-def write_kitti(folder: Path, scans) -> Path:
-    """A SemanticKITTI sequence folder with the given scans (identity Tr, raw ids)."""
-    from tisem.labels import LEARNING_MAP_INV
-    for sub in ("velodyne", "labels", "predictions"):
-        (folder / sub).mkdir(parents=True, exist_ok=True)
-    (folder / "calib.txt").write_text("Tr: " + " ".join(map(str, np.eye(4)[:3].ravel())) + "\n")
-    poses, times = [], []
-    for s in scans:
-        name = f"{s.index:06d}"
-        pts = np.column_stack([s.points_sensor, np.zeros(s.num_points)]).astype("<f4")
-        pts.tofile(folder / "velodyne" / f"{name}.bin")
-        LEARNING_MAP_INV[s.gt_labels].astype("<u4").tofile(folder / "labels" / f"{name}.label")
-        LEARNING_MAP_INV[s.labels].astype("<u4").tofile(folder / "predictions" / f"{name}.label")
-        poses.append(" ".join(f"{v:.12e}" for v in s.T_world_sensor[:3].ravel()))
-        times.append(f"{s.stamp_s:.6e}")
-    (folder / "poses.txt").write_text("\n".join(poses) + "\n")
-    (folder / "times.txt").write_text("\n".join(times) + "\n")
-    return folder
-
-
-def test_map_kitti_checkpoint_and_resume(tmp_path):
-    """The app end to end, each run in its own process (as a real resume is)."""
-    data = write_kitti(tmp_path / "08", make_scans(5, points=1500, seed=6))
-    cfg = tmp_path / "mapper.yaml"
-    cfg.write_text("max_range_m: 20\nwindow_xy_m: 30\nwindow_z_m: 12\nmin_z_m: -4\nmax_z_m: 4\n")
-    app = [sys.executable, str(REPO / "apps" / "map_kitti.py"), "--no-progress",
-           "--threads", "2", "--config", str(cfg)]
-
-    def run(*args):
-        done = subprocess.run(app + [str(a) for a in args], capture_output=True, text=True,
-                              cwd=tmp_path, timeout=300)
-        assert done.returncode == 0, done.stdout + done.stderr
-        return done
-
-    run("--data", data, "--out", tmp_path / "full")
-    # the "crashed" run got to scan 2; the resumed one is told to go on to the end
-    run("--data", data, "--out", tmp_path / "part", "--last", 2, "--checkpoint-every", 3)
-    assert load_checkpoint(tmp_path / "part").last_index == 2
-    done = subprocess.run([sys.executable, str(REPO / "apps" / "map_kitti.py"), "--no-progress",
-                           "--resume", str(tmp_path / "part" / "checkpoint"), "--last", "4"],
-                          capture_output=True, text=True, cwd=tmp_path, timeout=300)
-    assert done.returncode == 0, done.stdout + done.stderr
-
-    full = json.loads((tmp_path / "full" / "metrics.json").read_text())
-    part = json.loads((tmp_path / "part" / "metrics.json").read_text())
-    for key in ("scans", "final", "online", "input", "active_voxels"):
-        assert part[key] == full[key], key
-    a = mapfile.load_map_file(tmp_path / "full" / "map.npz")[0]
-    b = mapfile.load_map_file(tmp_path / "part" / "map.npz")[0]
-    assert_same_map(b, a)
 
 
 def test_import_tisem_is_cheap():

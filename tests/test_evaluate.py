@@ -4,9 +4,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from tisem.evaluate import Confusion, format_per_class, format_table
-from tisem.labels import CLASS_NAMES
+from tisem.evaluate import Confusion, format_per_class, format_table, network_labels, score_scan
 from tisem.io.semantickitti import SemanticKittiSequence
+from tisem.labels import CLASS_NAMES
+from tisem.scan import Scan
 
 # Tiny example, worked out by hand (train ids: 1 car, 2 bicycle, 3 motorcycle, 5 other-vehicle).
 #   idx   0  1  2  3  4  5  6  7  8  9
@@ -151,8 +152,34 @@ def test_format_table_and_per_class():
     assert "absent from the ground truth" in pc
 
 
+def test_confusion_rebuilt_from_its_matrix():
+    conf = Confusion(4).add(np.array([1, 1, 2, 3, 0]), np.array([1, 2, 2, 0, 3]))
+    again = Confusion.from_matrix(conf.matrix.tolist())        # e.g. read back from JSON
+    np.testing.assert_array_equal(again.matrix, conf.matrix)
+    assert again.num_classes == 4 and again.metrics() == conf.metrics()
+    again.add(np.array([3]), np.array([3]))                      # and it goes on counting
+    assert again.matrix[3, 3] == 1 and conf.matrix[3, 3] == 0
+    for bad in (np.zeros((3, 4), np.int64), -np.ones((3, 3), np.int64), np.full((3, 3), 0.5)):
+        with pytest.raises(ValueError):
+            Confusion.from_matrix(bad)
+
+
+def test_score_scan_ignores_non_finite_points_and_reads_probabilities():
+    points = np.array([[1, 0, 0], [np.nan, 0, 0], [0, 2, 0], [0, 0, np.inf]], np.float32)
+    probs = np.zeros((4, 4), np.float32)
+    probs[[0, 1, 2], [1, 2, 3]] = 1.0                        # point 3: no probability at all
+    scan = Scan(points, np.eye(4), 0.0, probs=probs, gt_labels=np.array([1, 1, 2, 3]))
+    labels = network_labels(scan)
+    assert labels.tolist() == [1, 2, 3, 0]
+    conf = Confusion(4)
+    score_scan(conf, scan, labels)
+    assert conf.metrics()["points"] == 2                     # the NaN and the inf point: not scored
+    assert conf.matrix[1, 1] == 1 and conf.matrix[2, 3] == 1
+
+
 def test_network_predictions_on_real_data(kitti_mini):
-    """SPEC §4 'network predictions alone': mIoU(present) 0.3881, accuracy 0.8497, 15 classes."""
+    """The network predictions alone on the real frames: mIoU(present) 0.3881, accuracy 0.8497,
+    15 GT-present classes (the reference figures of the project's specification)."""
     conf = Confusion()
     for scan in SemanticKittiSequence(kitti_mini, input="predictions"):
         conf.add(scan.gt_labels, scan.labels)

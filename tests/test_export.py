@@ -1,4 +1,4 @@
-"""PLY export and the npz map / checkpoint files (issue 5)."""
+"""PLY export and the npz map / checkpoint files."""
 from __future__ import annotations
 
 import os
@@ -11,8 +11,8 @@ from plyfile import PlyData
 from tisem.config import MapperConfig, to_dict
 from tisem.io import mapfile
 from tisem.io.export import read_ply, write_ply
-from tisem.io.mapfile import (CHECKPOINT_NAME, MapFileError, load_checkpoint, load_map_file,
-                              save_checkpoint, save_map)
+from tisem.io.mapfile import (CHECKPOINT_NAME, MapFileError, load_checkpoint_file,
+                              load_map_file, save_checkpoint_file, save_map)
 from tisem.labels import CLASS_COLORS_RGB, CLASS_NAMES, LEARNING_MAP_INV
 from tisem.snapshot import MapSnapshot
 
@@ -110,18 +110,18 @@ def test_map_file_round_trip_is_exact(tmp_path):
 
 def test_checkpoint_round_trip(tmp_path):
     snap = random_snapshot(2)
-    path = save_checkpoint(tmp_path / "ckpt", snap, {"mode": "st"}, {"scan_index": 7})
+    path = save_checkpoint_file(tmp_path / "ckpt", snap, {"mode": "st"}, {"scan_index": 7})
     assert path.name == CHECKPOINT_NAME
-    back, config, meta = load_checkpoint(tmp_path / "ckpt")
+    back, config, meta = load_checkpoint_file(tmp_path / "ckpt")
     assert_same_snapshot(snap, back)
     assert config == {"mode": "st"} and meta == {"scan_index": 7}
     with pytest.raises(FileNotFoundError, match=CHECKPOINT_NAME):
-        load_checkpoint(tmp_path / "nowhere")
+        load_checkpoint_file(tmp_path / "nowhere")
 
 
 def test_interrupted_checkpoint_keeps_the_previous_one(tmp_path, monkeypatch):
     old = random_snapshot(3)
-    save_checkpoint(tmp_path, old, {"mode": "st"}, {"scan_index": 10})
+    save_checkpoint_file(tmp_path, old, {"mode": "st"}, {"scan_index": 10})
     before = (tmp_path / CHECKPOINT_NAME).read_bytes()
     new = random_snapshot(4, m=2000)
 
@@ -130,7 +130,7 @@ def test_interrupted_checkpoint_keeps_the_previous_one(tmp_path, monkeypatch):
         raise KeyboardInterrupt("killed before rename")
     monkeypatch.setattr(mapfile.os, "replace", no_replace)
     with pytest.raises(KeyboardInterrupt):
-        save_checkpoint(tmp_path, new, {"mode": "st"}, {"scan_index": 20})
+        save_checkpoint_file(tmp_path, new, {"mode": "st"}, {"scan_index": 20})
     monkeypatch.undo()
 
     # 2. the writer dies half way through the file (disk full, crash)
@@ -142,12 +142,12 @@ def test_interrupted_checkpoint_keeps_the_previous_one(tmp_path, monkeypatch):
         raise OSError(28, "No space left on device")
     monkeypatch.setattr(mapfile.np, "savez", half_savez)
     with pytest.raises(OSError, match="No space"):
-        save_checkpoint(tmp_path, new, {"mode": "st"}, {"scan_index": 20})
+        save_checkpoint_file(tmp_path, new, {"mode": "st"}, {"scan_index": 20})
     monkeypatch.undo()
 
     assert (tmp_path / CHECKPOINT_NAME).read_bytes() == before
     assert os.listdir(tmp_path) == [CHECKPOINT_NAME]         # no temp files left behind
-    back, _, meta = load_checkpoint(tmp_path)
+    back, _, meta = load_checkpoint_file(tmp_path)
     assert_same_snapshot(old, back)
     assert meta == {"scan_index": 10}
 

@@ -1,7 +1,7 @@
-"""The pipeline and `apps/map_kitti.py` on small SemanticKITTI folders (issue 2, items 5 and 7).
+"""The mapping run and `apps/map_kitti.py` on small SemanticKITTI folders.
 
 A tiny synthetic sequence (`write_semantickitti(..., points_per_ring=128)`) is damaged in
-every way the issue lists, one scan per problem, and mapped once through the app's `main`;
+every way a real one can be, one scan per problem, and mapped once through the app's `main`;
 the tests then read what came out: exit code, log, metrics.json, predictions.
 """
 from __future__ import annotations
@@ -9,6 +9,7 @@ from __future__ import annotations
 import importlib.util
 import json
 import logging
+import re
 from pathlib import Path
 
 import numpy as np
@@ -23,8 +24,8 @@ SUMMARY_KEYS = {"miou", "miou_all", "accuracy", "wiou", "oa_paper", "per_class_i
 FAR_POINT = 7            # the point of scan 5 moved 10 km away
 
 
-def load_app():
-    spec = importlib.util.spec_from_file_location("map_kitti_app", REPO / "apps" / "map_kitti.py")
+def load_app(name: str = "map_kitti"):
+    spec = importlib.util.spec_from_file_location(f"{name}_app", REPO / "apps" / f"{name}.py")
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     return module
@@ -129,8 +130,10 @@ def test_bad_scans_are_skipped_and_reported_the_rest_mapped(damaged):
     for i, (fname, problem) in SKIPPED.items():
         reason = skipped[i]["reason"]
         assert fname in reason and problem in reason, reason
-        assert any(f"scan {i}" in w and fname in w and problem in w for w in warnings), (
-            f"no warning names scan {i}, {fname} and '{problem}': {warnings}")
+        about = [w for w in warnings if re.match(rf"skipped scan {i}\b", w)]
+        assert len(about) == 1, f"scan {i} should be reported once, not {len(about)} times"
+        assert fname in about[0] and problem in about[0], (
+            f"the warning does not name {fname} and '{problem}': {about[0]}")
     # the others are mapped: a predictions file each, raw ids, one label per point
     pred_dir = out / "sequences" / "08" / "predictions"
     assert sorted(p.name for p in pred_dir.iterdir()) == [f"{i:06d}.label" for i in MAPPED]
@@ -145,7 +148,7 @@ def test_bad_scans_are_skipped_and_reported_the_rest_mapped(damaged):
     assert (nonfinite == 0).all(), "the NaN/inf points keep their place, unlabeled"
 
 
-def test_metrics_json_has_the_issue_keys(damaged):
+def test_metrics_json_has_every_protocol_and_figure(damaged):
     _, out, rc, _, metrics = damaged
     assert rc == 0
     assert metrics["mode"] == "st"
@@ -195,6 +198,22 @@ def test_whole_sequence_problems_exit_2_with_one_line(tmp_path, damage, fname, p
     assert "\n" not in msg and fname in msg and problem in msg, msg
     assert errors[0].exc_info is None, "a one-line error, not a traceback"
     assert not (tmp_path / "out" / "metrics.json").exists()
+
+
+@pytest.mark.parametrize("app,argv,flag", [
+    ("map_kitti", ["--resume", "r", "--input", "labels"], "--input"),
+    ("map_kitti", ["--resume", "r", "--set", "tau_s=1"], "--set"),
+    ("map_mcap", ["--resume", "r", "--topic", "/points"], "--topic"),
+    ("map_mcap", ["--resume", "r", "--mode", "csm", "--label-space", "train"], "--label-space"),
+])
+def test_resume_refuses_options_the_checkpoint_holds(app, argv, flag, capsys):
+    """A resumed run goes on with the config and input it started with: overriding them is a
+    usage error (exit status 2) that names the option, before anything is read."""
+    with pytest.raises(SystemExit) as exit_:
+        load_app(app).parse_args(argv)
+    assert exit_.value.code == 2
+    err = capsys.readouterr().err
+    assert "--resume" in err and flag in err
 
 
 # --------------------------------------------------------------------------- embedded default

@@ -175,8 +175,8 @@ def test_label_count_mismatch(tmp_path):
     lab = d / "predictions" / "000000.label"
     lab.write_bytes(lab.read_bytes()[:-8])
     seq = SemanticKittiSequence(d)
-    with pytest.raises(ScanError, match=r"predictions/000000\.label: label count differs from point "
-                                        r"count: 48 labels for 50 points"):
+    with pytest.raises(ScanError, match=r"predictions/000000\.label: label count differs from "
+                                        r"point count: 48 labels for 50 points"):
         seq[0]
     # the GT file too
     gt = d / "labels" / "000002.label"
@@ -208,8 +208,8 @@ def test_short_poses_file(tmp_path):
     seq = SemanticKittiSequence(d)
     assert seq.num_poses == 2 and list(seq.has_pose) == [True, True, False, False]
     assert np.isnan(seq.poses_lidar[2]).all()
-    with pytest.raises(ScanError, match=r"poses\.txt: no pose for scan 2 \(000002\.bin\); poses\.txt "
-                                        r"has 2 poses"):
+    with pytest.raises(ScanError, match=r"poses\.txt: no pose for scan 2 \(000002\.bin\); "
+                                        r"poses\.txt has 2 poses"):
         seq[2]
     items = list(seq)
     assert _kinds(items) == ["Scan", "Scan", "SkippedScan", "SkippedScan"]
@@ -221,7 +221,8 @@ def test_short_times_file(tmp_path):
     (d / "times.txt").write_text("0.0\n0.1\n")
     seq = SemanticKittiSequence(d)
     assert np.isnan(seq.times[2])
-    with pytest.raises(ScanError, match=r"times\.txt: no time for scan 2; times\.txt has 2 entries"):
+    with pytest.raises(ScanError,
+                       match=r"times\.txt: no time for scan 2; times\.txt has 2 entries"):
         seq[2]
     assert _kinds(seq) == ["Scan", "Scan", "SkippedScan"]
     (d / "times.txt").write_text("0.0\nabc\n")

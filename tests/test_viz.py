@@ -1,4 +1,4 @@
-"""Pictures: the top-down map PNG and the 3-panel region comparison (issue 5)."""
+"""Pictures: the top-down map PNG and the 3-panel region comparison."""
 from __future__ import annotations
 
 import importlib.util

@@ -1,4 +1,4 @@
-"""Checkpoints, resume and `load_map` (issue 5, item 3).
+"""Checkpoints, resume and `load_map`.
 
 A checkpoint is a map file (`tisem.io.mapfile`) named `<results>/checkpoint/checkpoint.npz`,
 written atomically, whose meta holds everything a run needs to go on exactly where it stopped:
@@ -7,15 +7,17 @@ written atomically, whose meta holds everything a run needs to go on exactly whe
             "last_index": 41,                  # Scan.index of the last integrated scan
             "mapper_state": mapper.state(),    # origin, t0, window centre, scan count
             "run_config": {...},               # the resolved RunConfig (to_dict)
-            "progress": {"online": C x C, "input": C x C,    # confusion matrices so far
-                         "seconds": [...], "skipped": [...], "trajectory": [[x, y, z], ...]},
+            "progress": {"online": C x C, "input": C x C,    # RunProgress.to_dict(), less
+                         "seconds": [...], "skipped": [...],  # last_index, which is kept at
+                         "trajectory": [[x, y, z], ...],      # the top for a quick look
+                         "dropped": {...}},
             "source": {...}}                   # what run.json says (data folder, sequence, ...)
 
 The mapper config itself is the file's `mapper_config_yaml`, the map its snapshot arrays.
 
     ckpt = load_checkpoint("results/run")          # a results folder, its checkpoint/ or the file
     mapper = ckpt.build_mapper()                   # Mapper(config) + restore(snapshot, state)
-    run_pipeline(seq, ckpt.run_config(), "results/run", resume=ckpt)
+    MappingRun.resume(seq, ckpt).run()             # tisem.run: continue the run
 
     mapper = tisem.load_map("results/run/map.npz") # any map file or checkpoint, ready to query
     labels, probs = mapper.query(points_world)
@@ -27,19 +29,22 @@ import logging
 import os
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from tisem.config import RunConfig, _apply, mapper_config_from_dict, to_dict
-from tisem.errors import SkippedScan
-from tisem.geometry import block_aligned_origin
+from tisem.config import MapperConfig, RunConfig, _apply, mapper_config_from_dict, to_dict
 from tisem.io import mapfile
+from tisem.progress import RunProgress
 from tisem.snapshot import MapSnapshot
+
+if TYPE_CHECKING:                      # (importing the mapper starts Taichi)
+    from tisem.mapper import Mapper
 
 log = logging.getLogger(__name__)
 
 __all__ = ["CHECKPOINT_DIR", "Checkpoint", "checkpoint_file", "load_checkpoint",
-           "save_checkpoint", "load_map", "mapper_from_file"]
+           "save_checkpoint", "open_checkpoint", "load_map", "mapper_from_file"]
 
 CHECKPOINT_DIR = "checkpoint"          # <results>/checkpoint/checkpoint.npz
 MAP_NAME = "map.npz"
@@ -79,6 +84,9 @@ def _state_from_snapshot(snapshot: MapSnapshot) -> dict:
     key (keeps relative keys small), t0 at the oldest update, window at the origin."""
     if len(snapshot) == 0:
         return {"origin_vox": None}
+    # imported here: the rule comes from the SNode layout, and `import tisem; tisem.load_map`
+    # must not start Taichi
+    from tisem.geometry import block_aligned_origin
     origin = block_aligned_origin(np.median(snapshot.keys, axis=0).astype(np.int64))
     return {"origin_vox": origin.tolist(), "t0": float(snapshot.t_last.min()),
             "center_vox": [0, 0, 0], "scans": 0, "last_stamp_s": None}
@@ -110,7 +118,7 @@ class Checkpoint:
 
     @property
     def results_dir(self) -> Path:
-        """The results folder the checkpoint belongs to (`<results>/checkpoint/checkpoint.npz`)."""
+        """The results folder the checkpoint belongs to (`<results>/checkpoint/<file>`)."""
         folder = self.path.parent
         return folder.parent if folder.name == CHECKPOINT_DIR else folder
 
@@ -118,7 +126,7 @@ class Checkpoint:
     def source(self) -> dict:
         return dict(self.meta.get("source") or {})
 
-    def config(self):
+    def config(self) -> MapperConfig:
         """The `MapperConfig` the map was built with."""
         return mapper_config_from_dict(self.mapper_config)
 
@@ -131,7 +139,7 @@ class Checkpoint:
         cfg.mapper = self.config()
         return cfg
 
-    def build_mapper(self, profile: bool = False, store_dir: str | None = None):
+    def build_mapper(self, profile: bool = False, store_dir: str | None = None) -> Mapper:
         """A fresh `Mapper(config)` restored to this checkpoint's map and state. `store_dir`:
         where its store spills (`MapperConfig.store_dir`; not the saved one, a folder on the
         machine that wrote the file)."""
@@ -142,7 +150,7 @@ class Checkpoint:
         mapper.restore(self.snapshot, self.mapper_state)
         return mapper
 
-    # ------------------------------------------------------------------ pipeline progress
+    # ------------------------------------------------------------------ the run's progress
     def check_run_config(self, cfg: RunConfig) -> None:
         """Refuse to resume with a different mapper config; warn about other differences."""
         # where the store spills is a place on this machine, not part of the map
@@ -150,9 +158,9 @@ class Checkpoint:
                         for c in (self.config(), cfg.mapper))
         diff = sorted(k for k in set(mine) | set(theirs) if mine.get(k) != theirs.get(k))
         if diff:
-            raise ValueError(f"{self.path}: the checkpoint was made with a different mapper config "
-                             f"({', '.join(f'{k}: {mine.get(k)!r} vs {theirs.get(k)!r}' for k in diff)}); "
-                             f"resume with Checkpoint.run_config()")
+            listed = ", ".join(f"{k}: {mine.get(k)!r} vs {theirs.get(k)!r}" for k in diff)
+            raise ValueError(f"{self.path}: the checkpoint was made with a different mapper "
+                             f"config ({listed}); resume with Checkpoint.run_config()")
         stored = self.meta.get("run_config") or {}
         now = to_dict(cfg)
         other = sorted(k for k in stored if k != "mapper" and stored[k] != now.get(k))
@@ -160,21 +168,13 @@ class Checkpoint:
             log.warning("resuming %s with a different run config: %s", self.path,
                         ", ".join(f"{k}: {stored[k]!r} -> {now.get(k)!r}" for k in other))
 
-    def restore_progress(self, online, input_conf, seconds: list, skipped: list,
-                         trajectory: list, drops=None) -> None:
-        """Fill the pipeline's accumulators (in place) with what the checkpoint holds."""
-        prog = self.meta.get("progress") or {}
-        for conf, name in ((online, "online"), (input_conf, "input")):
-            m = np.asarray(prog.get(name, np.zeros((conf.num_classes,) * 2)), np.int64)
-            if m.shape != (conf.num_classes, conf.num_classes):
-                raise mapfile.MapFileError(f"{self.path}: {name} confusion of shape {m.shape}, "
-                                           f"expected {conf.num_classes} classes")
-            conf._m += m   # Confusion has no public setter; add() would need the points back
-        seconds.extend(float(s) for s in prog.get("seconds", []))
-        skipped.extend(SkippedScan(**s) for s in prog.get("skipped", []))
-        trajectory.extend(np.asarray(t, np.float64) for t in prog.get("trajectory", []))
-        if drops is not None and prog.get("dropped"):
-            drops.restore(prog["dropped"])
+    def progress(self, num_classes: int) -> RunProgress:
+        """The run's progress when the checkpoint was written (empty for a bare map file)."""
+        saved = dict(self.meta.get("progress") or {}, last_index=self.last_index)
+        try:
+            return RunProgress.from_dict(saved, num_classes)
+        except (ValueError, TypeError) as exc:
+            raise mapfile.MapFileError(f"{self.path}: {exc}") from None
 
 
 def load_checkpoint(path: str | os.PathLike) -> Checkpoint:
@@ -184,41 +184,33 @@ def load_checkpoint(path: str | os.PathLike) -> Checkpoint:
     return Checkpoint(file, snapshot, config, meta)
 
 
-def save_checkpoint(directory: str | os.PathLike, mapper, *, last_index: int | None = None,
-                    run_config: RunConfig | None = None, online=None, input_conf=None,
-                    seconds=(), skipped=(), trajectory=(), source: dict | None = None,
-                    drops=None) -> Path:
-    """Save `mapper` (snapshot + state) and the run's progress to `directory/checkpoint.npz`.
+def save_checkpoint(directory: str | os.PathLike, mapper: Mapper,
+                    progress: RunProgress | None = None, *,
+                    run_config: RunConfig | None = None, source: dict | None = None) -> Path:
+    """Save `mapper` (snapshot + state) and the run's `progress` to `directory/checkpoint.npz`.
 
     Atomic (write, fsync, rename): a crash mid-save leaves the previous checkpoint intact.
     """
-    C = mapper.C
-    zeros = np.zeros((C, C), np.int64)
+    saved = (progress or RunProgress.start(mapper.C)).to_dict()
     meta = {
         "kind": "checkpoint",
-        "last_index": None if last_index is None else int(last_index),
+        "last_index": saved.pop("last_index"),
         "mapper_state": mapper.state(),
         "run_config": to_dict(run_config) if run_config is not None else None,
-        "progress": {
-            "online": online.matrix if online is not None else zeros,
-            "input": input_conf.matrix if input_conf is not None else zeros,
-            "seconds": [float(s) for s in seconds],
-            "skipped": [{"index": int(s.index), "name": str(s.name), "reason": str(s.reason)}
-                        for s in skipped],
-            "trajectory": [np.asarray(t, np.float64).tolist() for t in trajectory],
-            "dropped": drops.to_dict() if drops is not None else None,
-        },
+        "progress": saved,
         "source": dict(source or {}),
     }
-    return mapfile.save_checkpoint(directory, mapper.snapshot(), to_dict(mapper.config), meta)
+    return mapfile.save_checkpoint_file(directory, mapper.snapshot(), to_dict(mapper.config),
+                                        meta)
 
 
-def open_checkpoint(resume) -> Checkpoint:
-    """A `Checkpoint` as given, or loaded from a path (for `run_pipeline(resume=...)`)."""
+def open_checkpoint(resume: Checkpoint | str | os.PathLike) -> Checkpoint:
+    """A `Checkpoint` as given, or loaded from a path (a results folder, its checkpoint folder
+    or the file)."""
     return resume if isinstance(resume, Checkpoint) else load_checkpoint(resume)
 
 
-def mapper_from_file(path: str | os.PathLike):
+def mapper_from_file(path: str | os.PathLike) -> tuple[Mapper, Checkpoint]:
     """(Mapper, Checkpoint) for a map file / checkpoint / results folder."""
     file = _map_file(path)
     snapshot, config, meta = mapfile.load_map_file(file)
@@ -226,7 +218,7 @@ def mapper_from_file(path: str | os.PathLike):
     return ckpt.build_mapper(), ckpt
 
 
-def load_map(path: str | os.PathLike):
+def load_map(path: str | os.PathLike) -> Mapper:
     """A ready `Mapper` from a `map.npz` (or a checkpoint, or a results folder): query it with
     `load_map(path).query(points) -> labels, probs` without running the sequence again.
 

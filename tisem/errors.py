@@ -1,8 +1,8 @@
-"""Errors and skip records shared by readers and the pipeline.
+"""Errors and skip records shared by readers and the mapping run.
 
 A reader raises `DatasetError` when nothing can be mapped (no poses at all, no `Tr`),
-and `ScanError` for one bad scan; the pipeline turns a `ScanError` into a `SkippedScan`,
-reports it and goes on with the rest of the sequence.
+and `ScanError` for one bad scan; iterating a reader turns a `ScanError` into a `SkippedScan`,
+which the run (`tisem.run.MappingRun`) reports and passes over, mapping the rest.
 """
 from __future__ import annotations
 
@@ -24,7 +24,7 @@ class ScanError(ValueError):
 
 @dataclass
 class SkippedScan:
-    """A scan the pipeline did not map, and why."""
+    """A scan that was not mapped (its reader or the mapper refused it), and why."""
 
     index: int
     name: str

@@ -1,4 +1,4 @@
-"""Point-wise accuracy of semantic labels (SPEC §3).
+"""Point-wise accuracy of semantic labels.
 
 The confusion matrix is pooled over every evaluated point: rows are ground-truth train ids,
 columns predicted train ids. Conventions:
@@ -34,8 +34,10 @@ from typing import Iterable, Sequence
 import numpy as np
 
 from tisem.labels import CLASS_NAMES, NUM_CLASSES
+from tisem.scan import Scan, finite_rows
 
-__all__ = ["Confusion", "format_table", "format_per_class", "METRIC_NAMES"]
+__all__ = ["Confusion", "format_table", "format_per_class", "METRIC_NAMES", "score_scan",
+           "network_labels"]
 
 METRIC_NAMES = {
     "miou": "mIoU (GT-present classes)",
@@ -55,6 +57,20 @@ class Confusion:
             raise ValueError(f"num_classes must be >= 2, got {num_classes}")
         self.num_classes = int(num_classes)
         self._m = np.zeros((self.num_classes, self.num_classes), dtype=np.int64)
+
+    @classmethod
+    def from_matrix(cls, matrix) -> "Confusion":
+        """A confusion holding the counts of `matrix` (C x C, rows GT, columns prediction),
+        e.g. the `matrix` of one saved with a run's progress."""
+        m = np.asarray(matrix)
+        if m.ndim != 2 or m.shape[0] != m.shape[1]:
+            raise ValueError(f"a confusion matrix must be square, got shape {m.shape}")
+        if not np.issubdtype(m.dtype, np.integer) or (m.size and m.min() < 0):
+            raise ValueError(f"a confusion matrix holds non-negative integer counts, got "
+                             f"{m.dtype} values")
+        conf = cls(m.shape[0])
+        conf._m += m.astype(np.int64)
+        return conf
 
     # ------------------------------------------------------------------ accumulate
     def add(self, gt_train: np.ndarray, pred_train: np.ndarray) -> "Confusion":
@@ -136,6 +152,26 @@ class Confusion:
                 f"accuracy {f(m['accuracy'])})")
 
 
+def network_labels(scan: Scan) -> np.ndarray:
+    """The network's own per-point answer, scored like the map's (probabilities -> argmax; a
+    point without any probability is unlabeled)."""
+    if scan.labels is not None:
+        return scan.labels
+    labels = np.argmax(scan.probs, axis=1).astype(np.int32)
+    labels[scan.probs.sum(axis=1) <= 0] = 0
+    return labels
+
+
+def score_scan(conf: Confusion, scan: Scan, labels: np.ndarray) -> None:
+    """Add one answer per point of `scan` to `conf`; non-finite points are no measurement, so
+    they are not scored (the mapper drops them by the same rule, `finite_rows`)."""
+    finite = finite_rows(scan.points_sensor)
+    if finite.all():
+        conf.add(scan.gt_labels, labels)
+    else:
+        conf.add(scan.gt_labels[finite], labels[finite])
+
+
 def _class_name(c: int) -> str:
     return CLASS_NAMES[c] if c < len(CLASS_NAMES) else f"class-{c}"
 
@@ -198,7 +234,8 @@ def format_per_class(rows: Sequence[tuple[str, dict]], digits: int = 4) -> str:
         marked |= absent
         lines.append(_md_row([cname + (" *" if absent else "")] +
                              [_fmt(v, digits) for v in values]))
-    lines.append(_md_row(["**mIoU (GT-present)**"] + [_fmt(m.get("miou"), digits) for _, m in rows]))
+    lines.append(_md_row(["**mIoU (GT-present)**"]
+                         + [_fmt(m.get("miou"), digits) for _, m in rows]))
     text = "\n".join(lines)
     if marked:
         text += "\n\n\\* absent from the ground truth (predicted only): not part of the mIoU."

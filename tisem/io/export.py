@@ -1,4 +1,4 @@
-"""PLY export of a map, for CloudCompare / MeshLab / Open3D (issue 5).
+"""PLY export of a map, for CloudCompare / MeshLab / Open3D.
 
 Every voxel of the snapshot becomes one vertex at its centre (voxels without evidence too,
 with label 0 and probability 0), so the file is the map itself: `len(vertices) == len(snapshot)`.

@@ -1,4 +1,4 @@
-"""The tisem map file (`map.npz`) and checkpoints, written atomically (issue 5).
+"""The tisem map file (`map.npz`) and checkpoint files, written atomically.
 
 A map file holds everything needed to rebuild the map: the snapshot arrays (keys, counts,
 t_last, ell_m, resolution_m), the class table it was built with (names, colours, raw ids),
@@ -19,15 +19,17 @@ import tempfile
 import zipfile
 import zlib
 from pathlib import Path
+from typing import BinaryIO, Callable
 
 import numpy as np
 import yaml
 
+from tisem.config import MapperConfig
 from tisem.labels import CLASS_COLORS_RGB, CLASS_NAMES, LEARNING_MAP_INV
 from tisem.snapshot import MapSnapshot
 
-__all__ = ["MapFileError", "atomic_write", "save_map", "load_map_file", "save_checkpoint",
-           "load_checkpoint", "CHECKPOINT_NAME", "FORMAT_NAME", "FORMAT_VERSION"]
+__all__ = ["MapFileError", "atomic_write", "save_map", "load_map_file", "save_checkpoint_file",
+           "load_checkpoint_file", "CHECKPOINT_NAME", "FORMAT_NAME", "FORMAT_VERSION"]
 
 FORMAT_NAME = "tisem-map"
 FORMAT_VERSION = 1
@@ -59,13 +61,13 @@ def _json_default(obj):
     raise TypeError(f"meta value of type {type(obj).__name__} is not JSON-serialisable")
 
 
-def _config_dict(mapper_config) -> dict:
+def _config_dict(mapper_config: MapperConfig | dict | None) -> dict:
     if dataclasses.is_dataclass(mapper_config):
         return dataclasses.asdict(mapper_config)
     return dict(mapper_config or {})
 
 
-def atomic_write(path: str | os.PathLike, write) -> None:
+def atomic_write(path: str | os.PathLike, write: Callable[[BinaryIO], object]) -> None:
     """Call `write(file_object)` on a temp file next to `path`, fsync, then rename onto `path`.
 
     The temp file lives in the target's folder because `os.replace` is only atomic within one
@@ -113,7 +115,7 @@ def _class_table_arrays(num_classes: int) -> dict:
                                              np.zeros(extra, np.uint32)])}
 
 
-def save_map(path: str | os.PathLike, snapshot: MapSnapshot, mapper_config,
+def save_map(path: str | os.PathLike, snapshot: MapSnapshot, mapper_config: MapperConfig | dict,
              meta: dict | None = None, compress: bool = True) -> Path:
     """Write `snapshot` + config + meta to `path` (an .npz), atomically. Returns the path.
 
@@ -201,9 +203,10 @@ def load_map_file(path: str | os.PathLike) -> tuple[MapSnapshot, dict, dict]:
     return snapshot, config, meta
 
 
-def save_checkpoint(directory: str | os.PathLike, snapshot: MapSnapshot, mapper_config,
-                    meta: dict | None = None) -> Path:
-    """Write `directory/checkpoint.npz` atomically (uncompressed: checkpoints are frequent).
+def save_checkpoint_file(directory: str | os.PathLike, snapshot: MapSnapshot,
+                         mapper_config: MapperConfig | dict, meta: dict | None = None) -> Path:
+    """Write the map file `directory/checkpoint.npz` atomically (uncompressed: checkpoints are
+    frequent). `tisem.checkpoint.save_checkpoint` fills `meta` with a run's progress.
 
     The fixed name means a resumed run always finds the latest one, and the atomic replace
     means the previous checkpoint survives a crash during this one.
@@ -213,8 +216,9 @@ def save_checkpoint(directory: str | os.PathLike, snapshot: MapSnapshot, mapper_
     return save_map(directory / CHECKPOINT_NAME, snapshot, mapper_config, meta, compress=False)
 
 
-def load_checkpoint(directory: str | os.PathLike) -> tuple[MapSnapshot, dict, dict]:
-    """Read `directory/checkpoint.npz`: (snapshot, mapper_config dict, meta dict)."""
+def load_checkpoint_file(directory: str | os.PathLike) -> tuple[MapSnapshot, dict, dict]:
+    """Read the map file `directory/checkpoint.npz`: (snapshot, mapper_config dict, meta dict),
+    as `load_map_file` does (`tisem.checkpoint.load_checkpoint` gives a `Checkpoint`)."""
     path = Path(directory) / CHECKPOINT_NAME
     if not path.is_file():
         raise FileNotFoundError(f"{path}: no checkpoint to resume from (expected "

@@ -1,4 +1,4 @@
-"""Reader (and prediction writer) for SemanticKITTI sequence folders (SPEC §2).
+"""Reader (and prediction writer) for SemanticKITTI sequence folders.
 
 Layout of one sequence folder::
 
@@ -30,15 +30,8 @@ from tisem.errors import DatasetError, ScanError, SkippedScan
 from tisem.labels import raw_to_train, train_to_raw
 from tisem.scan import KittiSource, Scan, finite_rows
 
-__all__ = [
-    "SemanticKittiSequence",
-    "write_predictions",
-    "read_calib_tr",
-    "read_poses",
-    "read_times",
-    "camera_poses_to_lidar",
-    "DEFAULT_SCAN_PERIOD_S",
-]
+__all__ = ["SemanticKittiSequence", "write_predictions", "read_calib_tr", "read_poses",
+           "read_times", "camera_poses_to_lidar", "DEFAULT_SCAN_PERIOD_S"]
 
 DEFAULT_SCAN_PERIOD_S = 0.1  # 10 Hz, used when there is no times.txt
 INPUTS = ("predictions", "labels")
@@ -53,6 +46,30 @@ def _row_to_4x4(values: np.ndarray) -> np.ndarray:
     return T
 
 
+def _parse_pose_row(text: str, where: str, line: str, subject: str) -> np.ndarray:
+    """Twelve numbers (a 3x4 row-major transform, as calib.txt and poses.txt store them) as a
+    (4, 4) float64 matrix. The DatasetError for anything else starts with `where` (file:line)
+    and names `line` (what the line is) or `subject` (what it holds)."""
+    try:
+        values = np.array([float(v) for v in text.split()], dtype=np.float64)
+    except ValueError:
+        raise DatasetError(f"{where}: malformed {line}, non-numeric value in "
+                           f"{text.strip()[:80]!r}") from None
+    if values.size != 12:
+        raise DatasetError(f"{where}: malformed {line}, expected 12 numbers (3x4 row-major), "
+                           f"got {values.size}")
+    if not np.all(np.isfinite(values)):
+        raise DatasetError(f"{where}: {subject} has NaN/inf values")
+    return _row_to_4x4(values)
+
+
+def _read_text(path: Path, what: str) -> str:
+    try:
+        return path.read_text()
+    except (OSError, UnicodeDecodeError) as exc:
+        raise DatasetError(f"{path}: cannot read {what}: {exc}") from exc
+
+
 def read_calib_tr(path: str | os.PathLike) -> np.ndarray:
     """The `Tr:` line of a SemanticKITTI calib.txt as a (4, 4) float64 velodyne -> camera matrix.
 
@@ -63,26 +80,11 @@ def read_calib_tr(path: str | os.PathLike) -> np.ndarray:
     if not path.is_file():
         raise DatasetError(f"{path}: calibration file not found (needs a 'Tr:' line, "
                            f"velodyne -> camera)")
-    try:
-        text = path.read_text()
-    except (OSError, UnicodeDecodeError) as exc:
-        raise DatasetError(f"{path}: cannot read calibration file: {exc}") from exc
-    for lineno, line in enumerate(text.splitlines(), start=1):
+    for lineno, line in enumerate(_read_text(path, "calibration file").splitlines(), start=1):
         key, sep, rest = line.partition(":")
         if not sep or key.strip() != "Tr":
             continue
-        fields = rest.split()
-        try:
-            values = np.array([float(v) for v in fields], dtype=np.float64)
-        except ValueError:
-            raise DatasetError(f"{path}:{lineno}: malformed 'Tr:' line, non-numeric value "
-                               f"in {rest.strip()!r}") from None
-        if values.size != 12:
-            raise DatasetError(f"{path}:{lineno}: malformed 'Tr:' line, expected 12 numbers "
-                               f"(3x4 row-major), got {values.size}")
-        if not np.all(np.isfinite(values)):
-            raise DatasetError(f"{path}:{lineno}: 'Tr:' line has NaN/inf values")
-        T = _row_to_4x4(values)
+        T = _parse_pose_row(rest, f"{path}:{lineno}", "'Tr:' line", "'Tr:' line")
         if abs(np.linalg.det(T[:3, :3])) < 1e-6:
             raise DatasetError(f"{path}:{lineno}: 'Tr:' rotation is singular, cannot invert")
         return T
@@ -99,34 +101,17 @@ def read_poses(path: str | os.PathLike) -> np.ndarray:
     path = Path(path)
     if not path.is_file():
         raise DatasetError(f"{path}: poses file not found (one 3x4 pose per scan)")
-    try:
-        lines = path.read_text().rstrip().splitlines()
-    except (OSError, UnicodeDecodeError) as exc:
-        raise DatasetError(f"{path}: cannot read poses file: {exc}") from exc
+    lines = _read_text(path, "poses file").rstrip().splitlines()
     poses = np.empty((len(lines), 4, 4), dtype=np.float64)
     for i, line in enumerate(lines):
-        fields = line.split()
-        try:
-            values = np.array([float(v) for v in fields], dtype=np.float64)
-        except ValueError:
-            raise DatasetError(f"{path}:{i + 1}: malformed pose line (pose {i}), non-numeric "
-                               f"value in {line.strip()[:80]!r}") from None
-        if values.size != 12:
-            raise DatasetError(f"{path}:{i + 1}: malformed pose line (pose {i}), expected 12 "
-                               f"numbers (3x4 row-major), got {values.size}")
-        if not np.all(np.isfinite(values)):
-            raise DatasetError(f"{path}:{i + 1}: pose {i} has NaN/inf values")
-        poses[i] = _row_to_4x4(values)
+        poses[i] = _parse_pose_row(line, f"{path}:{i + 1}", f"pose line (pose {i})", f"pose {i}")
     return poses
 
 
 def read_times(path: str | os.PathLike) -> np.ndarray:
     """times.txt (one time in seconds per line) as (M,) float64; DatasetError when malformed."""
     path = Path(path)
-    try:
-        lines = path.read_text().rstrip().splitlines()
-    except (OSError, UnicodeDecodeError) as exc:
-        raise DatasetError(f"{path}: cannot read times file: {exc}") from exc
+    lines = _read_text(path, "times file").rstrip().splitlines()
     times = np.empty(len(lines), dtype=np.float64)
     for i, line in enumerate(lines):
         fields = line.split()
@@ -317,9 +302,10 @@ class SemanticKittiSequence:
         return len(self.scan_ids)
 
     def __repr__(self) -> str:
-        return (f"SemanticKittiSequence({str(self.sequence_dir)!r}, sequence={self.sequence_name!r}, "
-                f"input={self.input!r}, scans {self.scan_ids[0]}..{self.scan_ids[-1]} "
-                f"({len(self)}), ground truth: {self.has_ground_truth})")
+        return (f"SemanticKittiSequence({str(self.sequence_dir)!r}, "
+                f"sequence={self.sequence_name!r}, input={self.input!r}, "
+                f"scans {self.scan_ids[0]}..{self.scan_ids[-1]} ({len(self)}), "
+                f"ground truth: {self.has_ground_truth})")
 
     def __getitem__(self, k: int) -> Scan:
         if not isinstance(k, (int, np.integer)):

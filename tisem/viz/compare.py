@@ -48,7 +48,8 @@ def load_results(results_dir: str | os.PathLike) -> tuple[dict, dict]:
 
 
 def region_accuracy(pred: np.ndarray, gt: np.ndarray) -> tuple[float | None, int]:
-    """(accuracy, evaluated points) as SPEC §3: GT 0 ignored, a prediction of 0 is wrong."""
+    """(accuracy, evaluated points) by the evaluation's rules (`tisem.evaluate`): GT 0 is
+    ignored, a prediction of 0 is wrong."""
     valid = gt != 0
     n = int(np.count_nonzero(valid))
     return (float(np.mean(pred[valid] == gt[valid])) if n else None), n

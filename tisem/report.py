@@ -1,0 +1,62 @@
+"""What a finished run says: the metrics.json figures and the end-of-run table."""
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from tisem.config import RunConfig, to_dict
+from tisem.evaluate import Confusion, format_table
+from tisem.progress import RunProgress
+
+if TYPE_CHECKING:
+    from tisem.mapper import Mapper
+
+__all__ = ["METRIC_KEYS", "run_metrics", "results_table"]
+
+# the figures of each protocol that metrics.json keeps
+METRIC_KEYS = ("miou", "miou_all", "accuracy", "wiou", "oa_paper", "per_class_iou", "points")
+
+
+def _summary(conf: Confusion) -> dict:
+    m = conf.metrics()
+    return {k: m[k] for k in METRIC_KEYS}
+
+
+def run_metrics(progress: RunProgress, final: Confusion, mapper: Mapper, cfg: RunConfig) -> dict:
+    """metrics.json: the three protocols (final map, online, network input), timings, voxel
+    counts, skipped scans, dropped points and the resolved config."""
+    seconds = progress.seconds
+    return {
+        "mode": cfg.mapper.mode,
+        "scans": progress.mapped,
+        "skipped": [vars(s) for s in progress.skipped],
+        "seconds_per_scan": float(np.median(seconds)) if seconds else None,
+        "seconds_total": float(np.sum(seconds)),
+        "active_voxels": mapper.live_voxels + mapper.stored_voxels,
+        "live_voxels": mapper.live_voxels,
+        "stored_voxels": mapper.stored_voxels,
+        "dropped": progress.drops.totals,
+        "dropped_scans": progress.drops.scans,
+        "evaluated": final.metrics()["points"] > 0,
+        "final": _summary(final),
+        "online": _summary(progress.online),
+        "input": _summary(progress.input),
+        "config": to_dict(cfg),
+    }
+
+
+def results_table(metrics: dict) -> str:
+    """The end-of-run table: network input vs the map, both protocols, then one summary line
+    (scans mapped and skipped, time per scan, voxels)."""
+    rows = []
+    if metrics["evaluated"]:
+        mode = metrics["mode"]
+        rows = [("network input", metrics["input"]), (f"map, final ({mode})", metrics["final"]),
+                (f"map, online ({mode})", metrics["online"])]
+    text = format_table(rows) if rows else "(no ground truth: nothing to score)"
+    sps = metrics["seconds_per_scan"]
+    text += (f"\n\n{metrics['scans']} scans mapped, {len(metrics['skipped'])} skipped; "
+             f"{sps * 1000 if sps else float('nan'):.1f} ms per scan (median); "
+             f"{metrics['active_voxels']:,} voxels")
+    return text
