@@ -3,7 +3,6 @@ the same predictions, metrics and map as an uninterrupted run. Scans are the sma
 streets of test_checkpoint.py, written as a SemanticKITTI folder (and converted to MCAP)."""
 from __future__ import annotations
 
-import importlib.util
 import json
 import subprocess
 import sys
@@ -14,6 +13,7 @@ import numpy as np
 from test_checkpoint import assert_same_map, comparable_metrics, make_scans
 from tisem.checkpoint import load_checkpoint
 from tisem.io import mapfile
+from tisem.io.kitti_mcap import write_kitti_mcap
 
 REPO = Path(__file__).resolve().parents[1]
 MAPPER_YAML = "max_range_m: 20\nwindow_xy_m: 30\nwindow_z_m: 12\nmin_z_m: -4\nmax_z_m: 4\n"
@@ -46,13 +46,6 @@ def run_app(name: str, *args, cwd: Path) -> subprocess.CompletedProcess:
                           timeout=300)
     assert done.returncode == 0, done.stdout + done.stderr
     return done
-
-
-def load_app(name: str):
-    spec = importlib.util.spec_from_file_location(name, REPO / "apps" / f"{name}.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
 
 
 def assert_same_results(part: Path, full: Path) -> None:
@@ -90,9 +83,8 @@ def test_map_mcap_checkpoint_and_resume(tmp_path):
     """The resumed run is given neither the recording nor its options: it reads them from the
     checkpoint."""
     data = write_kitti(tmp_path / "08", make_scans(5, points=1500, seed=7))
-    kitti_to_mcap = load_app("kitti_to_mcap")
     recording = tmp_path / "drive.mcap"
-    kitti_to_mcap.convert(kitti_to_mcap.parse_args([str(data), str(recording)]))
+    write_kitti_mcap(data, recording)
     (tmp_path / "mapper.yaml").write_text(MAPPER_YAML)
     common = [recording, "--gt-field", "gt_label", "--threads", 2,
               "--config", tmp_path / "mapper.yaml"]
