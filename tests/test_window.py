@@ -272,11 +272,9 @@ def test_store_keeps_its_payload_on_disk(tmp_path):
     assert os.listdir(tmp_path) == []           # the spill file has no name
 
 
-def test_store_round_trip_through_the_spill_file(monkeypatch):
+def test_store_round_trip_through_the_spill_file():
     """Many put / take_box cycles, with small segments, compaction and file rewrites all forced,
     against a plain model of what is stored: every take, lookup and export is exact."""
-    import tisem.store as store_mod
-    monkeypatch.setattr(store_mod, "SEGMENT_VOXELS", 3000)
     rng = np.random.default_rng(6)
     want = clustered_voxels(rng, np.unique(rng.integers(-40, 40, (4000, 3)), axis=0), 10)
     keys = want[0]
@@ -286,10 +284,10 @@ def test_store_round_trip_through_the_spill_file(monkeypatch):
     def rows(k):
         return order[np.searchsorted(pack(keys)[order], pack(k))]
 
-    store = BlockStore(20, rewrite_floor=1 << 14)
+    store = BlockStore(20, rewrite_floor=1 << 14, segment_voxels=3000)
     store.put(*want)                             # cut into k-d pieces of <= 3000 voxels
     here[:] = True
-    assert len(store._segments) > len(keys) / 3000
+    assert store.num_segments > len(keys) / 3000
     for step in range(40):
         center = rng.integers(-150, 150, 3)
         half = rng.integers(10, 110, 3)
@@ -316,7 +314,7 @@ def test_store_round_trip_through_the_spill_file(monkeypatch):
         np.testing.assert_array_equal(found, m)
         np.testing.assert_array_equal(counts[m], want[1][rows(ask[m])])
         assert not counts[~m].any()
-    assert store._spill.rewrites >= 3
+    assert store.spill_rewrites >= 3
     for g, e in zip(sort_rows(store.arrays()), sort_rows([a[here] for a in want])):
         np.testing.assert_array_equal(g, e)
     got = store.take_box(np.zeros(3, int), np.full(3, 1000))
@@ -344,14 +342,14 @@ def test_store_file_stays_bounded():
                                                    np.array([1000, 500, 500])))
             written += store.disk_bytes - before
             most = max(most, store.disk_bytes)
-            biggest = max(biggest, store._spill.file_bytes)
-            assert store._spill.file_bytes <= max(2 * store.disk_bytes, store.disk_bytes + floor)
+            biggest = max(biggest, store.spill_file_bytes)
+            assert store.spill_file_bytes <= max(2 * store.disk_bytes, store.disk_bytes + floor)
         for x0 in range(0, 2400, 40):   # back over it: windows that cut blocks, gaps between
             store.take_box(np.array([x0 + 18, 0, 0]), np.array([18, 500, 500]))
         assert len(store) == gap.sum()
     assert biggest <= 2 * most + floor
     assert written > 3 * (2 * most + floor)     # without the rewrites the file would be this big
-    assert store._spill.rewrites > 0
+    assert store.spill_rewrites > 0
 
 
 def test_store_refuses_a_missing_spill_dir_and_survives_a_full_disk(tmp_path):
@@ -370,7 +368,7 @@ def test_store_refuses_a_missing_spill_dir_and_survives_a_full_disk(tmp_path):
     snapshot = sort_rows(store.arrays())
     soft, hard = resource.getrlimit(resource.RLIMIT_FSIZE)
     # files may not grow past this: the next segments do not fit (EFBIG, as ENOSPC would)
-    resource.setrlimit(resource.RLIMIT_FSIZE, (store._spill.file_bytes + 4096, hard))
+    resource.setrlimit(resource.RLIMIT_FSIZE, (store.spill_file_bytes + 4096, hard))
     try:
         with pytest.raises(OSError, match=re.escape(str(tmp_path))):
             store.put(*(a[~west] for a in want))
