@@ -1,11 +1,11 @@
-"""Shared builders for the engine tests (issue 2): runtimes, configs, poses, scans, scenes,
-and hooks that record what each kernel stage of `Mapper.integrate` produced.
+"""Shared builders for the engine tests: runtimes, configs, poses, scans, scenes, and readers
+of what each step of `Mapper.integrate` produced (from a `tisem.trace.IntegrationTrace`).
 
-Taichi rules these follow (shared/notes/taichi-sparse.md §4.5-4.6): every test gets its own
-runtime (the `taichi_cpu` fixture of conftest.py: `init_taichi("cpu", threads=2)`, one Mapper per runtime), no
-Taichi object outlives its runtime, and the test kernels below live in this real source file
-(Taichi reads kernel source from disk). With 2 threads float atomics are not bitwise
-reproducible, so comparisons carry named tolerances.
+Taichi rules these follow: every test gets its own runtime (the `taichi_cpu` fixture of
+conftest.py: `init_taichi("cpu", threads=2)`, one Mapper per runtime), because using a field of
+an earlier runtime aborts the process; no Taichi object outlives its runtime; and the test
+kernels below live in this real source file (Taichi reads kernel source from disk). With 2
+threads float atomics are not bitwise reproducible, so comparisons carry named tolerances.
 """
 # (no `from __future__ import annotations`: Taichi reads the kernels' annotations)
 import math
@@ -13,8 +13,8 @@ import math
 import numpy as np
 import taichi as ti
 
-from kernels import bki, entropy, rasterize, table, training
-from kernels.layout import LAYER_BITS, LEAF
+from kernels import bki, entropy
+from kernels.layout import TOP, MapFields
 from tisem.backend import init_taichi
 from tisem.config import MapperConfig
 from tisem.reference import voxel_histograms
@@ -113,11 +113,18 @@ def _sample_kernel(m: ti.template(), r2: ti.types.ndarray(dtype=ti.f32, ndim=1),
         exact[i] = bki.sparse_kernel(ti.sqrt(r2[i]))
 
 
-def sample_kernel(mapper, r2):
+def kernel_table_fields() -> MapFields:
+    """The smallest map fields (one top cell) with the sparse kernel's table filled in."""
+    fields = MapFields(C, (TOP, TOP, TOP), (1, 1, 1))
+    bki.fill_kernel_table(fields)
+    return fields
+
+
+def sample_kernel(fields, r2):
     """g(r) at r^2 through the engine's table (`sparse_kernel_of_r2`) and its closed form."""
     r2 = np.ascontiguousarray(r2, np.float32)
     lut, exact = np.zeros_like(r2), np.zeros_like(r2)
-    _sample_kernel(mapper.fields, r2, lut, exact)
+    _sample_kernel(fields, r2, lut, exact)
     return lut.astype(np.float64), exact.astype(np.float64)
 
 
@@ -150,95 +157,49 @@ def _sorted_by_key(keys, *arrays):
     return (keys[order],) + tuple(a[order] for a in arrays)
 
 
-class StageRecorder:
-    """Records, for every scan a Mapper integrates, the output of two kernel stages:
+def located_voxels(step) -> dict:
+    """Step 2 of a traced scan (a `tisem.trace.ScanTrace`): every voxel a kept point fell in
+    (global keys, sorted) with its point count and how many of its points carry class evidence.
+    Checks on the way that the list of occupied blocks is the points' blocks, and that the block
+    sort lists every kept point once, block by block."""
+    kept = step.kept
+    listed = step.occupied_cells
+    assert np.array_equal(np.sort(listed), np.unique(step.point_cell[kept])), \
+        "the list of occupied blocks differs from the points' blocks"
+    order = step.block_order
+    assert np.array_equal(np.sort(order), np.flatnonzero(kept)), \
+        "the block sort lost or repeated a point"
+    runs = step.point_cell[order]
+    # every block's points in one run: a cell id never comes back after another
+    starts = np.r_[True, runs[1:] != runs[:-1]]
+    assert len(np.unique(runs)) == starts.sum(), "a block's points are split"
+    keys, inv, npts = np.unique(step.point_voxel[kept], axis=0, return_inverse=True,
+                                return_counts=True)
+    labelled = np.bincount(inv.reshape(-1), step.point_has_evidence[kept], len(keys))
+    return dict(keys=keys, npts=npts, labelled=labelled.astype(np.int64), used=int(kept.sum()))
 
-    * `located[i]`: where steps 1-2 put the scan's points — the global key of every voxel a
-      kept point fell in (decoded from the table cell and voxel code the kernel wrote per
-      point), with its point count and how many of its points carry class evidence; and
-      whether the block sort (`perm`) lists every kept point once, block by block;
-    * `training[i]`: the training points after filtering (step 3) — global keys of their
-      voxels, centroids (world metres) and class evidence (weighted per `point_weight`).
 
-    It wraps the kernels the mapper calls (module attributes, restored by monkeypatch).
-    """
-
-    def __init__(self, monkeypatch, mapper):
-        self.mapper = mapper
-        self.located: list[dict] = []
-        self.training: list[dict] = []
-        self.reloaded = 0        # (for the caller's own bookkeeping)
-        monkeypatch.setattr(rasterize, "locate_points", self._after_locate(rasterize.locate_points))
-        monkeypatch.setattr(rasterize, "scatter_points",
-                            self._after_scatter(rasterize.scatter_points))
-        monkeypatch.setattr(table, "column_slots", self._after_slots(table.column_slots))
-        monkeypatch.setattr(training, "write_training",
-                            self._after_training(training.write_training))
-
-    def _after_locate(self, kernel):
-        def wrapped(m, *args):
-            fates = kernel(m, *args)
-            cell, code, blocks = args[-3], args[-2], args[-1]
-            used = cell != rasterize.DROPPED
-            listed = blocks[:int(fates[rasterize.BLOCKS])]
-            assert np.array_equal(np.sort(listed), np.unique(cell[used])), \
-                "the list of occupied blocks differs from the points' blocks"
-            mp = self.mapper
-            cells = np.stack(np.unravel_index(cell[used], m.table_shape), axis=1)
-            world_blk = cells - np.array(m.table_half) + np.floor_divide(mp.center_vox, LEAF)
-            q = code[used] % rasterize.EVIDENCE
-            local = np.stack([q % LEAF, (q // LEAF) % LEAF, q // (LEAF * LEAF)], axis=1)
-            keys = world_blk * LEAF + local + mp.origin_vox
-            keys, inv, npts = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
-            labelled = np.bincount(inv.reshape(-1), code[used] // rasterize.EVIDENCE, len(keys))
-            self.located.append(dict(keys=keys, npts=npts, labelled=labelled,
-                                     used=int(used.sum())))
-            return fates
-        return wrapped
-
-    def _after_scatter(self, kernel):
-        def wrapped(m, cell, perm):
-            kernel(m, cell, perm)
-            rec = self.located[-1]
-            order = perm[:rec["used"]]
-            assert np.array_equal(np.sort(order), np.flatnonzero(cell != rasterize.DROPPED)), \
-                "the block sort lost or repeated a point"
-            runs = cell[order]
-            # every block's points in one run: a cell id never comes back after another
-            starts = np.r_[True, runs[1:] != runs[:-1]]
-            assert len(np.unique(runs)) == starts.sum(), "a block's points are split"
-        return wrapped
-
-    def _after_slots(self, kernel):
-        def wrapped(m, count, *args):
-            total = kernel(m, count, *args)
-            if count is table.rows_in:      # (the other call hands out the points' slots)
-                self._rows = total
-            return total
-        return wrapped
-
-    def _after_training(self, kernel):
-        def wrapped(m, *args):
-            kernel(m, *args)
-            n = self._rows
-            # every slot of every block's slice is a training point
-            layers, start = m.b_layers.to_numpy().ravel(), m.b_start.to_numpy().ravel()
-            count = layers >> (3 * LAYER_BITS)     # (the last layer's byte: all the block's rows)
-            # each layer's byte counts the rows below its end: non-decreasing up the block
-            ends = np.stack([(layers >> (LAYER_BITS * k)) & 255 for k in range(LEAF)], axis=1)
-            assert np.all(np.diff(ends, axis=1) >= 0), "a block's layer ends go down"
-            used = count > 0
-            rows = np.concatenate([np.arange(s, s + c) for s, c in zip(start[used], count[used])]
-                                  or [np.zeros(0, np.int64)])
-            assert len(np.unique(rows)) == len(rows), "two blocks' slices overlap"
-            assert len(rows) == n, f"column_slots handed out {n} rows, the table holds {len(rows)}"
-            xyz, hist = args[-4][rows], args[-3][rows]
-            mp = self.mapper
-            centroid = xyz.astype(np.float64) + mp.origin_vox * mp.res
-            keys = np.floor(xyz.astype(np.float64) / mp.res).astype(np.int64) + mp.origin_vox
-            keys, centroid, hist = _sorted_by_key(keys, centroid, hist.copy())
-            self.training.append(dict(keys=keys, centroid=centroid, hist=hist))
-        return wrapped
+def training_points(step) -> dict:
+    """Step 3 of a traced scan: the training points found through the scan's table (global keys
+    of their voxels, centroids in world metres, class evidence), sorted by key. Checks on the way
+    that every slot of every block's slice is a training point, each once."""
+    ends = step.layer_rows        # per cell: the rows up to the end of each z layer
+    # each layer's count includes the layers below it: non-decreasing up the block
+    assert np.all(np.diff(ends, axis=1) >= 0), "a block's layer ends go down"
+    count = ends[:, -1]           # (the last layer's: all the block's rows)
+    used = count > 0
+    rows = np.concatenate([np.arange(s, s + c) for s, c in zip(step.row_start[used], count[used])]
+                          or [np.zeros(0, np.int64)])
+    n = step.training_rows
+    assert len(np.unique(rows)) == len(rows), "two blocks' slices overlap"
+    assert len(rows) == n, f"column_slots handed out {n} rows, the table holds {len(rows)}"
+    assert rows.size == 0 or (rows.min() >= 0 and rows.max() < n), "a slice past the rows"
+    xyz, hist = step.training_xyz[rows], step.training_hist[rows]
+    res, origin = step.resolution_m, step.origin_vox
+    centroid = xyz.astype(np.float64) + origin * res
+    keys = np.floor(xyz.astype(np.float64) / res).astype(np.int64) + origin
+    keys, centroid, hist = _sorted_by_key(keys, centroid, hist.copy())
+    return dict(keys=keys, centroid=centroid, hist=hist)
 
 
 def hand_rasterize(scan: Scan, cfg: MapperConfig):

@@ -1,4 +1,4 @@
-"""The mapper on analytic scenes with known answers (issue 2, items 2-4, 6 and 8).
+"""The mapper on analytic scenes with known answers.
 
 * a noisy road plane comes out clean; class boundaries are recovered (st, adaptive, bki);
 * `csm` is exact per-voxel counting (count and unit weighting);
@@ -518,16 +518,16 @@ def test_debug_scan_at_the_edge_of_the_window(debug_map):
 def test_a_scan_with_more_points_than_training_rows_can_count_is_refused(taichi_cpu, monkeypatch):
     """Training rows pass through float32 (exact below 2^24): a scan that could need more is
     refused with its name before any kernel runs, and the map is untouched."""
-    import tisem.mapper as mapper_module
+    from kernels import layout
     mapper = Mapper(small_config(mode="st"))
     rng = np.random.default_rng(0)
     pts = rng.uniform(-5, 5, (50, 3))
     labels = np.full(50, ROAD, np.int32)
-    monkeypatch.setattr(mapper_module, "MAX_POINTS", 50)
+    monkeypatch.setattr(layout, "MAX_SCAN_POINTS", 50)
     with pytest.raises(ValueError, match="50 points; tisem takes at most 49"):
         mapper.integrate(Scan(pts, np.eye(4), 0.0, labels=labels, name="big"))
     assert mapper.live_voxels == 0
-    monkeypatch.setattr(mapper_module, "MAX_POINTS", 51)
+    monkeypatch.setattr(layout, "MAX_SCAN_POINTS", 51)
     mapper.integrate(Scan(pts, np.eye(4), 0.0, labels=labels, name="big"))
     assert mapper.live_voxels > 0
 

@@ -1,9 +1,10 @@
-"""The live window and the host store (issue 6): a whole drive at flat memory, revisits included.
+"""The live window and the host store: a whole drive at flat memory, revisits included.
 
-Every test gets its own Taichi runtime (shared/notes/taichi-sparse.md §4.5); tisem allows one map
-per runtime, so a test comparing two maps keeps the first as numpy arrays (`snapshot()`) and
-starts a fresh runtime before building the second. Scans are small hand-built streets (a few
-thousand labelled points, 20 m range), so a 25 m window evicts and reloads all the time.
+Every test gets its own Taichi runtime (a field of an earlier runtime aborts the process when
+used); tisem allows one map per runtime, so a test comparing two maps keeps the first as numpy
+arrays (`snapshot()`) and starts a fresh runtime before building the second. Scans are small
+hand-built streets (a few thousand labelled points, 20 m range), so a 25 m window evicts and
+reloads all the time.
 """
 from __future__ import annotations
 
@@ -415,13 +416,11 @@ def test_evict_and_reload_round_trip_exactly(taichi_cpu):
     rep = mapper.integrate(empty)
     assert rep.reloaded_voxels == len(before)
     assert mapper.live_voxels == len(before)
-    live = mapper._live_arrays()
-    live_keys = live[0].astype(np.int64) + mapper.origin_vox
-    order = np.lexsort(live_keys.T[::-1])
-    np.testing.assert_array_equal(live_keys[order], before.keys)
-    np.testing.assert_array_equal(live[1][order], before.counts)                 # counters
-    np.testing.assert_array_equal(live[2][order].astype(np.float64) + mapper.t0, before.t_last)
-    np.testing.assert_array_equal(live[3][order], before.ell_m)                  # ell
+    live = mapper.live_snapshot()                # only what the Taichi field holds
+    np.testing.assert_array_equal(live.keys, before.keys)
+    np.testing.assert_array_equal(live.counts, before.counts)                    # counters
+    np.testing.assert_array_equal(live.t_last, before.t_last)
+    np.testing.assert_array_equal(live.ell_m, before.ell_m)                      # lengths
 
 
 def test_points_on_voxel_faces_find_the_same_voxel_live_and_stored(taichi_cpu):
@@ -487,9 +486,10 @@ def test_cap_shrinks_the_window_and_the_map_stays_correct(taichi_cpu, caplog):
     cap = 3300        # 2/3 of what the drive needs; a scan alone adds ~1000 blocks
     assert peak > 1.5 * cap
     seen = []
-    with caplog.at_level(logging.WARNING, logger="tisem.mapper"):
-        capped, _ = map_drive(config(window_xy_m=64.0, max_live_blocks=cap), scans,
-                              check=lambda m: seen.append((m.live_blocks, int(m.half_vox[0]))))
+    with caplog.at_level(logging.WARNING, logger="tisem.live_window"):
+        capped, _ = map_drive(
+            config(window_xy_m=64.0, max_live_blocks=cap), scans,
+            check=lambda m: seen.append((m.live_blocks, int(m.window.half_vox[0]))))
     assert "shrunk" in caplog.text
     assert max(b for b, _ in seen) <= cap
     assert min(h for _, h in seen) < 200            # 64 m = 320 voxels: it did shrink
