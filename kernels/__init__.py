@@ -19,12 +19,12 @@ Every step of `tisem.mapper.Mapper.integrate`, where its kernels live:
 | 7. Bayesian kernel update                 | bki.py       | update_kernel (gather form)     |
 |    csm: the voxel's own histogram         | fusion.py    | fuse_histograms                 |
 | 8. temporal fusion (lazy decay)           | fusion.py    | fuse_voxel, decay_factor        |
-| 9. query                                  | query.py     | query_kernel                    |
+| 9. query                                  | query.py     | query, lookup                   |
 | the live window (eviction, reload)        | window.py    | find_leaving_blocks, ...        |
 | the SNode tree and the scan's table       | layout.py    | MapFields, table limits         |
 | a scan's constants, the kernels' settings | params.py    | ScanParams, KernelSettings      |
 
-Kernels that depend on a mode are built by cached factories (`*_kernel(settings)`), which close
-over their compile-time settings and branch with `ti.static`; scan constants travel as one
-`ScanParams` struct argument.
+Kernels that depend on a mode are built by cached factories (`*_kernel(...)`), which close over
+their compile-time settings and branch with `ti.static`; a scan's constants travel as one
+`ScanParams` argument pack.
 """

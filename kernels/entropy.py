@@ -8,10 +8,12 @@ decayed counters, which the kernel update reads anyway, so the update computes i
 import functools
 import math
 
+import numpy as np
 import taichi as ti
+from taichi.lang.argpack import ArgPack
 
 from kernels.fusion import decay_factor
-from kernels.layout import pending_length
+from kernels.layout import MapFields, pending_length
 from kernels.params import ADAPTIVE_LENGTH, NO_KERNEL
 from kernels.training import visit_training_voxels
 
@@ -135,7 +137,8 @@ def mark_near(m: ti.template(), i, stamp, reach_blk):
                 m.near[nx, ny, nz] = stamp
 
 
-def assign_lengths(m, s, blocks, voxel, hist, kernel_length: str) -> None:
+def assign_lengths(m: MapFields, s: ArgPack, blocks: np.ndarray, voxel: np.ndarray,
+                   hist: np.ndarray, kernel_length: str) -> None:
     """Steps 4-5 for every voxel the scan's training rows fall in: its kernel length under
     `kernel_length` (kernels/params.py), and the map blocks within kernel reach of it marked for
     the update. `voxel`, `hist`: the training rows' voxel indices and evidence."""

@@ -6,8 +6,11 @@ need to decay.
 
 Also the whole update of csm (counting, no kernel): each training voxel's own histogram.
 """
+import numpy as np
 import taichi as ti
+from taichi.lang.argpack import ArgPack
 
+from kernels.layout import MapFields
 from kernels.params import EXPONENTIAL, FORGET
 from kernels.training import visit_training_voxels
 
@@ -45,7 +48,8 @@ def _fuse_histogram(m: ti.template(), s: ti.template(), u, row, hist: ti.templat
     fuse_voxel(m, u, h, s.time_rel_s, 0.0, EXPONENTIAL)
 
 
-def fuse_histograms(m, s, blocks, voxel, hist) -> None:
+def fuse_histograms(m: MapFields, s: ArgPack, blocks: np.ndarray, voxel: np.ndarray,
+                    hist: np.ndarray) -> None:
     """csm's update (steps 6-8 without a kernel): every training voxel adds its own histogram
     (row `hist` of the scan's training rows, kernels/training.py) to its counters."""
     visit_training_voxels(m, s, blocks, voxel, hist, _no_block_work, _fuse_histogram)

@@ -74,7 +74,3 @@ class KernelSettings:
     @property
     def uses_kernel(self) -> bool:
         return self.kernel_length != NO_KERNEL
-
-    @property
-    def forget(self) -> bool:
-        return self.decay == FORGET

@@ -51,7 +51,7 @@ def query(m: ti.template(),
 def count_active(cells: ti.template()) -> ti.i32:
     """Active cells of a sparse field or SNode (m.t_last_rel: live voxels, m.blk: live blocks)."""
     n = 0
-    for I in ti.grouped(cells):
+    for _ in ti.grouped(cells):
         n += 1
     return n
 
@@ -78,10 +78,10 @@ def export_voxels(m: ti.template(), center: ti.types.vector(3, ti.i32),
     """Every live voxel (world keys unwrapped at the window centre), in no particular order;
     returns how many there are (only the first M are written)."""
     m.counter[None] = 0
-    for I in ti.grouped(m.t_last_rel):
+    for u in ti.grouped(m.t_last_rel):
         idx = ti.atomic_add(m.counter[None], 1)
         if idx < keys.shape[0]:
-            copy_voxel_out(m, I, m.unwrap(I, center), idx, keys, counts, t_last_rel, length_m)
+            copy_voxel_out(m, u, m.unwrap(u, center), idx, keys, counts, t_last_rel, length_m)
     return m.counter[None]
 
 

@@ -37,10 +37,10 @@ def evidence_array(use_probs: bool):
 
 
 @ti.func
-def to_local(R, p, t):
+def to_local(R, p, translation):
     """Sensor frame -> local map coordinates (the one place this arithmetic is written):
     R_local_sensor @ p + the sensor's position."""
-    return R @ p + t
+    return R @ p + translation
 
 
 @ti.func

@@ -4,6 +4,9 @@ Every size the map's fields and kernels are built with follows from the config h
 window, how far from the sensor a kept point may lie, the scan's dense table of leaf blocks,
 the kernel's reach and the toroidal storage extent. Impossible configurations are refused with
 the figure that does not fit before any field exists.
+
+The layout's constants come from kernels/layout.py when first needed, not at import: that
+module imports taichi, and `import tisem` and `tisem.load_map` must stay cheap.
 """
 from __future__ import annotations
 
@@ -12,8 +15,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from kernels.layout import (LEAF, MAX_REACH_BLK, MAX_TABLE_CELLS, TABLE_BYTES_PER_CELL, TOP,
-                            storage_extent, table_half_blocks)
 from tisem.config import MapperConfig
 
 
@@ -21,6 +22,7 @@ def block_aligned_origin(voxel: np.ndarray) -> np.ndarray:
     """The map origin (int64 global voxel index) for a map centred near `voxel`: aligned to
     a top cell of the SNode tree, so that local indices stay small and the tree's cells line
     up with the global grid."""
+    from kernels.layout import TOP
     return (np.asarray(voxel, np.int64) // TOP) * TOP
 
 
@@ -48,8 +50,10 @@ class MapGeometry:
     storage_extent: tuple[int, int, int]
 
     @classmethod
-    def from_config(cls, cfg: MapperConfig) -> "MapGeometry":
+    def from_config(cls, cfg: MapperConfig) -> MapGeometry:
         """The geometry of a map with this config; ValueError if the config cannot work."""
+        from kernels.layout import (LEAF, MAX_REACH_BLK, MAX_TABLE_CELLS, TABLE_BYTES_PER_CELL,
+                                    storage_extent, table_half_blocks)
         res = float(cfg.resolution_m)
         reach = cfg.reach_m
         radius_vox = int(math.ceil(reach / res + 0.5)) if cfg.uses_kernel else 0

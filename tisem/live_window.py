@@ -14,7 +14,7 @@ added, it shrinks in x and y, so the farthest blocks go to the store first.
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 import taichi as ti
@@ -43,7 +43,7 @@ class WindowState:
     headroom_blocks: int = 0                # the most blocks one scan has added so far
     blocks_after_move: int | None = None    # live blocks right after the last move
     shrunk: bool = False
-    top_range: np.ndarray | None = field(default=None)   # top cells the box spanned, lo then hi
+    top_range: np.ndarray | None = None     # top cells the box spanned, lo then hi
 
 
 @dataclass

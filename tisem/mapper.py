@@ -17,6 +17,7 @@ from typing import NamedTuple
 
 import numpy as np
 import taichi as ti
+from taichi.lang.argpack import ArgPack
 
 from kernels import bki, entropy, fusion, rasterize, table, training
 from kernels.layout import MapFields
@@ -145,7 +146,7 @@ class Mapper:
         self.stage_seconds = {s: 0.0 for s in STAGES}
         self._buf = _Buffers()
 
-    def _scan_params(self) -> ti.lang.argpack.ArgPack:
+    def _scan_params(self) -> ArgPack:
         """The map's ScanParams; `_preprocess` refreshes the pose, time and stamp per scan."""
         cfg, geo = self.config, self.geometry
         res = geo.resolution_m

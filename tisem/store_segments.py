@@ -96,7 +96,7 @@ class Payload:
         return [self.vstart, self.local] + mid + [self.t_last_rel, self.length_m]
 
     @classmethod
-    def from_arrays(cls, arrays: list[np.ndarray]) -> "Payload":
+    def from_arrays(cls, arrays: list[np.ndarray]) -> Payload:
         vstart, local, *mid, t_last_rel, length_m = arrays
         mask, val = mid if len(mid) == 2 else (None, mid[0])
         return cls(vstart, local, mask, val, t_last_rel, length_m)
@@ -119,7 +119,7 @@ class Payload:
         counts[bits.astype(bool)] = self.val[self.entries(vox)]
         return counts
 
-    def subset(self, block_idx: np.ndarray) -> "Payload":
+    def subset(self, block_idx: np.ndarray) -> Payload:
         """Only the given blocks, without decoding."""
         vox = self.voxels_of(block_idx)
         sizes = np.diff(self.vstart)[block_idx]
@@ -151,7 +151,7 @@ class Segment:
 
     @classmethod
     def build(cls, keys: np.ndarray, counts: np.ndarray, t_last_rel: np.ndarray,
-              length_m: np.ndarray) -> tuple["Segment", Payload]:
+              length_m: np.ndarray) -> tuple[Segment, Payload]:
         keys = np.asarray(keys, np.int64)
         blocks = np.floor_divide(keys, LEAF)
         packed = pack(blocks)
@@ -177,7 +177,7 @@ class Segment:
                     np.asarray(length_m, np.float32)[order])
         return cls(blocks[starts], ext, p), p
 
-    def subset(self, p: Payload, block_idx: np.ndarray) -> tuple["Segment", Payload]:
+    def subset(self, p: Payload, block_idx: np.ndarray) -> tuple[Segment, Payload]:
         """A new segment holding only the given blocks (compaction), without decoding."""
         q = p.subset(block_idx)
         return Segment(self.blocks(block_idx), self.ext[block_idx], q), q
