@@ -55,7 +55,7 @@ class WindowMove:
 
 
 @dataclass
-class LiveVoxels:
+class VoxelArrays:
     """Voxels as host arrays: keys relative to the map origin, times to the map's t0."""
 
     keys: np.ndarray         # (M, 3) int32
@@ -223,7 +223,7 @@ class LiveWindow:
             if probs is not None:
                 probs[rest] = snap.probabilities()
 
-    def live_arrays(self) -> LiveVoxels:
+    def live_arrays(self) -> VoxelArrays:
         """Every live voxel, in no particular order."""
         n = self.live_voxels
         out = _voxel_arrays(n, self._fields.C)
@@ -233,11 +233,11 @@ class LiveWindow:
             assert got == n, f"export found {got} voxels, count found {n}"
         return out
 
-    def stored_arrays(self) -> LiveVoxels:
+    def stored_arrays(self) -> VoxelArrays:
         """Every stored voxel, in no particular order."""
-        return LiveVoxels(*self.store.arrays())
+        return VoxelArrays(*self.store.arrays())
 
 
-def _voxel_arrays(n: int, num_classes: int) -> LiveVoxels:
-    return LiveVoxels(np.zeros((n, 3), np.int32), np.zeros((n, num_classes), np.float32),
+def _voxel_arrays(n: int, num_classes: int) -> VoxelArrays:
+    return VoxelArrays(np.zeros((n, 3), np.int32), np.zeros((n, num_classes), np.float32),
                       np.zeros(n, np.float32), np.zeros(n, np.float32))

@@ -26,7 +26,7 @@ from kernels.params import (ADAPTIVE_LENGTH, EXPONENTIAL, FIXED_LENGTH, FORGET, 
 from tisem import backend
 from tisem.config import MapperConfig
 from tisem.geometry import MapGeometry, block_aligned_origin
-from tisem.live_window import LiveVoxels, LiveWindow
+from tisem.live_window import VoxelArrays, LiveWindow
 from tisem.preprocess import CheckedScan, check_scan, scan_label
 from tisem.scan import Scan, finite_rows
 from tisem.snapshot import MapSnapshot
@@ -342,7 +342,7 @@ class Mapper:
         parts = [] if self.origin_vox is None else [self.window.live_arrays()]
         return self._snapshot_of(parts)
 
-    def _snapshot_of(self, parts: list[LiveVoxels]) -> MapSnapshot:
+    def _snapshot_of(self, parts: list[VoxelArrays]) -> MapSnapshot:
         res = self.geometry.resolution_m
         if not parts:
             return MapSnapshot(np.zeros((0, 3), np.int64), np.zeros((0, self.C), np.float32),
