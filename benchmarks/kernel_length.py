@@ -1,13 +1,14 @@
 """The paper's Table I: fixed kernel lengths of 1, 2, 4, 6 voxels against the adaptive length.
 
-    python benchmarks/kernel_length.py                       # mini KITTI data and a synthetic street
+    python benchmarks/kernel_length.py              # mini KITTI data and a synthetic street
     python benchmarks/kernel_length.py --data DIR --scans 10 --json table1.json
 
 Every row maps the same scans with plain accumulation (modes `bki` and `adaptive`, so the only
 difference is the kernel length) in a fresh Taichi runtime; the first scan, which compiles the
 kernels, is timed apart. The kernels take turns over `--repeats` rounds and the times are
-medians over all of them, so a drift in the machine's speed does not favour one row. Accuracy and mIoU follow the final-map protocol (SPEC §3). The `st`
-row (adaptive + decay, the default) is added for reference.
+medians over all of them, so a drift in the machine's speed does not favour one row. Accuracy
+and mIoU follow the final-map protocol (every ground-truth point of every scan looked up in the
+map after the last scan). The `st` row (adaptive + decay, the default) is added for reference.
 """
 from __future__ import annotations
 
@@ -24,7 +25,8 @@ FIXED_VOXELS = (1, 2, 4, 6)
 
 
 def parse_args(argv=None):
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = argparse.ArgumentParser(description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--data", type=Path, default=None,
                    help="SemanticKITTI sequence folder (default: the mini KITTI data when present)")
     p.add_argument("--synthetic-scans", type=int, default=20,
@@ -101,7 +103,8 @@ def format_rows(rows: list[dict]) -> str:
            "| --- | --- | --- | ---: | ---: | ---: | ---: |"]
     for r in rows:
         out.append(f"| {r['data']} | {r['kernel']} | {r['length']} | {r['seconds_per_scan']:.3f} | "
-                   f"{r['seconds_total']:.2f} ({r['scans'] - 1}) | {r['accuracy']:.4f} | {r['miou']:.4f} |")
+                   f"{r['seconds_total']:.2f} ({r['scans'] - 1}) | {r['accuracy']:.4f} | "
+                   f"{r['miou']:.4f} |")
     return "\n".join(out)
 
 

@@ -3,7 +3,7 @@
     python benchmarks/long_drive.py --scans 4000 --every 100 --json results/long_drive.json \
         --png docs/long_drive.png
     python benchmarks/long_drive.py --scans 300 --every 50           # a quick look
-    python benchmarks/long_drive.py --probe-chunk                     # where the 2nd GiB chunk comes
+    python benchmarks/long_drive.py --probe-chunk            # where the 2nd GiB chunk comes
 
 The drive is `tisem.synth.sequence`'s loop (4,000 scans = 3.9 km; scan 3,900 has the pose of
 scan 0). Every `--every` scans it records the resident memory, the milliseconds per scan (median
@@ -17,8 +17,8 @@ accuracy against ground truth each time and the fraction of the area's voxels wh
 
 `--probe-chunk` measures the cap instead: it maps the loop with a window that holds all of it and
 no cap, watching the process's mappings, and stops as soon as taichi maps a second 1 GiB host
-chunk (taichi 1.7.4's CPU allocator is unsafe from there on: shared/notes/taichi-sparse.md §4.1);
-it reports the live leaf blocks at that moment.
+chunk (taichi 1.7.4's CPU allocator can overrun its first 1 GiB host chunk once it needs a second
+one, which corrupts memory or crashes); it reports the live leaf blocks at that moment.
 """
 from __future__ import annotations
 
@@ -38,7 +38,8 @@ GIB = 1 << 30
 def parse_args(argv=None):
     p = argparse.ArgumentParser(description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--scans", type=int, default=4000, help="length of the drive (4000: the full loop)")
+    p.add_argument("--scans", type=int, default=4000,
+                   help="length of the drive (4000: the full loop)")
     p.add_argument("--every", type=int, default=100, help="record a row every K scans")
     p.add_argument("--json", type=Path, help="write the results as JSON here")
     p.add_argument("--png", type=Path, help="draw memory, time and voxels over the drive here")
@@ -193,8 +194,9 @@ def run(args) -> dict:
             last_window_s, last_scan = window_s, i + 1
             if not args.probe_chunk:
                 r = rows[-1]
-                print(f"scan {r['scan']:5d}  rss {r['rss_mb']:6.0f} MB  {r['ms_per_scan']:6.1f} ms  "
-                      f"live {r['live_voxels']:>9,}  stored {r['stored_voxels']:>10,}  "
+                print(f"scan {r['scan']:5d}  rss {r['rss_mb']:6.0f} MB  "
+                      f"{r['ms_per_scan']:6.1f} ms  live {r['live_voxels']:>9,}  "
+                      f"stored {r['stored_voxels']:>10,}  "
                       f"blocks {r['live_blocks']:>7,}", file=sys.stderr, flush=True)
     result = {
         "device": device_line(args.arch), "arch": args.arch, "threads": args.threads,
@@ -297,8 +299,8 @@ def format_result(r: dict) -> str:
                              f"{x['unknown_fraction']:.4f} |")
         lines.append(f"\n{100 * lc['changed_fraction']:.2f}% of the area's {lc['voxels']:,} voxels "
                      f"changed label between '{lc['changed_vs']}' and 'after'"
-                     + (f"; the sensor was back in range of the area from scan {lc['returned_at_scan']}"
-                        if lc["returned_at_scan"] is not None
+                     + (f"; the sensor was back in range of the area from scan "
+                        f"{lc['returned_at_scan']}" if lc["returned_at_scan"] is not None
                         else " (the drive did not come back to the start)"))
 
     return "\n".join(lines)

@@ -13,13 +13,13 @@ import argparse
 import sys
 import time
 
-import numpy as np
-
-from benchmarks.common import add_data_args, benchmark_main, device_line, load_scans, median, peak_rss_mb, replay
+from benchmarks.common import (add_data_args, benchmark_main, device_line, load_scans, median,
+                               peak_rss_mb, replay)
 
 
 def parse_args(argv=None):
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = argparse.ArgumentParser(description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
     add_data_args(p)
     p.add_argument("--scans", type=int, default=30, help="steady-state scans to time")
     p.add_argument("--mode", default="st")
@@ -90,7 +90,8 @@ def run(args) -> dict:
         # the first reference scan builds a fresh map, like the first timed Taichi scan did not;
         # compare steady states: reference scans after its first
         result["reference_seconds_per_scan"] = median(ref_times[1:])
-        result["speedup_vs_numpy"] = result["reference_seconds_per_scan"] / result["seconds_per_scan"]
+        result["speedup_vs_numpy"] = (result["reference_seconds_per_scan"]
+                                      / result["seconds_per_scan"])
     return result
 
 

@@ -1,5 +1,5 @@
-"""Steps 5-8: the adaptive length of the voxels the scan hit, the compact-support sparse kernel,
-the Bayesian kernel update and its fusion.
+"""Steps 6-8: the compact-support sparse kernel, the Bayesian kernel update and its fusion,
+with the adaptive length of step 5 computed in the same pass for the voxels the scan hit.
 
 Gather form: each live map voxel v near the scan sums k(v, p) * h(p) over the training points
 within its own kernel length L(v), then folds the sum into its counters. The work per voxel
@@ -11,22 +11,23 @@ after another in z, and a block's rows by voxel, z layer by z layer (kernels/tra
 voxel reads, per column its kernel sphere touches, the one slice of rows in the voxel layers
 the sphere reaches there, not every voxel cell within reach.
 """
+import functools
 import math
 
 import taichi as ti
 
 from kernels.entropy import fresh_length
 from kernels.fusion import fuse_voxel
-from kernels.layout import LEAF, LEAF_BITS, local_of_index, rows_below, rows_to
+from kernels.layout import (LEAF, LEAF_BITS, is_pending, local_of_index, pending_row, rows_below,
+                            rows_to)
+from kernels.params import KernelSettings, ScanParams
 
 VOXELS = LEAF ** 3
 HITS = 32    # hit list length: hits are summed in batches, after the distance tests
 
 # Evidence below this is float noise at the kernel's edge (g -> 0 as d -> L), not an update:
-# counting it would reset t_last and, with alpha = 0, wipe the voxel's history.
+# counting it would reset the voxel's time and, with alpha = 0, wipe the voxel's history.
 MIN_UPDATE = 1e-6
-# Longest kernel, in leaf blocks, that the training table's margin is sized for.
-MAX_REACH_BLK = 2
 
 
 @ti.func
@@ -75,7 +76,8 @@ def cell_and_layer(z, inv_res, base_z):
 @ti.func
 def reached_block(m: ti.template(), B, center_blk, stamp):
     """(world index of map leaf block B, whether a training block of the scan with `stamp` can
-    reach it). write_training marked the coarse cells: a superset, the distance tests decide."""
+    reach it). entropy.assign_lengths marked the coarse cells: a superset, the distance tests
+    decide."""
     wb = m.unwrap_blk(B, center_blk)
     i, inside = m.table_index(wb, center_blk)
     near = 0
@@ -109,120 +111,133 @@ def add_hits(m: ti.template(), acc: ti.template(), hit_p: ti.template(), hit_r2:
                     acc[c] += k * hist[p, c]
 
 
-@ti.func
-def update_voxel(m: ti.template(), u, ell, centre, base, blk_m, t, inv_tau, sigma0, prior,
-                 ell_min, ell_max, xyz: ti.template(), hist: ti.template(),
-                 classes: ti.template(), single: ti.template()):
-    """One live voxel (ell = m.ell[u], < 0 or > 0): its kernel length if the scan brought it
-    evidence, the kernel-weighted sum over the training points within that length, and the
-    fusion."""
-    if ell < 0:    # -(1 + its training row): evidence in this scan (adaptive modes), length first
-        ell = fresh_length(m, u, hist, ti.cast(-ell, ti.i32) - 1, t, inv_tau, prior, ell_min,
-                           ell_max)
-        m.ell[u] = ell
-    if ell > 0:
-        ell2 = ell * ell
-        inv_ell2 = 1.0 / ell2
-        inv_blk = 1.0 / blk_m
-        inv_res = LEAF * inv_blk
-        lo = ti.floor((centre - ell) * inv_blk, ti.i32)
-        hi = ti.floor((centre + ell) * inv_blk, ti.i32)
-        acc = ti.Vector([0.0] * m.C)
-        hit_p = ti.Vector([0] * HITS, dt=ti.i32)    # training rows within L(v) and their d^2
-        hit_r2 = ti.Vector([0.0] * HITS)
-        n_hits = 0
-        # plain nested loops (ti.ndrange would flatten them with an integer division and
-        # modulo per iteration) over the table's columns, pruned with the distance from the
-        # voxel centre to each column's box in x and y; the voxel layers the sphere reaches
-        # there are one slice of training rows (training.write_training)
-        for bx in range(lo[0], hi[0] + 1):
-            gx = axis_gap(centre[0], bx * blk_m, blk_m)
-            tx = base[0] + bx
-            for by in range(lo[1], hi[1] + 1):
-                gy = axis_gap(centre[1], by * blk_m, blk_m)
-                gxy = gx * gx + gy * gy
-                ty = base[1] + by
-                # inside the table by construction: training blocks lie within the scan's
-                # limit, receivers within NEAR + reach of one, their kernels within reach
-                # more; the table's margin (Mapper) is wider than that
-                assert m.in_table(ti.Vector([tx, ty, 0]))
-                col_lo = m.col_lo[tx, ty]
-                col_hi = m.col_hi[tx, ty]
-                # a column the sphere reaches and that holds points of the scan (most that a
-                # sphere reaches hold none: this test first spares them the rest)
-                if gxy < ell2 and col_lo <= col_hi:
-                    dz = ti.sqrt(ell2 - gxy)
-                    # the lowest and highest voxel layer the sphere reaches here, clipped to
-                    # the cells that hold the scan's points
-                    zlo, llo = cell_and_layer(centre[2] - dz, inv_res, base[2])
-                    zhi, lhi = cell_and_layer(centre[2] + dz, inv_res, base[2])
-                    if zlo < col_lo:
-                        zlo = col_lo
-                        llo = 0
-                    if zhi > col_hi:
-                        zhi = col_hi
-                        lhi = LEAF - 1
-                    if zlo <= zhi:
-                        start = m.b_start[tx, ty, zlo] + rows_below(m.b_layers[tx, ty, zlo], llo)
-                        end = m.b_start[tx, ty, zhi] + rows_to(m.b_layers[tx, ty, zhi], lhi)
-                        for p in range(start, end):
-                            # no branch on the distance test, whose outcome no predictor can
-                            # guess (~40 % hits): every candidate is written to the hit list,
-                            # and only a hit moves its end on
-                            d = ti.Vector([xyz[p, 0], xyz[p, 1], xyz[p, 2]]) - centre
-                            d2 = d.dot(d)
-                            hit_p[n_hits] = p
-                            hit_r2[n_hits] = d2
-                            n_hits += ti.cast(d2 < ell2, ti.i32)
-                            if n_hits == HITS:
-                                add_hits(m, acc, hit_p, hit_r2, n_hits, inv_ell2, hist, classes,
+@functools.cache
+def update_kernel(settings: KernelSettings):
+    """The kernel update for one kernel-length rule, decay and parallel loop (`settings`)."""
+    decay = settings.decay
+
+    @ti.func
+    def update_voxel(m: ti.template(), u, stored, centre, base, blk_m, t_rel, inv_tau, sigma0,
+                     prior, ell_min, ell_max, xyz: ti.template(), hist: ti.template(),
+                     classes: ti.template(), single: ti.template()):
+        """One live voxel (`stored` = m.length[u]: its kernel length, or a pending mark): its
+        length if the scan brought it evidence, the kernel-weighted sum over the training
+        points within that length, and the fusion.
+
+        The scan's constants come by value (copied per voxel, before the loops): where the
+        compiler finds them decides how fast math associates the sums, and this keeps the map
+        bitwise what it has been."""
+        ell = stored         # the kernel length L(v), metres
+        if ti.static(settings.adaptive):
+            if is_pending(stored):    # evidence in this scan: the length first
+                ell = fresh_length(m, u, hist, pending_row(stored), t_rel, inv_tau, prior,
+                                   ell_min, ell_max, decay)
+                m.length[u] = ell
+        if ell > 0:
+            ell2 = ell * ell
+            inv_ell2 = 1.0 / ell2
+            inv_blk = 1.0 / blk_m
+            inv_res = LEAF * inv_blk
+            lo = ti.floor((centre - ell) * inv_blk, ti.i32)
+            hi = ti.floor((centre + ell) * inv_blk, ti.i32)
+            acc = ti.Vector([0.0] * m.C)
+            hit_p = ti.Vector([0] * HITS, dt=ti.i32)    # training rows within L(v), their d^2
+            hit_r2 = ti.Vector([0.0] * HITS)
+            n_hits = 0
+            # plain nested loops (ti.ndrange would flatten them with an integer division and
+            # modulo per iteration) over the table's columns, pruned with the distance from the
+            # voxel centre to each column's box in x and y; the voxel layers the sphere reaches
+            # there are one slice of training rows (kernels/training.py)
+            for bx in range(lo[0], hi[0] + 1):
+                gx = axis_gap(centre[0], bx * blk_m, blk_m)
+                tx = base[0] + bx
+                for by in range(lo[1], hi[1] + 1):
+                    gy = axis_gap(centre[1], by * blk_m, blk_m)
+                    gxy = gx * gx + gy * gy
+                    ty = base[1] + by
+                    # inside the table by construction: training blocks lie within the scan's
+                    # limit, receivers within NEAR + reach of one, their kernels within reach
+                    # more; the table's margin (layout.table_half_blocks) is wider than that
+                    assert m.in_table(ti.Vector([tx, ty, 0]))
+                    col_lo = m.col_lo[tx, ty]
+                    col_hi = m.col_hi[tx, ty]
+                    # a column the sphere reaches and that holds points of the scan (most that a
+                    # sphere reaches hold none: this test first spares them the rest)
+                    if gxy < ell2 and col_lo <= col_hi:
+                        dz = ti.sqrt(ell2 - gxy)
+                        # the lowest and highest voxel layer the sphere reaches here, clipped to
+                        # the cells that hold the scan's points
+                        zlo, llo = cell_and_layer(centre[2] - dz, inv_res, base[2])
+                        zhi, lhi = cell_and_layer(centre[2] + dz, inv_res, base[2])
+                        if zlo < col_lo:
+                            zlo = col_lo
+                            llo = 0
+                        if zhi > col_hi:
+                            zhi = col_hi
+                            lhi = LEAF - 1
+                        if zlo <= zhi:
+                            start = m.b_start[tx, ty, zlo] + rows_below(m.b_layers[tx, ty, zlo],
+                                                                        llo)
+                            end = m.b_start[tx, ty, zhi] + rows_to(m.b_layers[tx, ty, zhi], lhi)
+                            for p in range(start, end):
+                                # no branch on the distance test, whose outcome no predictor can
+                                # guess (~40 % hits): every candidate is written to the hit
+                                # list, and only a hit moves its end on
+                                d = ti.Vector([xyz[p, 0], xyz[p, 1], xyz[p, 2]]) - centre
+                                d2 = d.dot(d)
+                                hit_p[n_hits] = p
+                                hit_r2[n_hits] = d2
+                                n_hits += ti.cast(d2 < ell2, ti.i32)
+                                if n_hits == HITS:
+                                    add_hits(m, acc, hit_p, hit_r2, n_hits, inv_ell2, hist,
+                                             classes, single)
+                                    n_hits = 0
+            add_hits(m, acc, hit_p, hit_r2, n_hits, inv_ell2, hist, classes, single)
+            acc *= sigma0
+            if acc.sum() > MIN_UPDATE:
+                fuse_voxel(m, u, acc, t_rel, inv_tau, decay)
+
+    @ti.kernel
+    def gather_update(m: ti.template(), s: ScanParams,
+                      xyz: ti.types.ndarray(dtype=ti.f32, ndim=2),      # (K, 3) training points
+                      hist: ti.types.ndarray(dtype=ti.f32, ndim=2),     # (K, C) block-sorted
+                      classes: ti.types.ndarray(dtype=ti.i32, ndim=1),  # (K,) bit c: hist > 0
+                      single: ti.types.ndarray(dtype=ti.i32, ndim=1)):  # (K,) the one class
+        """The update of every live voxel a training point can reach.
+
+        The parallel loop (settings.per_voxel): on a CPU one task per leaf block (two threads,
+        and the block's near test done once), on a GPU one thread per voxel (a thread per block
+        would run 64 voxels' gathers one after another on a few thousand threads).
+        """
+        blk_m = LEAF * s.resolution_m
+        center_blk = ti.floor(s.center_vox / LEAF, ti.i32)
+        base = ti.Vector(m.table_half) - center_blk
+        if ti.static(settings.per_voxel):
+            for u in ti.grouped(m.t_last_rel):
+                B = u // LEAF
+                wb, near = reached_block(m, B, center_blk, s.stamp)
+                if near:
+                    local = u - B * LEAF
+                    update_voxel(m, u, m.length[u], voxel_centre(wb, local, s.resolution_m),
+                                 base, blk_m, s.time_rel_s, s.inv_tau, s.sigma0, s.prior,
+                                 s.length_min_m, s.length_max_m, xyz, hist, classes, single)
+        else:
+            for B in ti.grouped(m.blk):
+                wb, near = reached_block(m, B, center_blk, s.stamp)
+                if near:
+                    # the block's 64 lengths first, in an unrolled loop: the compiler then walks
+                    # the sparse tree to the block once, not once per cell (0 marks a free cell)
+                    lengths = ti.Vector([0.0] * VOXELS)
+                    for layer in ti.static(range(LEAF)):        # (nested: Taichi warns past 32)
+                        for q in ti.static(range(layer * LEAF * LEAF, (layer + 1) * LEAF * LEAF)):
+                            lengths[q] = m.length[B * LEAF + local_of_index(q)]
+                    for q in range(VOXELS):
+                        if lengths[q] != 0:
+                            local = local_of_index(q)
+                            update_voxel(m, B * LEAF + local, lengths[q],
+                                         voxel_centre(wb, local, s.resolution_m), base, blk_m,
+                                         s.time_rel_s, s.inv_tau, s.sigma0, s.prior,
+                                         s.length_min_m, s.length_max_m, xyz, hist, classes,
                                          single)
-                                n_hits = 0
-        add_hits(m, acc, hit_p, hit_r2, n_hits, inv_ell2, hist, classes, single)
-        acc *= sigma0
-        if acc.sum() > MIN_UPDATE:
-            fuse_voxel(m, u, acc, t, inv_tau)
 
-
-@ti.kernel
-def gather_update(m: ti.template(), center: ti.types.vector(3, ti.i32), stamp: ti.i32,
-                  t: ti.f32, inv_tau: ti.f32, resolution: ti.f32, sigma0: ti.f32,
-                  prior: ti.f32, ell_min: ti.f32, ell_max: ti.f32,
-                  xyz: ti.types.ndarray(dtype=ti.f32, ndim=2),     # (K, 3) training points
-                  hist: ti.types.ndarray(dtype=ti.f32, ndim=2),    # (K, C) block-sorted
-                  classes: ti.types.ndarray(dtype=ti.i32, ndim=1),  # (K,) bit c: hist[:, c] > 0
-                  single: ti.types.ndarray(dtype=ti.i32, ndim=1),  # (K,) the class, if only one
-                  per_voxel: ti.template()):
-    """The update of every live voxel a training point can reach.
-
-    `per_voxel` picks the parallel loop: on a CPU one task per leaf block (two threads, and
-    the block's near test done once), on a GPU one thread per voxel (a thread per block would
-    run 64 voxels' gathers one after another on a few thousand threads).
-    """
-    blk_m = LEAF * resolution
-    center_blk = ti.floor(center / LEAF, ti.i32)
-    base = ti.Vector(m.table_half) - center_blk
-    if ti.static(per_voxel):
-        for u in ti.grouped(m.t_last):
-            B = u // LEAF
-            wb, near = reached_block(m, B, center_blk, stamp)
-            if near:
-                local = u - B * LEAF
-                update_voxel(m, u, m.ell[u], voxel_centre(wb, local, resolution), base, blk_m, t,
-                             inv_tau, sigma0, prior, ell_min, ell_max, xyz, hist, classes, single)
-    else:
-        for B in ti.grouped(m.blk):
-            wb, near = reached_block(m, B, center_blk, stamp)
-            if near:
-                # the block's 64 lengths first, in an unrolled loop: the compiler then walks
-                # the sparse tree to the block once, not once per cell (0 marks a free cell)
-                ells = ti.Vector([0.0] * VOXELS)
-                for layer in ti.static(range(LEAF)):        # (nested: Taichi warns past 32)
-                    for q in ti.static(range(layer * LEAF * LEAF, (layer + 1) * LEAF * LEAF)):
-                        ells[q] = m.ell[B * LEAF + local_of_index(q)]
-                for q in range(VOXELS):
-                    if ells[q] != 0:
-                        local = local_of_index(q)
-                        update_voxel(m, B * LEAF + local, ells[q], voxel_centre(wb, local, resolution),
-                                     base, blk_m, t, inv_tau, sigma0, prior, ell_min, ell_max, xyz,
-                                     hist, classes, single)
+    return gather_update

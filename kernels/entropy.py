@@ -1,9 +1,21 @@
-"""Steps 4-5: semantic entropy and the adaptive kernel length."""
+"""Steps 4-5: semantic entropy and the kernel length of every voxel the scan hit.
+
+`assign_lengths` gives each training voxel of the scan its kernel length: the fixed one, or, in
+the adaptive modes, a pending mark (kernels/layout.py). The adaptive length needs the voxel's
+decayed counters, which the kernel update reads anyway, so the update computes it there
+(`fresh_length`, called from kernels/bki.py) in the same pass over the map.
+"""
+import functools
 import math
 
+import numpy as np
 import taichi as ti
+from taichi.lang.argpack import ArgPack
 
 from kernels.fusion import decay_factor
+from kernels.layout import MapFields, pending_length
+from kernels.params import ADAPTIVE_LENGTH, NO_KERNEL
+from kernels.training import visit_training_voxels
 
 LN2 = math.log(2.0)
 
@@ -73,10 +85,11 @@ def adaptive_length(p, ell_min, ell_max, num_real: ti.template()):
 
 
 @ti.func
-def fresh_length(m: ti.template(), u, hist: ti.template(), row, t, inv_tau, prior, ell_min, ell_max):
+def fresh_length(m: ti.template(), u, hist: ti.template(), row, t_rel, inv_tau, prior, ell_min,
+                 ell_max, decay: ti.template()):
     """Kernel length of map voxel u given this scan's evidence hist[row, :]: the entropy of
     p(c|v) = prior + decayed counters + the scan's histogram (steps 4-5)."""
-    alpha = decay_factor(t - m.t_last[u], inv_tau)
+    alpha = decay_factor(t_rel - m.t_last_rel[u], inv_tau, decay)
     p = ti.Vector([0.0] * m.C)
     for c in ti.static(range(m.C)):
         p[c] = prior + alpha * m.counts[u, c] + hist[row, c]
@@ -84,3 +97,49 @@ def fresh_length(m: ti.template(), u, hist: ti.template(), row, t, inv_tau, prio
     if prior > 0:
         prior_plogp = prior * fast_log(prior)
     return length_of(entropy_with_common(p, m.C - 1, prior, prior_plogp), ell_min, ell_max)
+
+
+@functools.cache
+def _length_visitors(kernel_length: str):
+    """The per-block and per-row work of `assign_lengths` for one kernel-length rule."""
+
+    @ti.func
+    def mark_reach(m: ti.template(), s: ti.template(), i):
+        if ti.static(kernel_length != NO_KERNEL):
+            mark_near(m, i, s.stamp, s.reach_blk)
+
+    @ti.func
+    def assign(m: ti.template(), s: ti.template(), u, row, hist: ti.template()):
+        if ti.static(kernel_length == ADAPTIVE_LENGTH):
+            m.length[u] = pending_length(row)
+        else:
+            m.length[u] = s.fixed_length_m        # (csm: any positive length marks it live)
+        # u is live from now on: `length` is not on the bitmasked node, so a store to a field
+        # that is sets the voxel's bit (its time keeps its value; a free cell holds 0). Not
+        # ti.activate: in taichi 1.7.4 it leaves the bit clear when it has to allocate the block
+        # first (caught by tests/test_kernels.py), and it warns about int32 indices at every
+        # compile
+        m.t_last_rel[u] = m.t_last_rel[u]
+
+    return mark_reach, assign
+
+
+@ti.func
+def mark_near(m: ti.template(), i, stamp, reach_blk):
+    """Mark the coarse `near` cells of every block within reach_blk of table cell i (the map
+    blocks the kernel update visits); the table's margin (layout.table_half_blocks) keeps them
+    inside it."""
+    lo = m.near_index(i - reach_blk)
+    hi = m.near_index(i + reach_blk)
+    for nx in range(lo[0], hi[0] + 1):
+        for ny in range(lo[1], hi[1] + 1):
+            for nz in range(lo[2], hi[2] + 1):
+                m.near[nx, ny, nz] = stamp
+
+
+def assign_lengths(m: MapFields, s: ArgPack, blocks: np.ndarray, voxel: np.ndarray,
+                   hist: np.ndarray, kernel_length: str) -> None:
+    """Steps 4-5 for every voxel the scan's training rows fall in: its kernel length under
+    `kernel_length` (kernels/params.py), and the map blocks within kernel reach of it marked for
+    the update. `voxel`, `hist`: the training rows' voxel indices and evidence."""
+    visit_training_voxels(m, s, blocks, voxel, hist, *_length_visitors(kernel_length))

@@ -1,25 +1,27 @@
-"""The one module that knows the SNode tree.
+"""The one module that knows the SNode tree and the scan's table.
 
 The map is one sparse tree indexed by *storage* voxel index u in [0, N):
 
     root.pointer(top cells) -> pointer(8^3 leaf blocks) -> bitmasked(4^3 voxels) -> dense(l, C)
 
-holding the semantic counters sigma[u, c], the last-update time t_last[u] and the kernel length
-ell[u]. A scan never touches a sparse node until its training points are written: its points are
-sorted by leaf block in a dense table of the blocks around the sensor (kernels/rasterize.py,
-kernels/training.py), which costs plain integer atomics instead of sparse activations.
+holding the semantic counters sigma[u, c], the time of the last update t_last_rel[u] and the
+kernel length length[u]. A scan never touches a sparse node until its training points are
+known: its points are sorted by leaf block in a dense table of the blocks around the sensor
+(kernels/rasterize.py, kernels/training.py), which costs plain integer atomics instead of sparse
+activations.
 
-Why this shape (measured in shared/notes/taichi-sparse.md): a small two-level pointer top keeps
-struct-fors cheap, 4^3 bitmasked leaves suit surface-like LiDAR data, and the class axis as an
-inner dense(l, C) of a 4-D scalar field needs one atomic per label (and avoids the 1.7.x crash of
-vector-component atomics). Struct-fors run over the 3-D fields placed on the leaf, never the 4-D.
+Why this shape (measured on a 2-thread CPU): a small two-level pointer top keeps struct-fors
+cheap (a one-level pointer over the whole window costs a dense root of 16 B per cell and seconds
+per struct-for), 4^3 bitmasked leaves suit surface-like LiDAR data (~10 voxels per 8^3 block),
+and the class axis as an inner dense(l, C) of a 4-D scalar field needs one atomic per label
+(taichi 1.7.x aborts on atomics into one component of a vector field). Struct-fors run over the
+3-D fields placed on the leaf, never the 4-D one (that builds an element list per voxel).
 
 Storage is toroidal: world voxel w (int32, relative to the mapper's origin) lives at
 u = w & (N - 1). The mapper keeps every live block inside a window smaller than N/2 around the
 sensor, so two live world voxels never share a storage cell, and a storage index is turned back
 into its world index by unwrapping around the window centre (`unwrap`).
 """
-
 import taichi as ti
 
 LEAF_BITS = 2
@@ -30,6 +32,43 @@ KERNEL_TABLE = 4096   # samples of the sparse kernel over r^2 in [0, 1]
 NEAR = 2   # table cells (leaf blocks) per edge of a cell of the coarse `near` table
 LAYER_BITS = 8       # per z layer of a block in b_layers: up to 64 rows (LEAF^3 voxels)
 EMPTY_LO = 1 << 30   # col_lo of a column without points (any z cell is below it)
+
+# The scan's table (MapFields below) is dense: 16 B per cell in four int32 fields, plus the coarse
+# `near` table (an eighth of an int32 per cell) and the per-column z-range, under 18 B in all.
+TABLE_BYTES_PER_CELL = 18
+MAX_TABLE_CELLS = 2 ** 28   # cell ids are int32
+MAX_REACH_BLK = 2           # the longest kernel, in leaf blocks, the table's margin is sized for
+# A voxel's training row travels through float32 in its pending-length mark (exact below 2^24),
+# and a scan has at most as many training voxels as points.
+MAX_SCAN_POINTS = 2 ** 24
+
+
+def table_half_blocks(limit_vox, reach_blk: int) -> tuple[int, int, int]:
+    """Half-size, in leaf blocks, of the scan's table for kept points within `limit_vox` of the
+    sensor's voxel: every block a training voxel can fall in, plus the blocks a kernel of a
+    voxel receiving an update reaches from there (the update reads the table around each)."""
+    return tuple(-(-int(v) // LEAF) + 2 * int(reach_blk) + 3 for v in limit_vox)
+
+
+# A live voxel's `length` holds its kernel length in metres (> 0). While a scan is fused, a voxel
+# the scan hit in an adaptive mode holds instead a pending mark, -(1 + its training row): the
+# kernel update, which reads the voxel's counters anyway, then computes the length from the row's
+# evidence in the same pass (kernels/bki.py) instead of a pass of its own.
+@ti.func
+def pending_length(row):
+    """The mark of a voxel whose kernel length is still to be computed from training row `row`."""
+    return -ti.cast(row + 1, ti.f32)
+
+
+@ti.func
+def is_pending(length):
+    return length < 0
+
+
+@ti.func
+def pending_row(length):
+    """The training row of a pending mark (inverse of pending_length)."""
+    return ti.cast(-length, ti.i32) - 1
 
 
 @ti.func
@@ -94,23 +133,23 @@ class MapFields:
         # one SNode tree per map, built and finalised here
         fb = ti.FieldsBuilder()
 
-        # map layer: 88 B per voxel of a live block (20 x f32 counters, t_last, ell) + bitmask
+        # map layer: 88 B per voxel of a live block (20 x f32 counters, time, length) + bitmask
         self.counts = ti.field(ti.f32)
-        self.t_last = ti.field(ti.f32)
-        # > 0 for every live voxel, 0 elsewhere; while a scan is fused, -(1 + the voxel's row in
-        # the scan's training arrays) for a voxel the scan hit in an adaptive mode:
-        # kernels/training.py writes that, kernels/bki.py turns it into the length
-        self.ell = ti.field(ti.f32)
+        # the voxel's last update, float32 seconds since the map's first scan
+        self.t_last_rel = ti.field(ti.f32)
+        # the voxel's kernel length in metres: > 0 for every live voxel, 0 elsewhere, or a
+        # pending mark while a scan is fused (pending_length above)
+        self.length = ti.field(ti.f32)
         self.top = fb.pointer(ti.ijk, self.N_top)
         self.blk = self.top.pointer(ti.ijk, MID)
-        # the bitmask says which voxels are live: struct-fors over voxels run over t_last
+        # the bitmask says which voxels are live: struct-fors over voxels run over t_last_rel
         self.vox = self.blk.bitmasked(ti.ijk, LEAF)
         self.vox.dense(ti.l, self.C).place(self.counts)
-        self.vox.place(self.t_last)
+        self.vox.place(self.t_last_rel)
         # a block's 64 lengths apart from the voxels' counters, in 4 cache lines instead of one
         # per voxel: the kernel update reads all 64 of every block near the scan to find its
         # live voxels (~7 of 64), and only then their counters
-        self.blk.dense(ti.ijk, LEAF).place(self.ell)
+        self.blk.dense(ti.ijk, LEAF).place(self.length)
 
         # The scan's table: a dense grid of leaf blocks centred on the sensor's block, covering
         # every block a kept point can fall in plus the blocks a kernel reaches from there.
@@ -136,7 +175,7 @@ class MapFields:
         self.col_hi = ti.field(ti.i32)
         fb.dense(ti.ij, self.table_shape[:2]).place(self.col_lo, self.col_hi)
         # which map blocks the scan's kernels can reach: per NEAR x NEAR x NEAR table cells, the
-        # last scan with a training block within reach (kernels/training.py marks it). A dense
+        # last scan with a training block within reach (kernels/lengths.py marks it). A dense
         # read per map block replaces a sparse is_active test per (training block, neighbour).
         self.near = ti.field(ti.i32)
         fb.dense(ti.ijk, tuple(2 * h // NEAR + 1 for h in self.table_half)).place(self.near)

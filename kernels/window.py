@@ -1,4 +1,5 @@
-"""The live window: find the voxels that leave it, export them, free what they leave empty.
+"""The live window: find the voxels that leave it, export them, free what they leave
+empty.
 
 The window is a box of voxels, |w - center| <= half per axis, the same box the query kernel
 reads the field in; everything outside it is in the host store. Leaf blocks that straddle its
@@ -12,7 +13,7 @@ block SNode yield them; they are unwrapped around a centre (in blocks) like voxe
 import taichi as ti
 
 from kernels.layout import LEAF, TOP
-from kernels.query import write_row
+from kernels.query import copy_voxel_out
 
 
 @ti.func
@@ -47,11 +48,11 @@ def find_leaving_blocks(m: ti.template(),
 def export_leaving(m: ti.template(), old_center: ti.types.vector(3, ti.i32),
                    center: ti.types.vector(3, ti.i32), half: ti.types.vector(3, ti.i32),
                    blocks: ti.types.ndarray(dtype=ti.i32, ndim=2), n_blocks: ti.i32,
-                   keys: ti.types.ndarray(dtype=ti.i32, ndim=2),       # (M, 3) world voxel
-                   counts: ti.types.ndarray(dtype=ti.f32, ndim=2),     # (M, C)
-                   t_last: ti.types.ndarray(dtype=ti.f32, ndim=1),
-                   ell: ti.types.ndarray(dtype=ti.f32, ndim=1),
-                   left: ti.types.ndarray(dtype=ti.i32, ndim=1)) -> ti.i32:   # (n_blocks,)
+                   keys: ti.types.ndarray(dtype=ti.i32, ndim=2),        # (M, 3) out: world voxel
+                   counts: ti.types.ndarray(dtype=ti.f32, ndim=2),      # (M, C) out
+                   t_last_rel: ti.types.ndarray(dtype=ti.f32, ndim=1),  # (M,) out
+                   length_m: ti.types.ndarray(dtype=ti.f32, ndim=1),    # (M,) out
+                   left: ti.types.ndarray(dtype=ti.i32, ndim=1)) -> ti.i32:   # (n_blocks,) out
     """Move the live voxels of the listed blocks that lie outside the box out of the field.
 
     Each leaving voxel is written to the outputs (world keys unwrapped at `old_center`), then
@@ -66,11 +67,11 @@ def export_leaving(m: ti.template(), old_center: ti.types.vector(3, ti.i32),
             if outside(w, w, center, half):
                 idx = ti.atomic_add(m.counter[None], 1)
                 if idx < keys.shape[0]:
-                    write_row(m, u, w, idx, keys, counts, t_last, ell)
+                    copy_voxel_out(m, u, w, idx, keys, counts, t_last_rel, length_m)
                 for c in ti.static(range(m.C)):
                     m.counts[u, c] = 0.0
-                m.t_last[u] = 0.0
-                m.ell[u] = 0.0
+                m.t_last_rel[u] = 0.0
+                m.length[u] = 0.0
                 ti.deactivate(m.vox, u)
             else:
                 ti.atomic_add(left[b], 1)

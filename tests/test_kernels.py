@@ -1,4 +1,4 @@
-"""Each kernel stage of the engine against numpy (issue 2, item 1).
+"""Each kernel stage of the engine against numpy.
 
 * the sparse kernel g(r) table, the entropy and the adaptive length against `tisem.reference`;
 * rasterisation, filtering, entropy and query on a scan of hand-placed points;
@@ -14,11 +14,13 @@ import os
 import numpy as np
 import pytest
 
-from helpers import (C, StageRecorder, away_from_faces, engine_entropy, hand_rasterize, one_hot,
-                     pose, sample_kernel, scan_from_world, small_config, voxel_keys)
+from helpers import (C, away_from_faces, engine_entropy, hand_rasterize, kernel_table_fields,
+                     located_voxels, one_hot, pose, sample_kernel, scan_from_world, small_config,
+                     training_points, voxel_keys)
 from tisem.mapper import Mapper
 from tisem.reference import ReferenceMapper, normalized_entropy, sparse_kernel
 from tisem.scan import Scan
+from tisem.trace import IntegrationTrace
 
 
 # --------------------------------------------------------------------------- g(r), entropy
@@ -40,9 +42,9 @@ def test_reference_formulas_by_hand():
 
 
 def test_sparse_kernel_table(taichi_cpu):
-    mapper = Mapper(small_config())
+    fields = kernel_table_fields()
     r2 = np.concatenate([np.linspace(0, 1, 200_001), [0.0, 1.0, 1.0 + 1e-6, 1.5, 4.0]])
-    lut, exact = sample_kernel(mapper, r2)
+    lut, exact = sample_kernel(fields, r2)
     want = sparse_kernel(np.sqrt(r2.astype(np.float32).astype(np.float64)))
     assert lut[-5] == 1.0, "g(0) must be exactly 1"
     assert abs(lut[-4]) < 1e-7 and abs(exact[-4]) < 1e-7, "g(1) must be 0"
@@ -79,13 +81,13 @@ def test_entropy_and_adaptive_length_match_reference(taichi_cpu):
 
 # --------------------------------------------------------------------------- known points
 
-def test_rasterize_filter_entropy_query_on_known_points(taichi_cpu, monkeypatch):
+def test_rasterize_filter_entropy_query_on_known_points(taichi_cpu):
     """A scan of hand-placed points: what lands in each voxel, what the filter keeps, each
     training voxel's kernel length, and what a query returns where there is no voxel."""
     res = 0.2
     cfg = small_config(mode="adaptive", min_points=3, min_range_m=1.0, prior=2.0)
     mapper = Mapper(cfg)
-    rec = StageRecorder(monkeypatch, mapper)
+    trace = IntegrationTrace()
     rng = np.random.default_rng(0)
     T = pose(3.3, -1.1, 1.7)
 
@@ -114,13 +116,13 @@ def test_rasterize_filter_entropy_query_on_known_points(taichi_cpu, monkeypatch)
     labels = np.concatenate([labels, [9, 9, 9, 9, 9]]).astype(np.int32)
     scan = Scan(points_sensor=sensor, T_world_sensor=T, stamp_s=50.0, labels=labels)
 
-    rep = mapper.integrate(scan)
+    rep = mapper.integrate(scan, trace=trace)
     assert (rep.points, rep.used, rep.dropped_nonfinite, rep.dropped_range,
             rep.dropped_window) == (len(sensor), len(world), 2, 3, 0)
 
     # located voxels: every hit voxel, with its point count (unlabeled points count) and how
     # many of its points carry evidence (unlabeled points do not)
-    layer = rec.located[0]
+    layer = located_voxels(trace.scans[0])
     want_keys = np.array(sorted(k for k, _ in groups.values()))
     np.testing.assert_array_equal(layer["keys"], want_keys)
     for key, lab in groups.values():
@@ -132,7 +134,7 @@ def test_rasterize_filter_entropy_query_on_known_points(taichi_cpu, monkeypatch)
     # each kept voxel's training point: the centroid of all its points, the histogram of its
     # labelled ones
     kept = np.array(sorted(groups[g][0] for g in "ABDE"))
-    got = rec.training[0]
+    got = training_points(trace.scans[0])
     np.testing.assert_array_equal(got["keys"], kept)
     k_world = voxel_keys(world, res)
     for i, key in enumerate(got["keys"]):
@@ -236,10 +238,11 @@ def random_scans(seed: int, region_x: float, t_start: float, probs: bool):
     return scans, t
 
 
-def _check_stages(rec, i, scan, ref, cfg, where):
-    """Steps 1-3 of scan i: the located voxels by hand, the training points by the reference."""
+def _check_stages(step, scan, ref, cfg, where):
+    """Steps 1-3 of a traced scan: the located voxels by hand, the training points by the
+    reference."""
     keys, npts, _, hist = hand_rasterize(scan, cfg)
-    layer = rec.located[i]
+    layer = located_voxels(step)
     np.testing.assert_array_equal(layer["keys"], keys, err_msg=f"{where}: located voxels")
     np.testing.assert_array_equal(layer["npts"], npts, err_msg=f"{where}: points per voxel")
     # (a voxel with evidence has a labelled point, or a point with a positive probability)
@@ -248,7 +251,7 @@ def _check_stages(rec, i, scan, ref, cfg, where):
     r_keys, r_centroid, r_h = ref.rasterize(scan)
     r_keys = r_keys + ref.origin_vox
     order = np.lexsort(r_keys.T[::-1])
-    got = rec.training[i]
+    got = training_points(step)
     np.testing.assert_array_equal(got["keys"], r_keys[order], err_msg=f"{where}: training voxels")
     np.testing.assert_allclose(got["centroid"], r_centroid[order] + ref.origin_vox * ref.res,
                                rtol=0, atol=CENTROID_ATOL_M, err_msg=f"{where}: training points")
@@ -318,7 +321,7 @@ def _check_map(mapper, ref, tainted: set, where: str, query_pts):
 
 @pytest.mark.parametrize("mode,loop", [(mode, "per block") for mode in MODE_CONFIGS]
                          + [("st", "per voxel"), ("bki", "per voxel")])
-def test_stages_match_reference(taichi_cpu, monkeypatch, mode, loop):
+def test_stages_match_reference(taichi_cpu, mode, loop):
     """All of `integrate` against the numpy oracle, stage by stage, after every scan.
 
     Seeds alternate between two regions 100 m apart (farther than the window): the live
@@ -328,20 +331,19 @@ def test_stages_match_reference(taichi_cpu, monkeypatch, mode, loop):
     voxel) is checked here on the CPU too.
     """
     cfg = small_config(mode=mode, **MODE_CONFIGS[mode])
-    mapper = Mapper(cfg)
-    mapper._per_voxel = loop == "per voxel"
+    mapper = Mapper(cfg, parallel_loop="voxel" if loop == "per voxel" else "block")
     ref = ReferenceMapper(small_config(mode=mode, **MODE_CONFIGS[mode]))
-    rec = StageRecorder(monkeypatch, mapper)
+    trace = IntegrationTrace()
     tainted: set = set()
-    t, done, all_scans = 100.0, 0, []
+    t, done, reloaded, all_scans = 100.0, 0, 0, []
     rng = np.random.default_rng(SEEDS[0])
     for j, seed in enumerate(SEEDS):
         scans, t = random_scans(seed, (j % 2) * REGION_STEP_M, t + 0.5, probs=bool(j % 2))
         for i, scan in enumerate(scans):
             where = f"mode {mode}, seed {seed}, scan {i} ({'probabilities' if j % 2 else 'labels'})"
-            rep = mapper.integrate(scan)
-            rec.reloaded += rep.reloaded_voxels
-            _check_stages(rec, done, scan, ref, cfg, where)
+            rep = mapper.integrate(scan, trace=trace)
+            reloaded += rep.reloaded_voxels
+            _check_stages(trace.scans[done], scan, ref, cfg, where)
             ref.integrate(scan)
             done += 1
             all_scans.append(scan)
@@ -354,4 +356,4 @@ def test_stages_match_reference(taichi_cpu, monkeypatch, mode, loop):
             share = _check_map(mapper, ref, tainted, where, q)
     print(f"mode {mode}, seeds {SEEDS}: {share:.4%} of {len(ref.keys)} voxels agree on t_last")
     if len(SEEDS) > 2:
-        assert rec.reloaded > 0, "the first region should have come back from the store"
+        assert reloaded > 0, "the first region should have come back from the store"

@@ -1,4 +1,4 @@
-"""The mapper on analytic scenes with known answers (issue 2, items 2-4, 6 and 8).
+"""The mapper on analytic scenes with known answers.
 
 * a noisy road plane comes out clean; class boundaries are recovered (st, adaptive, bki);
 * `csm` is exact per-voxel counting (count and unit weighting);
@@ -10,7 +10,7 @@
 Building a map compiles the engine's kernels for it (~1.5 s; one map per Taichi runtime), so
 each map below runs several stories in regions (and at times) far enough apart not to touch
 each other, in a module-scoped fixture that keeps only numpy results; the tests then check
-those. Every story's scans are built here from analytic shapes with known labels.
+those. Every story's scans are built from analytic shapes with known labels (tests/helpers.py).
 """
 from __future__ import annotations
 
@@ -20,170 +20,15 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 import taichi as ti
-from scipy.spatial import cKDTree
 
-from helpers import (BUILDING, C, POLE, ROAD, SIDEWALK, away_from_faces, flip_labels,
-                     fresh_runtime, grid_plane, one_hot, pose, scan_from_world, small_config,
-                     voxel_keys)
+from helpers import (A_CLASS, B_CLASS, BUILDING, C, POLE, RES, ROAD, SHIFT_M, SIDEWALK,
+                     distance_to_other_class, fresh_runtime, plane_story, pose, predicted_switch,
+                     probs_story, region, scan_from_world, small_config, street_scene,
+                     switch_story, voxel_keys, voxel_scans)
 from tisem.mapper import Mapper
 from tisem.scan import Scan
 
-RES = 0.2
-SHIFT_M = 64.0            # region spacing: a whole number of voxels and of top cells
-A_CLASS, B_CLASS = ROAD, BUILDING    # A < B: at an exact tie the map keeps A
 K_A = {"st": 30, "debug": 30, "adaptive": 12}   # scans of class A before the switch
-
-
-# --------------------------------------------------------------------------- scenes
-
-def street_scene(rng):
-    """World points and ground-truth labels: a 14 m x 14 m road plane around the sensor
-    (0.05 m spacing, jittered), and 2 m beyond its edge a sidewalk with a building wall and a
-    pole standing on it."""
-    # (the ground at z = 0.1 m and the wall at x = 13.1 m lie mid-voxel: a point exactly on a
-    # voxel face may be rasterised in float32 into the voxel below and queried into the one
-    # above)
-    road = grid_plane((-7, 7), (-7, 7), 0.1, 0.05, rng)
-    side = grid_plane((9, 14), (-5, 5), 0.1, 0.05, rng)
-    wz = np.arange(0.15, 3.5, 0.05)
-    wy = np.arange(-4, 4, 0.05)
-    Y, Z = np.meshgrid(wy, wz, indexing="ij")
-    wall = np.column_stack([np.full(Y.size, 13.1), Y.ravel(), Z.ravel()])
-    wall[:, 1:] += rng.uniform(-0.025, 0.025, (len(wall), 2))
-    a = rng.uniform(0, 2 * math.pi, 2500)
-    pole = np.column_stack([10.5 + 0.1 * np.cos(a), 2.0 + 0.1 * np.sin(a),
-                            rng.uniform(0.15, 4.0, 2500)])
-    xyz = np.concatenate([road, side, wall, pole])
-    gt = np.concatenate([np.full(len(road), ROAD), np.full(len(side), SIDEWALK),
-                         np.full(len(wall), BUILDING), np.full(len(pole), POLE)]).astype(np.int32)
-    return xyz, gt
-
-
-def plane_story(mapper, rng, t0):
-    """Three scans of the street from slightly different poses, 0.1 s apart; input labels
-    80 % right (20 % flipped to random other classes, every scan afresh). Returns the query
-    of every scan's points after the last one, with the ground truth and the input."""
-    poses = [pose(0, 0, 1.7), pose(0.4, -0.3, 1.72, yaw=0.05), pose(-0.3, 0.5, 1.68, yaw=-0.04)]
-    scans = []
-    for i, T in enumerate(poses):
-        xyz, gt = street_scene(rng)
-        scans.append(scan_from_world(xyz, T, t0 + 0.1 * i, labels=flip_labels(gt, 0.2, rng),
-                                     gt=gt, index=i))
-        mapper.integrate(scans[-1])
-    xyz = np.concatenate([s.points_world() for s in scans])
-    pred, _ = mapper.query(xyz, with_probs=False)
-    return SimpleNamespace(xyz=xyz, pred=pred, gt=np.concatenate([s.gt_labels for s in scans]),
-                           noisy=np.concatenate([s.labels for s in scans]))
-
-
-def probe_scan(cls, t, origin, index=0) -> Scan:
-    """Six isolated voxels, 3 m apart (farther than any kernel reach), 10 points each at the
-    voxel's centre. A voxel's only training point is then its own centroid at distance ~0,
-    so every scan brings it the same evidence Delta = 10 sigma0 g(0) whatever its kernel
-    length: the fixed geometry of the decay derivation, with the adaptive length left on."""
-    keys = np.array([[15 * j, 0, 0] for j in range(6)]) + voxel_keys(origin, RES)
-    world = np.repeat((keys + 0.5) * RES, 10, axis=0)
-    T = pose(*(np.asarray(origin, float) + [7.5, 3.0, 1.7]))
-    return scan_from_world(world, T, t, labels=np.full(len(world), cls, np.int32), index=index)
-
-
-def probe_labels(mapper, origin) -> int:
-    centres = (np.array([[15 * j, 0, 0] for j in range(6)]) + voxel_keys(origin, RES) + 0.5) * RES
-    lab, _ = mapper.query(centres, with_probs=False)
-    values = np.unique(lab)
-    assert len(values) == 1, f"the probe voxels disagree: {lab}"
-    return int(values[0])
-
-
-def switch_story(mapper, t0, origin, k, n_b):
-    """k scans of class A, then n_b of class B, 0.1 s apart; the probe's label after each B
-    scan, and its counters after the first scan, after the A scans and at the end."""
-    mapper.integrate(probe_scan(A_CLASS, t0, origin))
-    keys = voxel_keys(probe_scan(A_CLASS, t0, origin).points_world()[::10], RES)
-
-    def counters():
-        snap = mapper.snapshot()
-        pos = [np.flatnonzero((snap.keys == k_).all(axis=1))[0] for k_ in keys]
-        return snap.counts[pos].astype(np.float64)
-
-    first = counters()
-    for i in range(1, k):
-        mapper.integrate(probe_scan(A_CLASS, t0 + 0.1 * i, origin, i))
-    after_a = counters()
-    label_a = probe_labels(mapper, origin)
-    labels, tie = [], None
-    for n in range(1, n_b + 1):
-        mapper.integrate(probe_scan(B_CLASS, t0 + 0.1 * (k + n - 1), origin, k + n - 1))
-        labels.append(probe_labels(mapper, origin))
-        if n == k:
-            tie = counters()
-    return SimpleNamespace(first=first, after_a=after_a, label_a=label_a, labels=labels,
-                           tie=tie, end=counters(), k=k)
-
-
-def mixed_scene(rng):
-    """Ground stripes of three classes, a wall and a blob, 30 % label noise, some unlabeled:
-    many voxels with several classes. Returns world points, labels."""
-    ground = grid_plane((-8, 8), (-8, 8), 0.0, 0.1, rng)
-    lab = np.where(ground[:, 1] < -2, ROAD, np.where(ground[:, 1] < 3, SIDEWALK, 17))
-    wall = np.column_stack([np.full(3000, 6.0), rng.uniform(-6, 6, 3000), rng.uniform(0, 3, 3000)])
-    blob = rng.normal([-3, 4, 1], 0.5, (1500, 3))
-    xyz = np.concatenate([ground, wall, blob])
-    labels = np.concatenate([lab, np.full(3000, BUILDING), np.full(1500, 15)]).astype(np.int32)
-    labels = flip_labels(labels, 0.3, rng)
-    labels[rng.random(len(labels)) < 0.05] = 0
-    return away_from_faces(xyz, RES), labels
-
-
-def probs_story(mapper, rng, t0):
-    """Region 1 (x = 64 m): three scans given as labels. Region 2 (128 m): the same
-    sensor-frame points and poses 64 m farther, given as one-hot probabilities. Region 3
-    (192 m): a patch whose every point says 70 % class 3, 30 % class 5 (half of them with
-    half their mass on class 0, which adds no evidence)."""
-    shift = np.array([SHIFT_M, 0, 0])
-    scenes = [mixed_scene(rng) for _ in range(3)]
-    poses = [pose(0.1 * i, -0.2 * i, 1.7, yaw=0.1 * i) for i in range(3)]
-    for region, as_probs in ((1, False), (2, True)):
-        for i, ((xyz, lab), T) in enumerate(zip(scenes, poses)):
-            T2 = T.copy()
-            T2[:3, 3] += region * shift
-            kw = dict(probs=one_hot(lab)) if as_probs else dict(labels=lab)
-            mapper.integrate(scan_from_world(xyz + region * shift, T2, t0 + region + 0.1 * i, **kw))
-    patch = away_from_faces(grid_plane((-2, 2), (-2, 2), 0.0, 0.05, rng), RES) + 3 * shift
-    p = np.zeros((len(patch), C), np.float32)
-    p[:, 3], p[:, 5] = 0.7, 0.3
-    half = rng.random(len(patch)) < 0.5
-    p[half] = 0.5 * p[half]
-    p[half, 0] = 0.5
-    mapper.integrate(scan_from_world(patch, pose(*(3 * shift + [0, 0, 1.7])), t0 + 3.0, probs=p))
-    lab, prob = mapper.query(patch)
-    return SimpleNamespace(patch=patch, p=p, patch_labels=lab, patch_probs=prob)
-
-
-def voxel_scans(rng, n_scans=3, n_voxels=300):
-    """Scans of points placed inside known voxels (away from their faces, so float32 and
-    float64 agree on the voxel), 1-8 points per voxel, labels 0..19 (0 = unlabeled)."""
-    keys = np.unique(rng.integers([-40, -40, -8], [40, 40, 8], (n_voxels, 3)), axis=0)
-    scans = []
-    for i in range(n_scans):
-        sub = keys[rng.random(len(keys)) < 0.7]
-        per = rng.integers(1, 9, len(sub))
-        k = np.repeat(sub, per, axis=0)
-        world = (k + rng.uniform(0.05, 0.95, (len(k), 3))) * RES
-        labels = rng.integers(0, C, len(k)).astype(np.int32)
-        main = rng.integers(1, C, len(sub))          # most voxels lean to one class
-        lean = rng.random(len(k)) < 0.6
-        labels[lean] = np.repeat(main, per)[lean]
-        T = pose(rng.uniform(-1, 1), rng.uniform(-1, 1), 0.0, yaw=rng.uniform(-3, 3))
-        scans.append(scan_from_world(world, T, 5.0 + 0.1 * i, labels=labels, index=i))
-    return scans
-
-
-def region(snap, i):
-    """The snapshot rows of region i (x around i * 64 m)."""
-    n = int(round(SHIFT_M / RES))
-    x = snap.keys[:, 0]
-    return (x >= (i - 0.5) * n) & (x < (i + 0.5) * n)
 
 
 # --------------------------------------------------------------------------- the maps
@@ -191,21 +36,6 @@ def region(snap, i):
 def _finish(result):
     ti.reset()
     return result
-
-
-def predicted_switch(alpha: float, k: int) -> int:
-    """Smallest n with sigma_B(n) > sigma_A(n), for sigma_t = alpha sigma_{t-1} + Delta:
-    after k A scans sigma_A = Delta (1 - alpha^k) / (1 - alpha); n B scans later
-    sigma_A = alpha^n that, sigma_B = Delta (1 - alpha^n) / (1 - alpha)."""
-    before = (1 - alpha ** k) / (1 - alpha)
-    n = 1
-    while (1 - alpha ** n) / (1 - alpha) <= alpha ** n * before:
-        n += 1
-    # the test would be meaningless if float32 rounding could move the switch: keep a margin
-    for m in (n - 1, n):
-        b, a = (1 - alpha ** m) / (1 - alpha), alpha ** m * before
-        assert abs(b - a) > 0.01 * a, f"switch too close to call at n = {m}"
-    return n
 
 
 def street_map(seed, **cfg):
@@ -333,15 +163,6 @@ def debug_map():
 
 
 # --------------------------------------------------------------------------- plane, boundaries
-
-def distance_to_other_class(xyz, gt):
-    """Per point, the distance to the nearest point of another ground-truth class."""
-    d = np.full(len(xyz), np.inf)
-    for c in np.unique(gt):
-        tree = cKDTree(xyz[gt == c])
-        other = gt != c
-        d[other] = np.minimum(d[other], tree.query(xyz[other], k=1)[0])
-    return d
 
 
 @pytest.mark.parametrize("mode", ["st", "adaptive", "bki"])
@@ -518,16 +339,16 @@ def test_debug_scan_at_the_edge_of_the_window(debug_map):
 def test_a_scan_with_more_points_than_training_rows_can_count_is_refused(taichi_cpu, monkeypatch):
     """Training rows pass through float32 (exact below 2^24): a scan that could need more is
     refused with its name before any kernel runs, and the map is untouched."""
-    import tisem.mapper as mapper_module
+    from kernels import layout
     mapper = Mapper(small_config(mode="st"))
     rng = np.random.default_rng(0)
     pts = rng.uniform(-5, 5, (50, 3))
     labels = np.full(50, ROAD, np.int32)
-    monkeypatch.setattr(mapper_module, "MAX_POINTS", 50)
+    monkeypatch.setattr(layout, "MAX_SCAN_POINTS", 50)
     with pytest.raises(ValueError, match="50 points; tisem takes at most 49"):
         mapper.integrate(Scan(pts, np.eye(4), 0.0, labels=labels, name="big"))
     assert mapper.live_voxels == 0
-    monkeypatch.setattr(mapper_module, "MAX_POINTS", 51)
+    monkeypatch.setattr(layout, "MAX_SCAN_POINTS", 51)
     mapper.integrate(Scan(pts, np.eye(4), 0.0, labels=labels, name="big"))
     assert mapper.live_voxels > 0
 

@@ -22,9 +22,9 @@ def claim_map_slot() -> int:
     """Reserve this runtime for one map and return its generation.
 
     taichi 1.7.4's CPU allocator corrupts memory once its sparse node pools need a second
-    1 GiB chunk (shared/notes/taichi-sparse.md §4.1), and each map's sparse trees reserve
-    several hundred MB of pool on creation that are never given back, even when the tree is
-    destroyed. Two maps in one runtime therefore risk a heap corruption; one map per
+    1 GiB chunk (the end of its first chunk is computed past the mapping), and each map's sparse
+    trees reserve several hundred MB of pool on creation that are never given back, even when
+    the tree is destroyed. Two maps in one runtime therefore risk a heap corruption; one map per
     `init_taichi()` keeps every map in the first chunk. Refuse clearly instead of crashing.
     """
     global _map_owner
@@ -81,5 +81,6 @@ def describe() -> str:
     cfg = ti.lang.impl.current_cfg()
     arch = cfg.arch.name
     if arch == "x64" or arch == "arm64":
-        return f"{arch} CPU ({platform.processor() or platform.machine()}), {cfg.cpu_max_num_threads} threads"
+        cpu = platform.processor() or platform.machine()
+        return f"{arch} CPU ({cpu}), {cfg.cpu_max_num_threads} threads"
     return arch

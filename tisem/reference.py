@@ -1,4 +1,4 @@
-"""A plain numpy implementation of the method (SPEC §1): the oracle the kernels are tested
+"""A plain numpy implementation of the method: the oracle the kernels are tested
 against, and the baseline the throughput benchmark measures its speedup over.
 
 It follows the same rules as `tisem.mapper.Mapper` with none of its machinery: a dict of voxels,
@@ -11,11 +11,11 @@ import math
 import numpy as np
 from scipy.spatial import cKDTree
 
+from kernels.bki import MIN_UPDATE
 from tisem.config import MapperConfig
+from tisem.geometry import block_aligned_origin
 from tisem.preprocess import select_points
 from tisem.scan import Scan, to_frame
-from kernels.bki import MIN_UPDATE
-from tisem.geometry import block_aligned_origin
 
 
 def sparse_kernel(r: np.ndarray) -> np.ndarray:
@@ -71,8 +71,8 @@ class ReferenceMapper:
         self.index: dict[tuple, int] = {}
         self.keys = np.zeros((0, 3), np.int64)      # local voxel keys
         self.counts = np.zeros((0, self.C))
-        self.t_last = np.zeros(0)
-        self.ell = np.zeros(0)
+        self.t_last_rel = np.zeros(0)
+        self.length_m = np.zeros(0)
         self.origin_vox = None
         self.t0 = None
 
@@ -91,8 +91,8 @@ class ReferenceMapper:
             n = len(new)
             self.keys = np.vstack([self.keys, np.array(new, np.int64)])
             self.counts = np.vstack([self.counts, np.zeros((n, self.C))])
-            self.t_last = np.concatenate([self.t_last, np.zeros(n)])
-            self.ell = np.concatenate([self.ell, np.zeros(n)])
+            self.t_last_rel = np.concatenate([self.t_last_rel, np.zeros(n)])
+            self.length_m = np.concatenate([self.length_m, np.zeros(n)])
         return ids
 
     def rasterize(self, scan: Scan):
@@ -115,38 +115,39 @@ class ReferenceMapper:
     def integrate(self, scan: Scan) -> None:
         cfg = self.config
         keys, centroid, h = self.rasterize(scan)
-        t = float(scan.stamp_s) - self.t0
+        t_rel = float(scan.stamp_s) - self.t0
         ids = self._voxel_ids(keys)
         if not cfg.uses_kernel:                     # csm: plain per-voxel counting
             self.counts[ids] += h
-            self.t_last[ids] = t
-            self.ell[ids] = cfg.ell_min_m if cfg.adaptive else cfg.ell_fixed_vox * self.res
+            self.t_last_rel[ids] = t_rel
+            self.length_m[ids] = cfg.ell_min_m if cfg.adaptive else cfg.ell_fixed_vox * self.res
             return
         if cfg.adaptive:
-            alpha = decay(t - self.t_last[ids], cfg)
+            alpha = decay(t_rel - self.t_last_rel[ids], cfg)
             p = cfg.prior + alpha[:, None] * self.counts[ids] + h
-            self.ell[ids] = cfg.ell_min_m + (cfg.ell_max_m - cfg.ell_min_m) * normalized_entropy(p)
+            span = cfg.ell_max_m - cfg.ell_min_m
+            self.length_m[ids] = cfg.ell_min_m + span * normalized_entropy(p)
         else:
-            self.ell[ids] = cfg.ell_fixed_vox * self.res
+            self.length_m[ids] = cfg.ell_fixed_vox * self.res
         # every map voxel with a training point within its own kernel length gets an update
         centres = (self.keys + 0.5) * self.res
         tree = cKDTree(centroid)
-        near = tree.query_ball_point(centres, r=self.ell)
+        near = tree.query_ball_point(centres, r=self.length_m)
         v_idx = np.repeat(np.arange(len(centres)), [len(n) for n in near])
         if len(v_idx) == 0:
             return
         p_idx = np.concatenate([np.asarray(n, np.int64) for n in near])
         d = np.linalg.norm(centroid[p_idx] - centres[v_idx], axis=1)
-        inside = d < self.ell[v_idx]
+        inside = d < self.length_m[v_idx]
         v_idx, p_idx, d = v_idx[inside], p_idx[inside], d[inside]
-        w = cfg.sigma0 * sparse_kernel(d / self.ell[v_idx])
+        w = cfg.sigma0 * sparse_kernel(d / self.length_m[v_idx])
         delta = np.zeros((len(centres), self.C))
         for c in range(1, self.C):
             delta[:, c] = np.bincount(v_idx, w * h[p_idx, c], len(centres))
         upd = delta.sum(axis=1) > MIN_UPDATE
-        alpha = decay(t - self.t_last[upd], cfg)
+        alpha = decay(t_rel - self.t_last_rel[upd], cfg)
         self.counts[upd] = alpha[:, None] * self.counts[upd] + delta[upd]
-        self.t_last[upd] = t
+        self.t_last_rel[upd] = t_rel
 
     def query(self, points_world: np.ndarray):
         """(labels, probabilities) of world points; 0 / zeros outside the map."""
@@ -164,7 +165,8 @@ class ReferenceMapper:
         return labels, probs
 
     def voxels(self):
-        """(global keys, counts, t_last, ell) sorted by key, like `Mapper.snapshot()`."""
+        """(global keys, counts, t_last, ell_m) sorted by key, like `Mapper.snapshot()`."""
         g = self.keys + self.origin_vox
         order = np.lexsort((g[:, 2], g[:, 1], g[:, 0]))
-        return g[order], self.counts[order], self.t_last[order] + self.t0, self.ell[order]
+        return (g[order], self.counts[order], self.t_last_rel[order] + self.t0,
+                self.length_m[order])

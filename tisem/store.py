@@ -7,8 +7,9 @@ covers the time they were away, exactly as if they had never left.
 Layout. Every `put` (one scan's evictions) becomes a *segment* per face of the window the voxels
 left through (a thin slab just outside it; a bigger set is cut into compact pieces of at most
 SEGMENT_VOXELS): its voxels sorted by leaf block, each voxel as a 1-byte index inside its 4^3
-block, t_last and ell as float32, and the counters compressed to their non-zero entries (a bit
-mask says which classes, then a float32 per set class; a voxel holds ~5 of 20). That is ~35 B
+block, the time of its last update (t_last_rel, seconds since the map's t0) and its kernel length
+(length_m) as float32, and the counters compressed to their non-zero entries (a bit mask says
+which classes, then a float32 per set class; a voxel holds ~5 of 20). That is ~35 B
 per voxel (8-16 voxels per block) instead of the field's ~100 B, with no Python object per
 block.
 Blocks taken back (the sensor returned) are marked dead and a segment is compacted once a fifth
@@ -33,216 +34,10 @@ import numpy as np
 
 from kernels.layout import LEAF
 from tisem.spill import SpillFile
+from tisem.store_segments import (COMPACT, KEY_LIMIT, LOCAL_INDEX, SEGMENT_VOXELS, Payload,
+                                  Segment, pack, pieces, ranges)
 
-_BITS = 21
-_HALF = 1 << (_BITS - 1)
-KEY_LIMIT = _HALF - 1   # |voxel index| (relative to the map origin) the packed keys can hold
-_MASK = (1 << _BITS) - 1
-_LOCAL = np.array([LEAF * LEAF, LEAF, 1], np.int64)   # voxel within block -> 0..LEAF^3-1
-# A segment is rewritten without the blocks taken back from it (the sensor returned) once
-# fewer than this fraction of its voxels are left.
-COMPACT = 0.8
-# Segments are read whole: a bigger set of voxels (a restored map, a window emptied by a jump)
-# is cut into pieces of at most this many (~2.5 MB) so that using one block reads little.
-SEGMENT_VOXELS = 1 << 16
-
-
-def pack(keys: np.ndarray) -> np.ndarray:
-    """(K, 3) integer keys in [-2^20, 2^20) -> (K,) int64, order-preserving per axis."""
-    k = np.asarray(keys, dtype=np.int64) + _HALF
-    return (k[:, 0] << (2 * _BITS)) | (k[:, 1] << _BITS) | k[:, 2]
-
-
-def unpack(packed: np.ndarray) -> np.ndarray:
-    """Inverse of `pack`: (K,) int64 -> (K, 3) int64."""
-    p = np.asarray(packed, dtype=np.int64)
-    return np.stack([(p >> (2 * _BITS)) & _MASK, (p >> _BITS) & _MASK, p & _MASK], axis=1) - _HALF
-
-
-def _ranges(starts: np.ndarray, stops: np.ndarray) -> np.ndarray:
-    """Concatenation of arange(starts[i], stops[i]) for all i, vectorised."""
-    lengths = stops - starts
-    total = int(lengths.sum())
-    if total == 0:
-        return np.zeros(0, np.int64)
-    offsets = np.repeat(starts - np.cumsum(lengths) + lengths, lengths)
-    return np.arange(total, dtype=np.int64) + offsets
-
-
-def _mask_dtype(num_classes: int):
-    return np.uint32 if num_classes <= 32 else np.uint64 if num_classes <= 64 else None
-
-
-# A block's voxel extent: lowest and highest voxel per axis inside the block, 2 bits each.
-_EB = (LEAF - 1).bit_length()
-assert 6 * _EB <= 16, "the voxel extent of a block must fit a uint16"
-_SHIFTS = np.arange(6, dtype=np.uint16) * _EB
-
-
-def _pieces(keys: np.ndarray) -> list[np.ndarray]:
-    """Index sets that split voxels into pieces of at most SEGMENT_VOXELS, cut between blocks at
-    the median x or y (a k-d split), so that each piece stays compact in space."""
-    blocks = np.floor_divide(keys[:, :2], LEAF)
-    out, todo = [], [np.arange(len(keys))]
-    while todo:
-        idx = todo.pop()
-        if len(idx) <= SEGMENT_VOXELS:
-            out.append(idx)
-            continue
-        b = blocks[idx]
-        col = b[:, int(np.argmax(b.max(axis=0) - b.min(axis=0)))]
-        cut = np.partition(col, len(col) // 2)[len(col) // 2]
-        left = col < cut if (col < cut).any() else col <= cut
-        if left.all():      # a single column of blocks: no cut between blocks
-            out.append(idx)
-            continue
-        todo += [idx[left], idx[~left]]
-    return out
-
-
-class _Payload:
-    """A segment's voxel arrays, as in the spill file: voxels sorted by (block, voxel in block);
-    `vstart` (B+1) the first voxel of each block; per voxel the index in its block (`local`),
-    a bit mask of its non-zero classes and their values in class order in `val` (`mask` None
-    and dense (V, C) rows in `val` when there are more than 64 classes), t_last, ell."""
-
-    __slots__ = ("vstart", "local", "mask", "val", "t_last", "ell")
-
-    def __init__(self, vstart, local, mask, val, t_last, ell):
-        self.vstart, self.local, self.mask, self.val = vstart, local, mask, val
-        self.t_last, self.ell = t_last, ell
-
-    def arrays(self) -> list[np.ndarray]:
-        mid = [self.val] if self.mask is None else [self.mask, self.val]
-        return [self.vstart, self.local] + mid + [self.t_last, self.ell]
-
-    @classmethod
-    def from_arrays(cls, arrays: list[np.ndarray]) -> "_Payload":
-        vstart, local, *mid, t_last, ell = arrays
-        mask, val = mid if len(mid) == 2 else (None, mid[0])
-        return cls(vstart, local, mask, val, t_last, ell)
-
-    def voxels_of(self, block_idx: np.ndarray) -> np.ndarray:
-        """Indices of the voxels of the given blocks (in block order)."""
-        return _ranges(self.vstart[block_idx].astype(np.int64),
-                       self.vstart[np.asarray(block_idx) + 1].astype(np.int64))
-
-    def entries(self, vox: np.ndarray) -> np.ndarray:
-        """Indices into `val` of the given voxels' values, voxel by voxel."""
-        estart = np.r_[0, np.cumsum(np.bitwise_count(self.mask), dtype=np.int64)]
-        return _ranges(estart[vox], estart[vox + 1])
-
-    def decode_counts(self, vox: np.ndarray, num_classes: int) -> np.ndarray:
-        if self.mask is None:
-            return self.val[vox]
-        bits = (self.mask[vox, None] >> np.arange(num_classes, dtype=self.mask.dtype)) & 1
-        counts = np.zeros((len(vox), num_classes), np.float32)
-        counts[bits.astype(bool)] = self.val[self.entries(vox)]
-        return counts
-
-    def subset(self, block_idx: np.ndarray) -> "_Payload":
-        """Only the given blocks, without decoding."""
-        vox = self.voxels_of(block_idx)
-        sizes = np.diff(self.vstart)[block_idx]
-        if self.mask is None:
-            mask, val = None, self.val[vox]
-        else:
-            mask, val = self.mask[vox], self.val[self.entries(vox)]
-        return _Payload(np.r_[0, np.cumsum(sizes)].astype(np.int32), self.local[vox], mask, val,
-                        self.t_last[vox], self.ell[vox])
-
-
-class _Segment:
-    """What stays in memory of a segment: its blocks (as int16 offsets from `base` where they
-    fit), each block's voxel extent, which blocks are still here, and where its `_Payload` lies
-    in the spill file."""
-
-    __slots__ = ("base", "rel", "ext", "alive", "nvox", "nent", "record", "alive_blocks",
-                 "alive_voxels")
-
-    def __init__(self, blocks: np.ndarray, ext: np.ndarray, payload: _Payload):
-        self.base = blocks.min(axis=0)
-        rel = blocks - self.base
-        self.rel = rel.astype(np.int16 if rel.max() < 1 << 15 else np.int32)
-        self.ext = ext
-        self.alive = np.ones(len(blocks), bool)
-        self.nvox, self.nent = len(payload.local), len(payload.val)
-        self.record = None                     # set once the payload is written
-        self.alive_blocks, self.alive_voxels = len(blocks), self.nvox
-
-    @classmethod
-    def build(cls, keys: np.ndarray, counts: np.ndarray, t_last: np.ndarray,
-              ell: np.ndarray) -> tuple["_Segment", _Payload]:
-        keys = np.asarray(keys, np.int64)
-        blocks = np.floor_divide(keys, LEAF)
-        packed = pack(blocks)
-        inner = keys - blocks * LEAF
-        local = inner @ _LOCAL
-        order = np.lexsort((local, packed))
-        packed, blocks, inner, local = packed[order], blocks[order], inner[order], local[order]
-        counts = np.asarray(counts, np.float32)[order]
-        starts = np.flatnonzero(np.r_[True, packed[1:] != packed[:-1]])
-        lo, hi = np.minimum.reduceat(inner, starts), np.maximum.reduceat(inner, starts)
-        ext = (np.concatenate([lo, hi], axis=1).astype(np.uint16) << _SHIFTS).sum(
-            axis=1, dtype=np.uint16)
-        dtype = _mask_dtype(counts.shape[1])
-        if dtype is None:
-            mask, val = None, counts
-        else:
-            nz = counts != 0
-            bits = (np.ones(1, dtype) << np.arange(counts.shape[1], dtype=dtype))
-            mask = (nz * bits).sum(axis=1, dtype=dtype)
-            val = counts[nz]                     # row-major: each voxel's values in class order
-        p = _Payload(np.r_[starts, len(packed)].astype(np.int32),
-                     local.astype(np.uint8), mask, val,
-                     np.asarray(t_last, np.float32)[order], np.asarray(ell, np.float32)[order])
-        return cls(blocks[starts], ext, p), p
-
-    def subset(self, p: _Payload, block_idx: np.ndarray) -> tuple["_Segment", _Payload]:
-        """A new segment holding only the given blocks (compaction), without decoding."""
-        q = p.subset(block_idx)
-        return _Segment(self.blocks(block_idx), self.ext[block_idx], q), q
-
-    def layout(self, num_classes: int) -> list:
-        """[(dtype, shape)] of `_Payload.arrays()`, to read the record back."""
-        v = (self.nvox,)
-        dtype = _mask_dtype(num_classes)
-        mid = [(np.float32, (self.nvox, num_classes))] if dtype is None else \
-            [(dtype, v), (np.float32, (self.nent,))]
-        return [(np.int32, (len(self.alive) + 1,)), (np.uint8, v)] + mid + [(np.float32, v)] * 2
-
-    @property
-    def nbytes(self) -> int:
-        return self.rel.nbytes + self.ext.nbytes + self.alive.nbytes + self.base.nbytes
-
-    def blocks(self, idx=slice(None)) -> np.ndarray:
-        """(n, 3) int64 block coordinates of the given blocks."""
-        return self.rel[idx].astype(np.int64) + self.base
-
-    def extent(self, idx=slice(None)) -> tuple[np.ndarray, np.ndarray]:
-        """(n, 3) lowest and highest voxel keys of the given blocks."""
-        f = (self.ext[idx, None] >> _SHIFTS) & (LEAF - 1)
-        corner = self.blocks(idx) * LEAF
-        return corner + f[:, :3], corner + f[:, 3:]
-
-    def bounds(self) -> np.ndarray:
-        """lo then hi of the alive blocks' coordinates (zeros when none is left)."""
-        if not self.alive_blocks:
-            return np.zeros(6, np.int64)
-        live = self.blocks(self.alive)
-        return np.r_[live.min(axis=0), live.max(axis=0)]
-
-    def keys_of(self, p: _Payload, vox: np.ndarray) -> np.ndarray:
-        """(n, 3) int64 voxel keys of the given voxel indices."""
-        block = np.searchsorted(p.vstart, vox, side="right") - 1
-        local = p.local[vox].astype(np.int64)
-        return self.blocks(block) * LEAF + np.stack(
-            [local // (LEAF * LEAF), (local // LEAF) % LEAF, local % LEAF], axis=1)
-
-    def decode(self, p: _Payload, vox: np.ndarray, num_classes: int):
-        """(keys int32 (n,3), counts f32 (n,C), t_last, ell) of the given voxel indices."""
-        return self.keys_of(p, vox).astype(np.int32), p.decode_counts(vox, num_classes), \
-            p.t_last[vox], p.ell[vox]
+__all__ = ["BlockStore", "KEY_LIMIT", "pack"]
 
 
 class BlockStore:
@@ -254,13 +49,15 @@ class BlockStore:
 
     `spill_dir`: where the payload file goes (None: the system temp dir). `rewrite_floor`: the
     file is rewritten without its garbage once that is more than half of it and this many bytes.
+    `segment_voxels`: the most voxels per segment (segments are read whole).
     """
 
     def __init__(self, num_classes: int, spill_dir: str | None = None,
-                 rewrite_floor: int = 64 << 20):
+                 rewrite_floor: int = 64 << 20, segment_voxels: int = SEGMENT_VOXELS):
         self.C = num_classes
+        self._segment_voxels = int(segment_voxels)
         self._spill = SpillFile(spill_dir, rewrite_floor)
-        self._segments: list[_Segment] = []
+        self._segments: list[Segment] = []
         self._voxels = 0
         self._blocks = 0
         self._box = np.zeros((0, 6), np.int64)    # (S, 6) segment bounds in blocks, lo then hi
@@ -284,15 +81,29 @@ class BlockStore:
         """Bytes of payload in the spill file (live records; the file may hold some garbage)."""
         return self._spill.live_bytes
 
+    @property
+    def num_segments(self) -> int:
+        return len(self._segments)
+
+    @property
+    def spill_file_bytes(self) -> int:
+        """Bytes of the spill file in use: live payload and garbage not yet rewritten away."""
+        return self._spill.file_bytes
+
+    @property
+    def spill_rewrites(self) -> int:
+        """How often the spill file has been rewritten without its garbage."""
+        return self._spill.rewrites
+
     def _overlapping(self, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
         """Indices of the segments whose bounding box meets the block box [lo, hi]."""
         b = self._box
         return np.flatnonzero(np.all(b[:, :3] <= hi, axis=1) & np.all(b[:, 3:] >= lo, axis=1))
 
-    def _read(self, s: _Segment) -> _Payload:
-        return _Payload.from_arrays(self._spill.read(s.record, s.layout(self.C)))
+    def _read(self, s: Segment) -> Payload:
+        return Payload.from_arrays(self._spill.read(s.record, s.layout(self.C)))
 
-    def _write(self, new: list[tuple[_Segment, _Payload]]) -> None:
+    def _write(self, new: list[tuple[Segment, Payload]]) -> None:
         """Write the payloads of new segments: all of them, or none (then raise)."""
         done = []
         try:
@@ -304,12 +115,13 @@ class BlockStore:
                 self._spill.release(seg.record)
             raise
 
-    def _build(self, keys, counts, t_last, ell) -> list[tuple[_Segment, _Payload]]:
+    def _build(self, keys, counts, t_last_rel, length_m) -> list[tuple[Segment, Payload]]:
         """Segments, not yet written, for the given voxels; a big set is cut in pieces, as a
         segment is read whole whenever a block of it is used."""
-        return [_Segment.build(keys[i], counts[i], t_last[i], ell[i]) for i in _pieces(keys)]
+        return [Segment.build(keys[i], counts[i], t_last_rel[i], length_m[i])
+                for i in pieces(keys, self._segment_voxels)]
 
-    def _add(self, seg: _Segment) -> None:
+    def _add(self, seg: Segment) -> None:
         self._segments.append(seg)
         self._box = np.vstack([self._box, seg.bounds()[None]])
         self._voxels += seg.alive_voxels
@@ -317,7 +129,7 @@ class BlockStore:
         self._index = None
 
     # ------------------------------------------------------------------ in and out
-    def put(self, keys, counts, t_last, ell, box=None) -> None:
+    def put(self, keys, counts, t_last_rel, length_m, box=None) -> None:
         """Store voxels. `box=(center, half)`: the live window they just left. None of them may
         lie inside it; as `take_box` takes every stored voxel inside the window each time it
         moves, no voxel is then ever live and stored at once. The voxels are stored in one
@@ -328,13 +140,14 @@ class BlockStore:
             return
         counts = np.asarray(counts, np.float32)
         if keys.ndim != 2 or keys.shape[1] != 3 or counts.shape != (len(keys), self.C) \
-                or len(t_last) != len(keys) or len(ell) != len(keys):
-            raise ValueError(f"put: keys (n, 3), counts (n, {self.C}), t_last (n,), ell (n,) "
-                             f"expected; got {keys.shape}, {counts.shape}, {np.shape(t_last)}, "
-                             f"{np.shape(ell)}")
+                or len(t_last_rel) != len(keys) or len(length_m) != len(keys):
+            raise ValueError(f"put: keys (n, 3), counts (n, {self.C}), t_last_rel (n,), "
+                             f"length_m (n,) expected; got {keys.shape}, {counts.shape}, "
+                             f"{np.shape(t_last_rel)}, {np.shape(length_m)}")
         if np.abs(keys).max() > KEY_LIMIT:
             raise ValueError(f"put: voxel keys beyond +-{KEY_LIMIT} of the map origin")
-        voxels = (keys, counts, np.asarray(t_last, np.float32), np.asarray(ell, np.float32))
+        voxels = (keys, counts, np.asarray(t_last_rel, np.float32),
+                  np.asarray(length_m, np.float32))
         if box is None:
             new = self._build(*voxels)
         else:
@@ -354,7 +167,7 @@ class BlockStore:
             self._add(seg)
 
     @staticmethod
-    def _select(s: _Segment, c: np.ndarray, h: np.ndarray, read) -> tuple[np.ndarray, object]:
+    def _select(s: Segment, c: np.ndarray, h: np.ndarray, read) -> tuple[np.ndarray, object]:
         """Alive blocks of s with a voxel in the box |w - c| <= h (not the stored halves of
         blocks the face cuts), and the payload if it had to be read to tell."""
         vlo, vhi = s.extent()
@@ -371,7 +184,7 @@ class BlockStore:
 
     def take_box(self, center_vox: np.ndarray, half_vox: np.ndarray):
         """Remove and return every stored voxel w with |w - center_vox| <= half_vox per axis:
-        (keys int32 (n,3), counts (n,C), t_last (n,), ell (n,)), or None.
+        (keys int32 (n,3), counts (n,C), t_last_rel (n,), length_m (n,)), or None.
 
         Blocks that straddle the box's face are split: their voxels outside stay stored.
         Everything is read and every new segment written before the store changes, so an
@@ -444,7 +257,8 @@ class BlockStore:
 
     # ------------------------------------------------------------------ reading
     def arrays(self):
-        """All stored voxels as (keys int32 (M,3), counts f32 (M,C), t_last, ell), decoded."""
+        """All stored voxels as (keys int32 (M,3), counts f32 (M,C), t_last_rel, length_m),
+        decoded."""
         parts = []
         for s in self._segments:
             if s.alive_blocks:
@@ -481,11 +295,11 @@ class BlockStore:
         q = pack(blocks)
         first = np.searchsorted(packed, q, side="left")
         pieces = np.searchsorted(packed, q, side="right") - first
-        local = (keys - blocks * LEAF) @ _LOCAL
+        local = (keys - blocks * LEAF) @ LOCAL_INDEX
         # a block cut by the window's face can be stored in a few pieces (segments): every
         # (key, piece) pair, grouped by segment so that each segment is read once
         ask = np.repeat(np.arange(len(keys)), pieces)
-        pos = _ranges(first, first + pieces)
+        pos = ranges(first, first + pieces)
         order = np.argsort(seg_of[pos], kind="stable")
         ask, pos = ask[order], pos[order]
         seg = seg_of[pos]

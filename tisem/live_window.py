@@ -1,0 +1,243 @@
+"""The live window: which voxels live in the Taichi field, and the host store for the rest.
+
+The window is the voxel box |w - center_vox| <= half_vox around the sensor, the very box the
+query kernel reads the field in. When it moves, kernels/window.py exports the live voxels it no
+longer holds (splitting the leaf blocks its face cuts) and the store's voxels it now covers come
+back, so a voxel is live exactly when the box holds it, and the field and the store never hold
+the same voxel.
+
+The window also keeps the live blocks under `max_live_blocks` (taichi 1.7.4's CPU allocator
+corrupts memory once the sparse pools need a second 1 GiB chunk): when the blocks around the
+sensor, live and stored, would leave less room under the cap than the most blocks one scan has
+added, it shrinks in x and y, so the farthest blocks go to the store first.
+"""
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import numpy as np
+import taichi as ti
+
+from kernels import query as kquery, window
+from kernels.layout import LEAF, TOP, MapFields
+from tisem.geometry import MapGeometry
+from tisem.snapshot import MapSnapshot
+from tisem.store import KEY_LIMIT, BlockStore
+
+log = logging.getLogger(__name__)
+
+
+def ivec(a) -> ti.Vector:
+    """An integer array (voxel or block indices) as a Taichi kernel vector argument."""
+    return ti.Vector([int(x) for x in a])
+
+
+@dataclass
+class WindowState:
+    """What the window remembers from one scan to the next."""
+
+    full_half_vox: np.ndarray               # the configured half-size
+    half_vox: np.ndarray                    # the half-size now (shrunk under the block cap)
+    center_vox: np.ndarray | None = None    # local voxel of the centre; None before any scan
+    headroom_blocks: int = 0                # the most blocks one scan has added so far
+    blocks_after_move: int | None = None    # live blocks right after the last move
+    shrunk: bool = False
+    top_range: np.ndarray | None = None     # top cells the box spanned, lo then hi
+
+
+@dataclass
+class WindowMove:
+    """What one move of the window did."""
+
+    evicted_voxels: int = 0
+    reloaded_voxels: int = 0
+
+
+@dataclass
+class VoxelArrays:
+    """Voxels as host arrays: keys relative to the map origin, times to the map's t0."""
+
+    keys: np.ndarray         # (M, 3) int32
+    counts: np.ndarray       # (M, C) float32
+    t_last_rel: np.ndarray   # (M,) float32 seconds since t0
+    length_m: np.ndarray     # (M,) float32 kernel length
+
+    def __len__(self) -> int:
+        return len(self.keys)
+
+
+class LiveWindow:
+    """The live window over a map's fields and its host store."""
+
+    def __init__(self, fields: MapFields, store: BlockStore, geometry: MapGeometry,
+                 max_live_blocks: int):
+        self._fields = fields
+        self.store = store
+        self._geometry = geometry
+        self._cap = int(max_live_blocks)
+        full = geometry.window_half_vox.copy()
+        self.state = WindowState(full_half_vox=full, half_vox=full.copy())
+
+    @property
+    def center_vox(self) -> np.ndarray | None:
+        return self.state.center_vox
+
+    @property
+    def half_vox(self) -> np.ndarray:
+        return self.state.half_vox
+
+    @property
+    def live_voxels(self) -> int:
+        return int(kquery.count_active(self._fields.t_last_rel))
+
+    @property
+    def live_blocks(self) -> int:
+        return int(kquery.count_active(self._fields.blk))
+
+    # ------------------------------------------------------------------ moving
+    def follow(self, center_vox: np.ndarray) -> WindowMove:
+        """Move the window to `center_vox`: voxels that leave it go to the store, stored voxels
+        it now covers come back, and the live blocks stay under the cap. Raises ValueError, with
+        the map untouched, when even the smallest window that holds a scan does not fit."""
+        st = self.state
+        center = np.asarray(center_vox, np.int64)
+        live = self.live_blocks
+        if st.blocks_after_move is not None:   # (what the last scan added)
+            st.headroom_blocks = max(st.headroom_blocks, live - st.blocks_after_move)
+        half = self._fit_cap(center, live)
+        move, freed = WindowMove(), 0
+        if st.center_vox is not None and (np.any(center != st.center_vox)
+                                          or np.any(half != st.half_vox)):
+            move.evicted_voxels, freed = self._evict(center, half, live)
+        st.center_vox = center
+        st.half_vox = half
+        back = self.store.take_box(center, half)
+        if back is not None:
+            keys, counts, t_last_rel, length_m = back
+            kquery.import_voxels(self._fields, np.ascontiguousarray(keys, np.int32), counts,
+                                 t_last_rel, length_m)
+            move.reloaded_voxels = len(keys)
+            st.blocks_after_move = self.live_blocks
+        else:
+            st.blocks_after_move = live - freed
+        return move
+
+    def _evict(self, center: np.ndarray, half: np.ndarray, live_blocks: int) -> tuple[int, int]:
+        """Move the live voxels outside the box |w - center| <= half to the store and free the
+        blocks and top cells they leave empty; returns (voxels moved, blocks freed)."""
+        m, st = self._fields, self.state
+        old_blk = ivec(np.floor_divide(st.center_vox, LEAF))
+        box = (ivec(center), ivec(half))
+        blocks = np.zeros((max(live_blocks, 1), 3), np.int32)
+        n = window.find_leaving_blocks(m, old_blk, *box, blocks)
+        if n == 0:
+            return 0, 0
+        if n > len(blocks):   # (live_blocks is exact; this is a guard)
+            blocks = np.zeros((n, 3), np.int32)
+            n = window.find_leaving_blocks(m, old_blk, *box, blocks)
+        leaving = _voxel_arrays(n * LEAF ** 3, m.C)
+        left = np.zeros(n, np.int32)
+        nv = window.export_leaving(m, ivec(st.center_vox), *box, blocks, n, leaving.keys,
+                                   leaving.counts, leaving.t_last_rel, leaving.length_m, left)
+        self.store.put(leaving.keys[:nv], leaving.counts[:nv], leaving.t_last_rel[:nv],
+                       leaving.length_m[:nv], box=(center, half))
+        freed = window.free_empty_blocks(m, blocks, n, left)
+        # a top cell can only fall wholly outside when the box's range of top cells changes
+        tops = np.r_[np.floor_divide(center - half, TOP), np.floor_divide(center + half, TOP)]
+        if st.top_range is None or np.any(tops != st.top_range):
+            window.free_far_top_cells(m, ivec(np.floor_divide(st.center_vox, TOP)), *box)
+            st.top_range = tops
+        return int(nv), int(freed)
+
+    def _fit_cap(self, center: np.ndarray, live: int) -> np.ndarray:
+        """Half-size of the window for a scan at `center` under the block cap.
+
+        The configured window, unless its blocks (live and stored) would leave less room under
+        the cap than the most blocks one scan has added so far: then the largest smaller x/y box
+        that does. Raises ValueError when even the smallest box that holds a scan and its
+        kernel reach does not fit.
+        """
+        st = self.state
+        full = st.full_half_vox
+        budget = self._cap - st.headroom_blocks
+        center_blk = np.floor_divide(center, LEAF)
+        full_blk = -(-full // LEAF)             # rings of blocks the full box can touch
+        stored = self.store.count_blocks_by_ring(center_blk, full_blk)
+        if live + int(stored.sum()) <= budget:
+            if st.shrunk:
+                log.info("live window back to its full size (%d live blocks)", live)
+                st.shrunk = False
+            return full
+        rings = np.zeros(int(full_blk[0]) + 1, np.int32)
+        if st.center_vox is not None:
+            window.blocks_by_ring(self._fields, ivec(np.floor_divide(st.center_vox, LEAF)),
+                                  ivec(center_blk), ivec(full_blk), rings)
+        within = np.cumsum(rings + stored)      # blocks within ring r: the box of half 4r holds
+        fits = np.flatnonzero(within <= budget)
+        r = int(fits.max()) if len(fits) else -1
+        if r >= full_blk[0]:
+            return full
+        reach = self._geometry.scan_reach_vox
+        r_min = -(-reach // LEAF)
+        if r < r_min:
+            res = self._geometry.resolution_m
+            raise ValueError(
+                f"the live map cannot stay under max_live_blocks={self._cap}: the smallest window "
+                f"that holds a scan (+-{reach * res:.0f} m) has "
+                f"{int(within[min(r_min, len(within) - 1)])} blocks here, and a scan adds up to "
+                f"{st.headroom_blocks}; raise max_live_blocks (~5.7 KB each) or lower max_range_m")
+        if not st.shrunk:
+            log.warning("the map around the sensor needs more than max_live_blocks=%d blocks: "
+                        "live window shrunk to +-%.0f m (farthest blocks go to the store)",
+                        self._cap, r * LEAF * self._geometry.resolution_m)
+            st.shrunk = True
+        half = full.copy()
+        half[:2] = r * LEAF                     # a box of half 4r voxels touches rings <= r
+        return half
+
+    # ------------------------------------------------------------------ reading
+    def lookup(self, local: np.ndarray, finite: np.ndarray, labels: np.ndarray,
+               probs: np.ndarray | None) -> None:
+        """Fill labels (N,) and, unless None, probs (N, C) of points at float32 local
+        coordinates `local` (N, 3): from the field where the window holds their voxel, else
+        from the store (`finite`: which points have a voxel at all)."""
+        m, st = self._fields, self.state
+        inv_res = 1.0 / self._geometry.resolution_m
+        inside = np.zeros(len(local), np.int32)
+        out_prob = probs if probs is not None else np.zeros((0, m.C), np.float32)
+        kquery.query(m, local, ivec(st.center_vox), ivec(st.half_vox), inv_res,
+                     int(probs is not None), labels, inside, out_prob)
+        rest = finite & (inside == 0)
+        if len(self.store) and rest.any():
+            # the voxel index exactly as the kernel computes it (float32 local * 1/res), so a
+            # point on a voxel face finds the same voxel live or stored
+            vox = np.floor(local[rest] * np.float32(inv_res)).astype(np.int64)
+            ok = np.all(np.abs(vox) <= KEY_LIMIT, axis=1)
+            counts = np.zeros((len(vox), m.C), np.float32)
+            counts[ok], _ = self.store.lookup(vox[ok])
+            snap = MapSnapshot(np.zeros((len(counts), 3), np.int64), counts,
+                               np.zeros(len(counts)), np.zeros(len(counts), np.float32),
+                               self._geometry.resolution_m)
+            labels[rest] = snap.labels()
+            if probs is not None:
+                probs[rest] = snap.probabilities()
+
+    def live_arrays(self) -> VoxelArrays:
+        """Every live voxel, in no particular order."""
+        n = self.live_voxels
+        out = _voxel_arrays(n, self._fields.C)
+        if n:
+            got = kquery.export_voxels(self._fields, ivec(self.state.center_vox), out.keys,
+                                       out.counts, out.t_last_rel, out.length_m)
+            assert got == n, f"export found {got} voxels, count found {n}"
+        return out
+
+    def stored_arrays(self) -> VoxelArrays:
+        """Every stored voxel, in no particular order."""
+        return VoxelArrays(*self.store.arrays())
+
+
+def _voxel_arrays(n: int, num_classes: int) -> VoxelArrays:
+    return VoxelArrays(np.zeros((n, 3), np.int32), np.zeros((n, num_classes), np.float32),
+                      np.zeros(n, np.float32), np.zeros(n, np.float32))
