@@ -22,7 +22,7 @@ from tqdm import tqdm
 from tisem.labels import raw_to_train, train_to_raw
 from tisem.scan import Scan
 from tisem.synth.lidar import Lidar, rotate
-from tisem.synth.noise import NoiseModel
+from tisem.synth.noise import NoiseModel, mover_raw_ids
 from tisem.synth.scene import ShapeSet, World, make_rng, make_route
 
 log = logging.getLogger(__name__)
@@ -113,10 +113,9 @@ class SyntheticSequence:
                               make_rng(self.seed, "lidar", index))
         gt_train, _ = raw_to_train(ret.label)
         world_points = rotate(ret.points.astype(np.float64), T[:3, :3]) + T[:3, 3]
-        pred_train = self.noise.apply(gt_train, ret.ring, ret.col,
-                                      (self.lidar.num_rings, self.lidar.points_per_ring),
-                                      ret.range_m, self.lidar.max_range_m, world_points,
-                                      ret.instance, T[:3, 3], make_rng(self.seed, "labels", index))
+        pred_train = self.noise.apply(gt_train, ret.range_m, world_points,
+                                      mover_raw_ids(ret.label, ret.instance), self.seed, index,
+                                      make_rng(self.seed, "labels", index))
         return SynthFrame(index=index, stamp_s=t, points=ret.points, remission=ret.remission,
                           gt_raw=ret.label, pred_raw=train_to_raw(pred_train), T_world_lidar=T,
                           instance=ret.instance)
@@ -134,7 +133,7 @@ def to_scan(frame: SynthFrame) -> Scan:
     gt, _ = raw_to_train(frame.gt_raw)
     return Scan(points_sensor=frame.points, T_world_sensor=frame.T_world_lidar,
                 stamp_s=frame.stamp_s, labels=pred, gt_labels=gt, index=frame.index,
-                name=f"synthetic/{frame.index:06d}", meta={"remission": frame.remission})
+                name=f"synthetic/{frame.index:06d}")
 
 
 def write_semantickitti(out_dir, num_scans: int, seed: int = 0, route: str = "street",
