@@ -105,6 +105,15 @@ def test_clusters_persistence_and_votes(tiny_stats):
     assert labelled == pytest.approx(9 / 14) and voted[0] == pytest.approx(9 / 14)
 
 
+def test_measurements_merge_by_adding_counts(tiny_stats, tmp_path):
+    again = calibration.measure(calibration.read_folder(write_tiny_folder(tmp_path / "08")))
+    merged = again.merge(tiny_stats)
+    assert merged.scans == 4 and merged.points == 2 * tiny_stats.points
+    np.testing.assert_array_equal(merged.persistence, 2 * tiny_stats.persistence)
+    np.testing.assert_array_equal(merged.raw_predictions[252], 2 * tiny_stats.raw_predictions[252])
+    assert merged.metrics()["accuracy"] == tiny_stats.metrics()["accuracy"]
+
+
 def test_coherence_pairs_match_brute_force(tiny_stats):
     """Every evaluated point is a centre (the samples exceed the scan): count the pairs."""
     xyz = np.array([[x, 0, 0] for x, *_ in TINY_POINTS[:-1]] + [[*MOVING_CAR_XY, 0]],
@@ -260,10 +269,11 @@ def test_error_rate_is_the_profiles_in_expectation():
     model = NoiseModel()
     mover = np.zeros(len(gt), dtype=np.int64)
     wrong = np.mean([model.apply(gt, range_m, world, mover, seed, 1,
-                                 np.random.default_rng(seed)) != gt for seed in range(24)],
+                                 np.random.default_rng(seed)) != gt for seed in range(40)],
                     axis=0)
     p = model.profile.error_probability(gt, range_m, class_boundary(world, gt) >= 0)
-    assert wrong.mean() == pytest.approx(p.mean(), abs=0.01)
+    # one seed's road is wrong at 4.5 +- 2.6 % (a few coarse patches): 40 seeds, ~3.5 sigma
+    assert wrong.mean() == pytest.approx(p.mean(), abs=0.012)
     road = gt == 9
     assert wrong[road].mean() == pytest.approx(p[road].mean(), abs=0.015)
 
@@ -312,7 +322,8 @@ def test_noise_calibration_benchmark_runs(tmp_path, capsys):
     data = write_tiny_folder(tmp_path / "real")
     md = tmp_path / "table.md"
     assert noise_calibration.main(["--data", str(data), "--synthetic-scans", "2",
-                                   "--points-per-ring", "64", "--markdown", str(md),
+                                   "--seeds", "0", "1", "--points-per-ring", "64",
+                                   "--markdown", str(md),
                                    "--write-counts", str(tmp_path / "counts.py"),
                                    "--json", str(tmp_path / "t.json")]) == 0
     text = md.read_text()

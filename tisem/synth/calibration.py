@@ -119,6 +119,16 @@ class ErrorStatistics:
     # sampled points: how many, right as labelled, right after the vote at each radius
     vote: np.ndarray = field(default_factory=lambda: _zeros(2 + len(VOTE_RADII_M)))
 
+    def merge(self, other: "ErrorStatistics") -> "ErrorStatistics":
+        """Add another measurement's counts (of other scans) into these. Returns self."""
+        for name, value in vars(other).items():
+            if name == "raw_predictions":
+                for raw, counts in value.items():
+                    self.raw_predictions[raw] = self.raw_predictions[raw] + counts
+            elif name != "max_range_m":
+                setattr(self, name, getattr(self, name) + value)
+        return self
+
     # ------------------------------------------------------------------ rates
     @property
     def points(self) -> int:

@@ -118,16 +118,15 @@ def _mix(x: np.ndarray) -> np.ndarray:
 
 def _lattice_normal(cells: np.ndarray, layer: np.ndarray, key: int) -> np.ndarray:
     """A standard normal per integer lattice cell (n, 3) and layer (n,), a pure function of
-    (cells, layer, key)."""
-    h = np.full(len(cells), np.uint64(key))
+    (cells, layer, key): the packed cell (distinct for distinct cells) hashed with the key."""
     with np.errstate(over="ignore"):
-        h = _mix(h + layer.astype(np.uint64))
-        for axis in range(3):
-            h = _mix(h + cells[:, axis].astype(np.int64).view(np.uint64))
+        h = _mix(_mix(_pack(cells, layer).view(np.uint64) + np.uint64(key)))
     return ndtri(((h >> np.uint64(11)).astype(np.float64) + 0.5) / 2.0 ** 53)
 
 
-_CORNERS = np.array([[(c >> a) & 1 for a in range(3)] for c in range(8)])   # (8, 3)
+# corner k of a lattice cell: offsets (k >> 2, k >> 1, k) & 1 along x, y, z — the order of
+# a (2, 2, 2) array flattened
+_CORNERS = np.array([[(k >> 2) & 1, (k >> 1) & 1, k & 1] for k in range(8)])
 
 
 def gaussian_fields(points: np.ndarray, spacing_m: float, keys,
@@ -142,12 +141,13 @@ def gaussian_fields(points: np.ndarray, spacing_m: float, keys,
     normals drawn once per lattice cell (and layer) the points touch."""
     x = np.asarray(points, dtype=np.float64) / spacing_m
     base = np.floor(x)
-    f = x - base
-    upper = f * f * (3.0 - 2.0 * f)
-    axis_weights = np.stack([1.0 - upper, upper], axis=-1)                      # (n, 3, 2)
-    w = (axis_weights[:, 0, _CORNERS[:, 0]] * axis_weights[:, 1, _CORNERS[:, 1]]
-         * axis_weights[:, 2, _CORNERS[:, 2]])                                  # (n, 8)
-    w /= np.sqrt((w * w).sum(axis=1, keepdims=True))
+    upper = x - base
+    upper = upper * upper * (3.0 - 2.0 * upper)
+    axis = np.stack([1.0 - upper, upper], axis=-1)                              # (n, 3, 2)
+    # the weights are a product over the axes, and so is sum w^2
+    axis /= np.sqrt((axis * axis).sum(axis=2, keepdims=True))
+    w = (axis[:, 0, :, None, None] * axis[:, 1, None, :, None]
+         * axis[:, 2, None, None, :]).reshape(len(x), 8)
     packed, which = np.unique(_pack(base.astype(np.int64), layer), return_inverse=True)
     cells, layers = _unpack(packed)
     corners = (cells[:, None, :] + _CORNERS).reshape(-1, 3)
@@ -155,7 +155,7 @@ def gaussian_fields(points: np.ndarray, spacing_m: float, keys,
     out = np.empty((len(keys), len(x)))
     for k, key in enumerate(keys):
         values = _lattice_normal(corners, corner_layers, key).reshape(len(cells), 8)
-        out[k] = (w * values[which.ravel()]).sum(axis=1)
+        out[k] = np.einsum("ij,ij->i", w, values[which.ravel()])
     return out
 
 
@@ -220,8 +220,11 @@ class NoiseModel:
                   + np.sqrt(self.white_share) * rng.standard_normal(len(gt_train)))
         wrong = (latent < ndtri(p_wrong)) & (gt_train > 0)
         pred = gt_train.copy()
-        u = ndtr(self._latent(points_world, self.label_patch_m, _key(seed, 2), scan_index))
-        pred[wrong] = self.profile.wrong_label(rows[wrong], u[wrong])
+        # the label field, at the wrong points only (a field's value does not depend on
+        # which other points it is evaluated at)
+        u = ndtr(self._latent(points_world[wrong], self.label_patch_m, _key(seed, 2),
+                              scan_index))
+        pred[wrong] = self.profile.wrong_label(rows[wrong], u)
         bleed = wrong & at_boundary & (mover_raw == 0) & (rng.random(len(pred)) < self.bleed_prob)
         pred[bleed] = neighbour[bleed]
         return pred
