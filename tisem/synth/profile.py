@@ -117,11 +117,12 @@ def fit_profile(confusion: np.ndarray, cell_points: np.ndarray, cell_errors: np.
         off[static] = 0.0
         off[0] = 0.0
         mover_q.append((off + MOVER_PRIOR_POINTS * q[static]) / (off.sum() + MOVER_PRIOR_POINTS))
-    rows = np.vstack([q, np.array(mover_q)])
+    cdf = np.cumsum(np.vstack([q, np.array(mover_q)]), axis=1)
+    cdf[:, -1] = 1.0                      # no draw u < 1 falls past the last class
     return NetworkProfile(range_centres_m=(edges[:-1] + edges[1:]) / 2,
                           error_logit=np.vstack([table, np.array(mover_logit)]),
                           boundary_logit=np.append(boundary, np.zeros(len(MOVING_RAW_IDS))),
-                          wrong_label_cdf=np.cumsum(rows, axis=1))
+                          wrong_label_cdf=cdf)
 
 
 def fit_error_logits(cell_points: np.ndarray, cell_errors: np.ndarray, sweeps: int = 1000,
