@@ -225,7 +225,9 @@ def test_embedded_default_beats_the_network_input(tmp_path):
     assert rc == 0, rec.text()
     m = json.loads((out / "metrics.json").read_text())
     assert m["mode"] == "st" and m["scans"] == 6 and m["skipped"] == []
-    assert m["final"]["accuracy"] > m["input"]["accuracy"] + 0.02, (m["final"], m["input"])
+    # the synthetic labels err like the real network's (persistent, coherent patches), so a
+    # few scans gain about what the five real frames do (+1.3 pp), not more
+    assert m["final"]["accuracy"] > m["input"]["accuracy"] + 0.01, (m["final"], m["input"])
     assert m["final"]["miou"] > m["input"]["miou"]
     assert m["online"]["accuracy"] > m["input"]["accuracy"]
     seq = out / "synthetic"

@@ -23,7 +23,7 @@ from tqdm import tqdm
 from tisem.labels import raw_to_train, train_to_raw
 from tisem.scan import Scan
 from tisem.synth.lidar import Lidar, rotate
-from tisem.synth.noise import NoiseModel
+from tisem.synth.noise import NoiseModel, mover_raw_ids
 from tisem.synth.scene import World, make_rng, make_route
 from tisem.synth.shapes import ShapeSet
 
@@ -123,10 +123,9 @@ class SyntheticSequence:
                               make_rng(self.seed, "lidar", index))
         gt_train, _ = raw_to_train(ret.label)
         world_points = rotate(ret.points.astype(np.float64), T[:3, :3]) + T[:3, 3]
-        pred_train = self.noise.apply(gt_train, ret.ring, ret.col,
-                                      (self.lidar.num_rings, self.lidar.points_per_ring),
-                                      ret.range_m, self.lidar.max_range_m, world_points,
-                                      ret.instance, T[:3, 3], make_rng(self.seed, "labels", index))
+        pred_train = self.noise.apply(gt_train, ret.range_m, world_points,
+                                      mover_raw_ids(ret.label, ret.instance), self.seed, index,
+                                      make_rng(self.seed, "labels", index))
         return SynthFrame(index=index, stamp_s=t, points=ret.points, remission=ret.remission,
                           gt_raw=ret.label, pred_raw=train_to_raw(pred_train), T_world_lidar=T,
                           instance=ret.instance)
