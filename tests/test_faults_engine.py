@@ -44,15 +44,18 @@ def ground_scan(x, stamp, index, rng, n=3000):
                            name=f"road {index}")
 
 
-def assert_same_map(a: MapSnapshot, b: MapSnapshot):
+def assert_same_map(a: MapSnapshot, b: MapSnapshot, rtol: float = 0.0):
+    """Same voxels and values; `rtol` > 0 where the points arrive in another order, which
+    changes the order of the float32 atomic adds (last-bit differences, nothing more)."""
     np.testing.assert_array_equal(a.keys, b.keys)
-    np.testing.assert_array_equal(a.counts, b.counts)
+    np.testing.assert_allclose(a.counts, b.counts, rtol=rtol, atol=0)
     np.testing.assert_array_equal(a.t_last, b.t_last)
-    np.testing.assert_array_equal(a.ell_m, b.ell_m)
+    np.testing.assert_allclose(a.ell_m, b.ell_m, rtol=rtol, atol=0)
 
 
 # --------------------------------------------------------------------------- 1. dense scans
 
+@pytest.mark.slow
 def test_a_dense_scan_is_cut_to_the_block_cap_and_later_scans_still_map(taichi_cpu, caplog):
     rng = np.random.default_rng(0)
     mapper = Mapper(small_config(max_live_blocks=CAP))
@@ -90,7 +93,7 @@ def test_a_dense_scan_is_cut_to_the_block_cap_and_later_scans_still_map(taichi_c
     fresh_runtime()
     again = Mapper(small_config(max_live_blocks=CAP))
     again.integrate(Scan(pts[kept], dense.T_world_sensor, 10.0, labels=dense.labels[kept]))
-    assert_same_map(again.snapshot(), cut)
+    assert_same_map(again.snapshot(), cut, rtol=1e-6)
 
 
 def test_a_dense_scan_with_no_room_left_is_refused_and_the_map_kept(taichi_cpu):
@@ -420,6 +423,7 @@ def test_a_full_disk_under_the_store_raises_one_error_and_keeps_the_store(tmp_pa
         np.testing.assert_array_equal(a, b)
 
 
+@pytest.mark.slow
 def test_a_full_disk_while_the_window_evicts_leaves_the_map_whole(taichi_cpu, tmp_path):
     """The window's move fails when the store cannot take what leaves it: one SpillError, the
     field and the store exactly as before the move, and mapping goes on once there is room."""

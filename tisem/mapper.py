@@ -9,12 +9,10 @@ indices in release mode); the kernels in `kernels/` do the per-point and per-vox
 step -> module table: kernels/__init__.py). Sizes come from `tisem.geometry.MapGeometry`, the
 live window and its store from `tisem.live_window.LiveWindow`.
 
-Bad input costs the scan that carries it, never the map: a scan is refused with one ValueError
-naming it (its pose, stamp, ids or probabilities: `tisem.scan`; a stamp that jumps:
-`tisem.map_clock`; too far from the map origin), and a scan too dense for the block cap is cut
-to its nearest blocks (`tisem.block_cap`), all before the map changes; a first scan refused
-leaves no origin behind. A full disk under the host store raises `tisem.spill.SpillError` with
-the map as it was.
+Bad input costs the scan that carries it, never the map: a bad pose, stamp, id or probability
+(`tisem.scan`, `tisem.map_clock`) is refused with a ScanError naming the scan, and a scan too
+dense for the block cap is cut (`tisem.block_cap`), before the map changes; a full disk under
+the store raises `tisem.spill.SpillError` with the map as it was.
 """
 from __future__ import annotations
 
@@ -34,6 +32,7 @@ from kernels.params import (ADAPTIVE_LENGTH, EXPONENTIAL, FIXED_LENGTH, FORGET, 
 from tisem import backend
 from tisem.block_cap import cut_to_nearest, new_blocks_beyond
 from tisem.config import MapperConfig
+from tisem.errors import ScanError
 from tisem.geometry import MapGeometry, block_aligned_origin
 from tisem.live_window import VoxelArrays, LiveWindow
 from tisem.map_clock import MapClock
@@ -140,13 +139,14 @@ class Mapper:
         """Fuse one scan into the map (steps 1-8 of the method); `trace` records each step.
 
         A scan that cannot be mapped (a bad pose or stamp, evidence out of range, too far from
-        the map origin, too dense for the block cap with nothing left) raises ValueError
-        naming it, and a full disk under the store SpillError, before the map changes."""
+        the map origin, too dense for the block cap with nothing left) raises a ScanError (a
+        ValueError) naming it, and a full disk under the store SpillError, before the map
+        changes."""
         self._check_alive()
         m, p, settings = self._fields, self._params, self._settings
         report = IntegrationReport(points=scan.num_points)
         timer = self._timer()
-        with self._one_scan():
+        with self._one_scan(scan):
             # 1. preprocess: check everything, drop non-finite points, the pose and the time
             # in map coordinates
             checked, center_vox, map_time = self._preprocess(scan, report)
@@ -182,17 +182,22 @@ class Mapper:
         return report
 
     @contextlib.contextmanager
-    def _one_scan(self):
+    def _one_scan(self, scan: Scan):
         """Whatever stops a scan (a refusal, an interrupt), its table is emptied again and a
-        first scan leaves no origin behind."""
+        first scan leaves no origin behind; a refusal leaves as a ScanError naming the scan
+        (the run reports it as a skipped scan)."""
         first = self.origin_vox is None
         try:
             yield
-        except BaseException:
+        except BaseException as e:
             table.clear_table(self._fields)
             if first:
                 self.origin_vox = None
-            raise
+            if not isinstance(e, ValueError) or isinstance(e, ScanError):
+                raise
+            where = scan_label(scan.index, scan.name)
+            message = str(e) if str(e).startswith(where + ":") else f"{where}: {e}"
+            raise ScanError(message, scan.index, scan.name) from e
 
     def _origin_of(self, scan: Scan) -> np.ndarray:
         """The map origin a first scan gives: block-aligned at the sensor's position, so that
