@@ -12,7 +12,8 @@ block SNode yield them; they are unwrapped around a centre (in blocks) like voxe
 """
 import taichi as ti
 
-from kernels.layout import LEAF, TOP
+from kernels.layout import LEAF, TOP, rows_to
+from kernels.params import ScanParams
 from kernels.query import copy_voxel_out
 
 
@@ -115,3 +116,24 @@ def blocks_by_ring(m: ti.template(), old_center_blk: ti.types.vector(3, ti.i32),
         r = ti.max(off[0], off[1])
         if r <= half_blk[0] and off[2] <= half_blk[2]:
             ti.atomic_add(rings[r], 1)
+
+
+@ti.kernel
+def flag_new_blocks(m: ti.template(), s: ScanParams,
+                    blocks: ti.types.ndarray(dtype=ti.i32, ndim=1),   # (B,) occupied cells
+                    new: ti.types.ndarray(dtype=ti.i32, ndim=1)       # (B,) out: 1 = new block
+                    ) -> ti.i32:
+    """Which occupied cells of the scan's table would make a map leaf block live: 1 for a cell
+    with training rows (training.sort_blocks counted them) whose map block is not live yet,
+    else 0. Returns how many; reads the tree, activates nothing."""
+    base = ti.floor(s.center_vox / LEAF, ti.i32) - ti.Vector(m.table_half)   # cell 0's block
+    n = 0
+    for b in range(blocks.shape[0]):
+        i = m.cell_of_id(blocks[b])
+        flag = 0
+        if rows_to(m.b_layers[i], LEAF - 1) > 0:
+            if not ti.is_active(m.blk, m.wrap_blk(base + i)):
+                flag = 1
+        new[b] = flag
+        n += flag
+    return n

@@ -9,7 +9,12 @@ the same voxel.
 The window also keeps the live blocks under `max_live_blocks` (taichi 1.7.4's CPU allocator
 corrupts memory once the sparse pools need a second 1 GiB chunk): when the blocks around the
 sensor, live and stored, would leave less room under the cap than the most blocks one scan has
-added, it shrinks in x and y, so the farthest blocks go to the store first.
+added, it shrinks in x and y, so the farthest blocks go to the store first, down to the box
+that holds a scan; `free_blocks` is the room a scan then has (tisem/block_cap.py cuts a scan
+that needs more).
+
+A move either completes or, when the store cannot take what leaves (a full disk: the store's
+OSError, `tisem.spill.SpillError`), raises with the field and the store as they were.
 """
 from __future__ import annotations
 
@@ -22,10 +27,15 @@ import taichi as ti
 from kernels import query as kquery, window
 from kernels.layout import LEAF, TOP, MapFields
 from tisem.geometry import MapGeometry
+from tisem.scan import finite_rows
 from tisem.snapshot import MapSnapshot
 from tisem.store import KEY_LIMIT, BlockStore
 
 log = logging.getLogger(__name__)
+
+# query coordinates are clamped to this, so that their voxel indices fit an int32
+QUERY_CLAMP_M = 1.0e6
+QUERY_CLAMP_VOX = 2 ** 30
 
 
 def ivec(a) -> ti.Vector:
@@ -47,6 +57,17 @@ class WindowState:
 
 
 @dataclass
+class Evicted:
+    """What one eviction moved to the store: the voxels, how many store segments hold them
+    (the store's last ones), the blocks it freed, and the box's range of top cells after it."""
+
+    voxels: VoxelArrays
+    segments: int
+    freed_blocks: int
+    top_range: np.ndarray | None
+
+
+@dataclass
 class WindowMove:
     """What one move of the window did."""
 
@@ -65,6 +86,9 @@ class VoxelArrays:
 
     def __len__(self) -> int:
         return len(self.keys)
+
+    def arrays(self) -> tuple:
+        return self.keys, self.counts, self.t_last_rel, self.length_m
 
 
 class LiveWindow:
@@ -88,6 +112,18 @@ class LiveWindow:
         return self.state.half_vox
 
     @property
+    def cap(self) -> int:
+        """max_live_blocks: the live leaf blocks never exceed it."""
+        return self._cap
+
+    @property
+    def free_blocks(self) -> int:
+        """How many leaf blocks a scan may still make live here (the cap minus the blocks live
+        after the last move)."""
+        live = self.state.blocks_after_move
+        return self._cap - (live if live is not None else self.live_blocks)
+
+    @property
     def live_voxels(self) -> int:
         return int(kquery.count_active(self._fields.t_last_rel))
 
@@ -106,13 +142,21 @@ class LiveWindow:
         if st.blocks_after_move is not None:   # (what the last scan added)
             st.headroom_blocks = max(st.headroom_blocks, live - st.blocks_after_move)
         half = self._fit_cap(center, live)
-        move, freed = WindowMove(), 0
+        move, left = WindowMove(), None
         if st.center_vox is not None and (np.any(center != st.center_vox)
                                           or np.any(half != st.half_vox)):
-            move.evicted_voxels, freed = self._evict(center, half, live)
+            left = self._evict(center, half, live)
+            move.evicted_voxels = len(left.voxels)
+        try:
+            back = self.store.take_box(center, half)
+        except BaseException:
+            if left is not None:      # (a full disk): the window stays where it was
+                self._undo_evict(left)
+            raise
         st.center_vox = center
         st.half_vox = half
-        back = self.store.take_box(center, half)
+        if left is not None:
+            st.top_range = left.top_range
         if back is not None:
             keys, counts, t_last_rel, length_m = back
             kquery.import_voxels(self._fields, np.ascontiguousarray(keys, np.int32), counts,
@@ -120,19 +164,21 @@ class LiveWindow:
             move.reloaded_voxels = len(keys)
             st.blocks_after_move = self.live_blocks
         else:
-            st.blocks_after_move = live - freed
+            st.blocks_after_move = live - (left.freed_blocks if left is not None else 0)
         return move
 
-    def _evict(self, center: np.ndarray, half: np.ndarray, live_blocks: int) -> tuple[int, int]:
+    def _evict(self, center: np.ndarray, half: np.ndarray, live_blocks: int) -> Evicted:
         """Move the live voxels outside the box |w - center| <= half to the store and free the
-        blocks and top cells they leave empty; returns (voxels moved, blocks freed)."""
+        blocks and top cells they leave empty. A store that cannot take them (a full disk)
+        raises with the field as it was."""
         m, st = self._fields, self.state
         old_blk = ivec(np.floor_divide(st.center_vox, LEAF))
         box = (ivec(center), ivec(half))
+        done = Evicted(_voxel_arrays(0, m.C), 0, 0, st.top_range)
         blocks = np.zeros((max(live_blocks, 1), 3), np.int32)
         n = window.find_leaving_blocks(m, old_blk, *box, blocks)
         if n == 0:
-            return 0, 0
+            return done
         if n > len(blocks):   # (live_blocks is exact; this is a guard)
             blocks = np.zeros((n, 3), np.int32)
             n = window.find_leaving_blocks(m, old_blk, *box, blocks)
@@ -140,23 +186,39 @@ class LiveWindow:
         left = np.zeros(n, np.int32)
         nv = window.export_leaving(m, ivec(st.center_vox), *box, blocks, n, leaving.keys,
                                    leaving.counts, leaving.t_last_rel, leaving.length_m, left)
-        self.store.put(leaving.keys[:nv], leaving.counts[:nv], leaving.t_last_rel[:nv],
-                       leaving.length_m[:nv], box=(center, half))
-        freed = window.free_empty_blocks(m, blocks, n, left)
+        done.voxels = leaving = VoxelArrays(*(a[:nv] for a in (
+            leaving.keys, leaving.counts, leaving.t_last_rel, leaving.length_m)))
+        try:
+            done.segments = self.store.put(*leaving.arrays(), box=(center, half))
+        except BaseException:
+            self._import(leaving)      # back where they were: the blocks are still there
+            raise
+        done.freed_blocks = int(window.free_empty_blocks(m, blocks, n, left))
         # a top cell can only fall wholly outside when the box's range of top cells changes
         tops = np.r_[np.floor_divide(center - half, TOP), np.floor_divide(center + half, TOP)]
         if st.top_range is None or np.any(tops != st.top_range):
             window.free_far_top_cells(m, ivec(np.floor_divide(st.center_vox, TOP)), *box)
-            st.top_range = tops
-        return int(nv), int(freed)
+            done.top_range = tops
+        return done
+
+    def _undo_evict(self, done: Evicted) -> None:
+        """Put evicted voxels back in the field and drop them from the store again (no disk
+        access: the store forgets the segments it just added)."""
+        self.store.forget_last(done.segments)
+        self._import(done.voxels)
+
+    def _import(self, v: VoxelArrays) -> None:
+        if len(v):
+            kquery.import_voxels(self._fields, np.ascontiguousarray(v.keys, np.int32), v.counts,
+                                 v.t_last_rel, v.length_m)
 
     def _fit_cap(self, center: np.ndarray, live: int) -> np.ndarray:
         """Half-size of the window for a scan at `center` under the block cap.
 
         The configured window, unless its blocks (live and stored) would leave less room under
         the cap than the most blocks one scan has added so far: then the largest smaller x/y box
-        that does. Raises ValueError when even the smallest box that holds a scan and its
-        kernel reach does not fit.
+        that does, but never one smaller than the box that holds a scan and its kernel reach.
+        Raises ValueError when even that box holds more blocks than the cap.
         """
         st = self.state
         full = st.full_half_vox
@@ -181,12 +243,17 @@ class LiveWindow:
         reach = self._geometry.scan_reach_vox
         r_min = -(-reach // LEAF)
         if r < r_min:
-            res = self._geometry.resolution_m
-            raise ValueError(
-                f"the live map cannot stay under max_live_blocks={self._cap}: the smallest window "
-                f"that holds a scan (+-{reach * res:.0f} m) has "
-                f"{int(within[min(r_min, len(within) - 1)])} blocks here, and a scan adds up to "
-                f"{st.headroom_blocks}; raise max_live_blocks (~5.7 KB each) or lower max_range_m")
+            # the smallest window that holds a scan leaves less room than scans have taken:
+            # it is used all the same, as long as it fits the cap (the mapper then cuts scans
+            # to the room that is left, tisem/block_cap.py)
+            here = int(within[min(r_min, len(within) - 1)])
+            if here > self._cap:
+                res = self._geometry.resolution_m
+                raise ValueError(
+                    f"the live map cannot stay under max_live_blocks={self._cap}: the smallest "
+                    f"window that holds a scan (+-{reach * res:.0f} m) has {here} blocks here; "
+                    f"raise max_live_blocks (~5.7 KB each) or lower max_range_m")
+            r = r_min
         if not st.shrunk:
             log.warning("the map around the sensor needs more than max_live_blocks=%d blocks: "
                         "live window shrunk to +-%.0f m (farthest blocks go to the store)",
@@ -197,6 +264,20 @@ class LiveWindow:
         return half
 
     # ------------------------------------------------------------------ reading
+    def lookup_world(self, points_world: np.ndarray, origin_vox: np.ndarray, labels: np.ndarray,
+                     probs: np.ndarray | None) -> None:
+        """`lookup` of float64 world points in a map whose local voxel 0 is `origin_vox`: far
+        or non-finite points are clamped so that their voxel index fits an int32 in the kernel
+        (they land outside the window either way)."""
+        res = self._geometry.resolution_m
+        finite = finite_rows(points_world)
+        local = points_world - origin_vox * res
+        if not finite.all():
+            local[~finite] = 0.0
+        clamp = min(QUERY_CLAMP_M, QUERY_CLAMP_VOX * res)
+        self.lookup(np.clip(local, -clamp, clamp, out=local).astype(np.float32), finite, labels,
+                    probs)
+
     def lookup(self, local: np.ndarray, finite: np.ndarray, labels: np.ndarray,
                probs: np.ndarray | None) -> None:
         """Fill labels (N,) and, unless None, probs (N, C) of points at float32 local

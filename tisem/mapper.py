@@ -8,12 +8,18 @@ Python checks every input and every index range before a kernel sees it (Taichi 
 indices in release mode); the kernels in `kernels/` do the per-point and per-voxel work (their
 step -> module table: kernels/__init__.py). Sizes come from `tisem.geometry.MapGeometry`, the
 live window and its store from `tisem.live_window.LiveWindow`.
+
+Bad input costs the scan that carries it, never the map: a bad pose, stamp, id or probability
+(`tisem.scan`, `tisem.map_clock`) is refused with a ScanError naming the scan, and a scan too
+dense for the block cap is cut (`tisem.block_cap`), before the map changes; a full disk under
+the store raises `tisem.spill.SpillError` with the map as it was.
 """
 from __future__ import annotations
 
+import contextlib
+import logging
 import time
-from dataclasses import dataclass, field
-from typing import NamedTuple
+from dataclasses import dataclass
 
 import numpy as np
 import taichi as ti
@@ -24,16 +30,21 @@ from kernels.layout import MapFields
 from kernels.params import (ADAPTIVE_LENGTH, EXPONENTIAL, FIXED_LENGTH, FORGET, NO_KERNEL,
                             KernelSettings, ScanParams)
 from tisem import backend
+from tisem.block_cap import cut_to_nearest, new_blocks_beyond
 from tisem.config import MapperConfig
+from tisem.errors import ScanError
 from tisem.geometry import MapGeometry, block_aligned_origin
 from tisem.live_window import VoxelArrays, LiveWindow
-from tisem.preprocess import CheckedScan, check_scan, scan_label
-from tisem.scan import Scan, finite_rows
+from tisem.map_clock import MapClock
+from tisem.mapper_state import check_snapshot, parse_state, relative_arrays
+from tisem.preprocess import CheckedScan, check_scan
+from tisem.scan import Scan, checked_stamp, scan_label
+from tisem.scan_buffers import ScanBuffers, ScanPoints, TrainingRows
 from tisem.snapshot import MapSnapshot
 from tisem.store import KEY_LIMIT, BlockStore
 from tisem.trace import IntegrationTrace
 
-QUERY_CLAMP_M = 1.0e6   # query coordinates are clamped to this (int32 voxel indices at any res)
+log = logging.getLogger(__name__)
 
 # the timed stages of `integrate` (profile=True), one per step of its recipe: the checks and the
 # pose; the live window; locating the points and sorting them by leaf block; sorting them by
@@ -52,53 +63,10 @@ class IntegrationReport:
     dropped_range: int = 0
     dropped_window: int = 0
     dropped_far: int = 0            # of dropped_range: implausibly far (> 1 km), corrupt data
+    dropped_dense: int = 0          # a scan too dense for the block cap: points cut away
     training_voxels: int = 0
     evicted_voxels: int = 0
     reloaded_voxels: int = 0
-
-
-class ScanPoints(NamedTuple):
-    """Per point: table cell, voxel code (kernels/rasterize.py), the points in block order and
-    in voxel order; and the occupied cells (at most one per point)."""
-
-    cell: np.ndarray
-    code: np.ndarray
-    by_block: np.ndarray
-    by_voxel: np.ndarray
-    blocks: np.ndarray
-
-
-class TrainingRows(NamedTuple):
-    """The scan's training points (kernels/training.py), one row per kept voxel."""
-
-    xyz: np.ndarray       # (K, 3) centroid, local metres
-    hist: np.ndarray      # (K, C) class evidence
-    classes: np.ndarray   # (K,) bit c: evidence for class c
-    single: np.ndarray    # (K,) the one class, or 0
-    voxel: np.ndarray     # (K,) the voxel's index in its leaf block
-
-
-@dataclass
-class _Buffers:
-    """Host buffers reused across scans (grown on demand) so the hot path allocates nothing."""
-
-    per_point: np.ndarray = field(default_factory=lambda: np.zeros((5, 0), np.int32))
-    rows: TrainingRows | None = None
-
-    def points(self, n: int) -> ScanPoints:
-        if self.per_point.shape[1] < n:
-            cap = max(n, int(self.per_point.shape[1] * 1.5))
-            self.per_point = np.zeros((5, cap), np.int32)
-        # (views of exactly n, each contiguous: the kernels loop over their length)
-        return ScanPoints(*(self.per_point[k, :n] for k in range(5)))
-
-    def training(self, n: int, num_classes: int) -> TrainingRows:
-        if self.rows is None or len(self.rows.xyz) < n:
-            cap = max(n, int(len(self.rows.xyz) * 1.5) if self.rows is not None else n)
-            self.rows = TrainingRows(np.zeros((cap, 3), np.float32),
-                                     np.zeros((cap, num_classes), np.float32),
-                                     *(np.zeros(cap, np.int32) for _ in range(3)))
-        return self.rows
 
 
 def kernel_settings(cfg: MapperConfig, per_voxel: bool) -> KernelSettings:
@@ -139,12 +107,12 @@ class Mapper:
         self.window = LiveWindow(self._fields, self.store, self.geometry, cfg.max_live_blocks)
         self._params = self._scan_params()
         self.origin_vox: np.ndarray | None = None   # global voxel index of local voxel 0
-        self.t0: float | None = None               # stamp of the first scan: map time 0
+        self.clock = MapClock(cfg.decay_tau_s)     # map time: seconds since the first scan
         self.scans = 0
         self.last_stamp_s: float | None = None
         self.profile = profile
         self.stage_seconds = {s: 0.0 for s in STAGES}
-        self._buf = _Buffers()
+        self._buf = ScanBuffers()
 
     def _scan_params(self) -> ArgPack:
         """The map's ScanParams; `_preprocess` refreshes the pose, time and stamp per scan."""
@@ -161,66 +129,141 @@ class Mapper:
             length_max_m=cfg.ell_max_m, prior=cfg.prior, sigma0=cfg.sigma0,
             inv_tau=0.0 if tau in (0.0, float("inf")) else 1.0 / tau)
 
+    @property
+    def t0(self) -> float | None:
+        """Stamp of the first scan: map time 0 (None before it)."""
+        return self.clock.state.t0
+
     # ------------------------------------------------------------------ integrate
     def integrate(self, scan: Scan, trace: IntegrationTrace | None = None) -> IntegrationReport:
-        """Fuse one scan into the map (steps 1-8 of the method); `trace` records each step."""
+        """Fuse one scan into the map (steps 1-8 of the method); `trace` records each step.
+
+        A scan that cannot be mapped (a bad pose or stamp, evidence out of range, too far from
+        the map origin, too dense for the block cap with nothing left) raises a ScanError (a
+        ValueError) naming it, and a full disk under the store SpillError, before the map
+        changes."""
         self._check_alive()
         m, p, settings = self._fields, self._params, self._settings
         report = IntegrationReport(points=scan.num_points)
-        clock = self._clock()
-        # 1. preprocess: check the evidence, drop non-finite points, the pose in map coordinates
-        checked, center_vox = self._preprocess(scan, report)
-        clock("preprocess")
-        # the live window follows the sensor: what it leaves goes to the store, what it reaches
-        # comes back from there
-        moved = self.window.follow(center_vox)
-        report.evicted_voxels, report.reloaded_voxels = moved.evicted_voxels, moved.reloaded_voxels
-        clock("window")
-        # 2. downsample / voxelize: range and window checks, the points sorted by leaf block
-        points = self._voxelize(checked, report, trace)
-        clock("voxelize")
-        # 3. redundant-voxel filter, then per kept voxel a training point: its centroid and
-        # class histogram, sorted by leaf block
-        rows = self._training_points(checked, points, report, trace)
-        clock("filter")
-        # 4-5. semantic uncertainty and kernel length of the voxels the training points hit
-        entropy.assign_lengths(m, p, points.blocks, rows.voxel, rows.hist, settings.kernel_length)
-        clock("length")
-        # 6-8. sparse kernel, Bayesian kernel update and temporal fusion of every live voxel
-        # within reach of a training point
-        self._update(points, rows, report.training_voxels)
-        clock("update")
-        table.clear_table(m)              # the scan's table, empty again for the next scan
-        clock("clear")
+        timer = self._timer()
+        with self._one_scan(scan):
+            # 1. preprocess: check everything, drop non-finite points, the pose and the time
+            # in map coordinates
+            checked, center_vox, map_time = self._preprocess(scan, report)
+            timer("preprocess")
+            # the live window follows the sensor: what it leaves goes to the store, what it
+            # reaches comes back from there
+            moved = self.window.follow(center_vox)
+            report.evicted_voxels = moved.evicted_voxels
+            report.reloaded_voxels = moved.reloaded_voxels
+            timer("window")
+            # 2. downsample / voxelize: range and window checks, the points sorted by leaf block
+            points = self._voxelize(checked, report, trace)
+            timer("voxelize")
+            # 3. redundant-voxel filter, then per kept voxel a training point: its centroid and
+            # class histogram, sorted by leaf block; a scan that would make more blocks live
+            # than the cap has room for is cut to its nearest blocks (nothing is live yet)
+            rows = self._training_points(checked, points, report, trace)
+            points, rows = self._hold_block_cap(scan, checked, points, rows, report, trace)
+            timer("filter")
+            # 4-5. semantic uncertainty and kernel length of the voxels the training points hit
+            entropy.assign_lengths(m, p, points.blocks, rows.voxel, rows.hist,
+                                   settings.kernel_length)
+            timer("length")
+            # 6-8. sparse kernel, Bayesian kernel update and temporal fusion of every live
+            # voxel within reach of a training point
+            self._update(points, rows, report.training_voxels)
+            timer("update")
+            table.clear_table(m)              # the scan's table, empty again for the next scan
+            timer("clear")
+        self.clock.advance(scan.stamp_s, map_time)
         self.scans += 1
         self.last_stamp_s = float(scan.stamp_s)
         return report
 
-    def _preprocess(self, scan: Scan, report: IntegrationReport) -> tuple[CheckedScan, np.ndarray]:
-        """Check the scan, put its pose in map coordinates (the kernels do the per-point work);
-        returns the checked scan and the sensor's voxel."""
+    @contextlib.contextmanager
+    def _one_scan(self, scan: Scan):
+        """Whatever stops a scan (a refusal, an interrupt), its table is emptied again and a
+        first scan leaves no origin behind; a refusal leaves as a ScanError naming the scan
+        (the run reports it as a skipped scan)."""
+        first = self.origin_vox is None
+        try:
+            yield
+        except BaseException as e:
+            table.clear_table(self._fields)
+            if first:
+                self.origin_vox = None
+            if not isinstance(e, ValueError) or isinstance(e, ScanError):
+                raise
+            where = scan_label(scan.index, scan.name)
+            message = str(e) if str(e).startswith(where + ":") else f"{where}: {e}"
+            raise ScanError(message, scan.index, scan.name) from e
+
+    def _origin_of(self, scan: Scan) -> np.ndarray:
+        """The map origin a first scan gives: block-aligned at the sensor's position, so that
+        local coordinates stay small (float32 keeps mm precision within ~10 km of it)."""
+        return block_aligned_origin(np.floor(scan.T_world_sensor[:3, 3]
+                                             / self.geometry.resolution_m))
+
+    def _preprocess(self, scan: Scan,
+                    report: IntegrationReport) -> tuple[CheckedScan, np.ndarray, float]:
+        """Check the scan (its pose, stamp and evidence) and put its pose and time in map
+        coordinates (the kernels do the per-point work); returns the checked
+        scan, the sensor's voxel and the scan's map time. The first scan fixes the map's origin
+        and clock only if it is mapped, so a bad first scan costs that scan alone."""
         checked = check_scan(scan, self.C)
+        where = scan_label(scan.index, scan.name)
+        stamp = checked_stamp(scan.stamp_s, where)
         report.dropped_nonfinite = checked.dropped_nonfinite
         res = self.geometry.resolution_m
         T = scan.T_world_sensor
-        if self.origin_vox is None:
-            # the origin is block-aligned at the first sensor position, so local coordinates stay
-            # small (float32 keeps mm precision within ~10 km of it)
-            self.origin_vox = block_aligned_origin(np.floor(T[:3, 3] / res))
-            self.t0 = float(scan.stamp_s)
-        translation = T[:3, 3] - self.origin_vox * res
+        origin = self.origin_vox if self.origin_vox is not None else self._origin_of(scan)
+        translation = T[:3, 3] - origin * res
         if np.any(np.abs(translation) / res + self.window.half_vox > KEY_LIMIT):
-            raise ValueError(f"{scan_label(scan)}: the sensor is "
+            raise ValueError(f"{where}: the sensor is "
                              f"{np.abs(translation).max() / 1000:.0f} km from the map origin; "
                              f"tisem maps within {KEY_LIMIT * res / 1000:.0f} km")
+        map_time = self.clock.time_of(stamp, where)
+        self.origin_vox = origin              # (integrate takes a first scan's back if it fails)
         center_vox = np.floor(translation / res).astype(np.int64)
         p = self._params
         p.rotation = T[:3, :3].astype(np.float32)
         p.translation_m = translation
         p.center_vox = center_vox
-        p.time_rel_s = float(scan.stamp_s - self.t0)
+        p.time_rel_s = map_time
         p.stamp = self.scans + 1
-        return checked, center_vox
+        return checked, center_vox, map_time
+
+    def _hold_block_cap(self, scan: Scan, checked: CheckedScan, pts: ScanPoints,
+                        rows: TrainingRows, report: IntegrationReport,
+                        trace: IntegrationTrace | None) -> tuple[ScanPoints, TrainingRows]:
+        """Keep the live blocks under max_live_blocks (tisem/block_cap.py): a scan whose
+        training rows would make more blocks live than there is room for keeps only its points
+        in live blocks and in the nearest new blocks (steps 2-3 again on those), or is refused
+        when that leaves none. The common case costs one comparison: the occupied blocks fit."""
+        free = self.window.free_blocks
+        new = new_blocks_beyond(self._fields, self._params, pts.blocks, free)
+        if new is None:
+            return pts, rows
+        m, where = self._fields, scan_label(scan.index, scan.name)
+        cut = cut_to_nearest(pts.cell, pts.blocks, new, m.table_shape, m.table_half, free,
+                             self.geometry.resolution_m)
+        table.clear_table(m)
+        cap = self.window.cap
+        if not cut.keep.any():
+            raise ValueError(cut.refusal(where, cap, report.used))
+        log.warning(cut.describe(where, cap, report.used))
+        kept = checked.subset(cut.keep)
+        again = IntegrationReport(points=len(kept.points_sensor))
+        if trace is not None:
+            trace.scans.pop()             # the trace records the points the scan kept
+        pts = self._voxelize(kept, again, trace)
+        rows = self._training_points(kept, pts, again, trace)
+        if trace is not None:
+            trace.scans[-1].cut_points = np.flatnonzero(cut.keep)
+        report.dropped_dense = report.used - again.used
+        report.used, report.training_voxels = again.used, again.training_voxels
+        return pts, rows
 
     def _voxelize(self, checked: CheckedScan, report: IntegrationReport,
                   trace: IntegrationTrace | None) -> ScanPoints:
@@ -279,7 +322,7 @@ class Mapper:
             raise RuntimeError("this map belonged to a Taichi runtime that has since been "
                                "re-initialised (init_taichi); its fields are gone")
 
-    def _clock(self):
+    def _timer(self):
         if not self.profile:
             return lambda stage: None
         last = [time.perf_counter()]
@@ -299,7 +342,10 @@ class Mapper:
         A point in no voxel gets label 0 and all-zero probabilities.
         """
         self._check_alive()
-        pts = np.asarray(points_world, dtype=np.float64)
+        pts = np.asarray(points_world)
+        if pts.dtype.kind not in "biuf":
+            raise ValueError(f"query points must be numbers, got an array of dtype {pts.dtype}")
+        pts = pts.astype(np.float64, copy=False)
         if pts.ndim != 2 or pts.shape[1] != 3:
             raise ValueError(f"query points must be (N, 3), got {pts.shape}")
         n = len(pts)
@@ -307,14 +353,7 @@ class Mapper:
         probs = np.zeros((n, self.C), np.float32) if with_probs else None
         if self.origin_vox is None or n == 0:
             return labels, probs
-        finite = finite_rows(pts)
-        # local coordinates; far or non-finite points are clamped so their voxel index still fits
-        # an int32 in the kernel (they land outside the window either way)
-        local = pts - self.origin_vox * self.geometry.resolution_m
-        if not finite.all():
-            local[~finite] = 0.0
-        local = np.clip(local, -QUERY_CLAMP_M, QUERY_CLAMP_M, out=local).astype(np.float32)
-        self.window.lookup(local, finite, labels, probs)
+        self.window.lookup_world(pts, self.origin_vox, labels, probs)
         return labels, probs
 
     @property
@@ -359,26 +398,27 @@ class Mapper:
         center = self.window.center_vox
         return {"origin_vox": None if self.origin_vox is None else self.origin_vox.tolist(),
                 "t0": self.t0, "center_vox": None if center is None else center.tolist(),
-                "scans": self.scans, "last_stamp_s": self.last_stamp_s}
+                "scans": self.scans, "last_stamp_s": self.last_stamp_s,
+                "clock": self.clock.to_dict()}
 
     def restore(self, snapshot: MapSnapshot, state: dict) -> None:
-        """Load a snapshot written by `snapshot()` (with `state()`), into an empty mapper."""
+        """Load a snapshot written by `snapshot()` (with `state()`), into an empty mapper.
+        ValueError, with the mapper left empty, when a value does not fit (mapper_state.py)."""
         res = self.geometry.resolution_m
-        if self.origin_vox is not None:
+        if self.origin_vox is not None or self.scans:
             raise RuntimeError("restore() needs a fresh mapper")
-        if abs(snapshot.resolution_m - res) > 1e-9:
-            raise ValueError(f"snapshot resolution {snapshot.resolution_m} m != mapper {res} m")
-        if snapshot.counts.shape[1] != self.C:
-            raise ValueError(f"snapshot has {snapshot.counts.shape[1]} classes, mapper {self.C}")
-        if state.get("origin_vox") is None:
+        check_snapshot(snapshot, self.C, res)
+        saved = parse_state(state, res, self.config.decay_tau_s)
+        if saved.origin_vox is None:
             return
-        self.origin_vox = np.asarray(state["origin_vox"], np.int64)
-        self.t0 = float(state["t0"])
-        self.scans = int(state.get("scans", 0))
-        self.last_stamp_s = state.get("last_stamp_s")
         # everything goes to the store first; the window then pulls in what it covers
-        self.store.put(snapshot.keys - self.origin_vox, snapshot.counts.astype(np.float32),
-                       (snapshot.t_last - self.t0).astype(np.float32),
-                       snapshot.ell_m.astype(np.float32))
-        center = state.get("center_vox")
-        self.window.follow(np.asarray(center if center is not None else [0, 0, 0], np.int64))
+        segments = self.store.put(*relative_arrays(snapshot, saved))
+        try:
+            self.window.follow(saved.center_vox)
+        except BaseException:       # (the map does not fit the cap): the mapper stays empty
+            self.store.forget_last(segments)
+            raise
+        self.origin_vox = saved.origin_vox
+        self.clock = saved.clock
+        self.scans = saved.scans
+        self.last_stamp_s = saved.last_stamp_s

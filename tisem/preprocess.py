@@ -10,12 +10,8 @@ import numpy as np
 from kernels import layout
 from kernels.rasterize import CORRUPT_RANGE_M
 from tisem.config import MapperConfig
-from tisem.scan import Scan, finite_rows
-
-
-def scan_label(scan: Scan) -> str:
-    """How errors name a scan."""
-    return f"scan {scan.index}" + (f" ({scan.name})" if scan.name else "")
+from tisem.scan import (Scan, checked_ids, checked_pose, checked_probabilities,
+                        finite_rows, scan_label)
 
 
 @dataclass
@@ -27,33 +23,42 @@ class CheckedScan:
     use_probs: bool
     dropped_nonfinite: int
 
+    def subset(self, keep: np.ndarray) -> CheckedScan:
+        """Only the points where `keep` (bool, (N,)) is set, in their order; none of them
+        non-finite (the caller keeps only points the kernels located)."""
+        return CheckedScan(np.ascontiguousarray(self.points_sensor[keep]),
+                           np.ascontiguousarray(self.evidence[keep]), self.use_probs, 0)
+
 
 def check_scan(scan: Scan, num_classes: int) -> CheckedScan:
-    """Check a scan's size and evidence (ValueError naming the scan) and move its non-finite
-    points beyond any range, where the kernels drop them without a NaN test (which fast math
-    would not honour); they are counted as implausibly far there, which the mapper corrects."""
-    where = scan_label(scan)
+    """Check a scan's size, pose and evidence again (a Scan's fields can be replaced after it
+    was built; ValueError naming the scan) and move its non-finite points beyond any range,
+    where the kernels drop them without a NaN test (which fast math would not honour); they
+    are counted as implausibly far there, which the mapper corrects."""
+    where = scan_label(scan.index, scan.name)
     if scan.num_points >= layout.MAX_SCAN_POINTS:
         raise ValueError(f"{where}: {scan.num_points:,} points; tisem takes at most "
                          f"{layout.MAX_SCAN_POINTS - 1:,} per scan")
+    checked_pose(scan.T_world_sensor, where)
     pts = np.ascontiguousarray(scan.points_sensor, dtype=np.float32)
+    if pts.ndim != 2 or pts.shape[1] != 3:
+        raise ValueError(f"{where}: points must be (N, 3), got {pts.shape}")
     finite = finite_rows(pts)
     nonfinite = int(len(pts) - np.count_nonzero(finite))
     if nonfinite:
         pts = pts.copy()
         pts[~finite] = (2.0 * CORRUPT_RANGE_M, 0.0, 0.0)
+    if (scan.labels is None) == (scan.probs is None):
+        raise ValueError(f"{where}: give exactly one of labels or probs")
     if scan.labels is not None:
-        labels = np.ascontiguousarray(scan.labels, dtype=np.int32)
-        if labels.size and (labels.min() < 0 or labels.max() >= num_classes):
-            raise ValueError(f"{where}: train ids must lie in [0, {num_classes}), got "
-                             f"[{labels.min()}, {labels.max()}]")
+        if np.shape(scan.labels) != (len(pts),):
+            raise ValueError(f"{where}: {np.shape(scan.labels)} labels for {len(pts)} points")
+        labels = np.ascontiguousarray(checked_ids(scan.labels, "train ids", where, num_classes))
         return CheckedScan(pts, labels, False, nonfinite)
-    probs = np.ascontiguousarray(scan.probs, dtype=np.float32)
-    if probs.shape[1] != num_classes:
-        raise ValueError(f"{where}: {probs.shape[1]} probability columns, "
-                         f"the map has {num_classes} classes")
-    if not np.all(np.isfinite(probs[finite])) or (probs.size and probs.min() < 0):
-        raise ValueError(f"{where}: probabilities must be finite and >= 0")
+    if np.shape(scan.probs) != (len(pts), num_classes):
+        raise ValueError(f"{where}: probabilities of shape {np.shape(scan.probs)}; the map "
+                         f"has {num_classes} classes, the scan {len(pts)} points")
+    probs = np.ascontiguousarray(checked_probabilities(scan.probs, where, finite))
     if nonfinite:
         probs = np.where(finite[:, None], probs, 0).astype(np.float32)
     return CheckedScan(pts, probs, True, nonfinite)
@@ -72,7 +77,7 @@ class SelectedPoints:
 
 def select_points(scan: Scan, cfg: MapperConfig) -> SelectedPoints:
     """Drop NaN/inf points and points outside the range and height band; check the evidence."""
-    where = scan_label(scan)
+    where = scan_label(scan.index, scan.name)
     pts = scan.points_sensor
     finite = np.all(np.isfinite(pts), axis=1)
     rng = np.linalg.norm(np.where(finite[:, None], pts, 0), axis=1)

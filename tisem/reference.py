@@ -14,8 +14,9 @@ from scipy.spatial import cKDTree
 from kernels.bki import MIN_UPDATE
 from tisem.config import MapperConfig
 from tisem.geometry import block_aligned_origin
+from tisem.map_clock import MapClock
 from tisem.preprocess import select_points
-from tisem.scan import Scan, to_frame
+from tisem.scan import Scan, scan_label, to_frame
 
 
 def sparse_kernel(r: np.ndarray) -> np.ndarray:
@@ -74,7 +75,7 @@ class ReferenceMapper:
         self.t_last_rel = np.zeros(0)
         self.length_m = np.zeros(0)
         self.origin_vox = None
-        self.t0 = None
+        self.clock = MapClock(self.config.decay_tau_s)     # the mapper's map time
 
     def _voxel_ids(self, keys: np.ndarray) -> np.ndarray:
         """Indices of the given voxels, creating the missing ones."""
@@ -102,7 +103,6 @@ class ReferenceMapper:
         T = scan.T_world_sensor
         if self.origin_vox is None:
             self.origin_vox = block_aligned_origin(np.floor(T[:3, 3] / self.res))
-            self.t0 = float(scan.stamp_s)
         local = to_frame(sel.points_sensor, T, self.origin_vox * self.res)
         keys, npts, centroid, hist = voxel_histograms(local, sel, self.res, self.C)
         total = hist.sum(axis=1)
@@ -112,10 +112,19 @@ class ReferenceMapper:
             h = h / total[keep, None]
         return keys[keep], centroid[keep], h
 
+    @property
+    def t0(self) -> float | None:
+        return self.clock.state.t0
+
     def integrate(self, scan: Scan) -> None:
-        cfg = self.config
+        t_rel = self.clock.time_of(scan.stamp_s, scan_label(scan.index, scan.name))
         keys, centroid, h = self.rasterize(scan)
-        t_rel = float(scan.stamp_s) - self.t0
+        self.clock.advance(scan.stamp_s, t_rel)
+        self._fuse(keys, centroid, h, t_rel)
+
+    def _fuse(self, keys: np.ndarray, centroid: np.ndarray, h: np.ndarray, t_rel: float) -> None:
+        """Steps 4-8 for one scan's training points at map time t_rel."""
+        cfg = self.config
         ids = self._voxel_ids(keys)
         if not cfg.uses_kernel:                     # csm: plain per-voxel counting
             self.counts[ids] += h

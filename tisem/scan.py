@@ -1,9 +1,14 @@
 """`Scan`: the one thing every reader produces and the mapper consumes."""
 from __future__ import annotations
 
+import math
+import numbers
 from dataclasses import dataclass
 
 import numpy as np
+
+from tisem.errors import ScanError
+from tisem.poses import pose_problem
 
 
 @dataclass(frozen=True)
@@ -44,18 +49,102 @@ def finite_rows(a: np.ndarray) -> np.ndarray:
     return np.ones(len(a), bool) if finite.all() else finite.all(axis=1)
 
 
+# A stamp is seconds since any epoch; beyond this it is not a time in seconds (past the year
+# 2286 as Unix time: nanoseconds given as seconds, or corrupt data).
+MAX_STAMP_S = 1.0e10
+# Train ids travel as int32: anything at or above this would wrap when cast.
+LABEL_LIMIT = 2 ** 31
+# How far a probability may exceed 1 (float16 softmax outputs round up to 1 + 2^-10); a larger
+# value is a score or a logit, not a probability, and sums of such values can overflow float32.
+PROB_TOLERANCE = 1.0e-3
+_NUMERIC = "biuf"   # numpy dtype kinds the arrays of a scan may have (bool, ints, floats)
+
+
+def scan_label(index: int, name: str = "") -> str:
+    """How errors name a scan."""
+    return f"scan {index}" + (f" ({name})" if name else "")
+
+
+def _numeric(values, what: str, where: str) -> np.ndarray:
+    a = np.asarray(values)
+    if a.dtype.kind not in _NUMERIC:
+        raise ValueError(f"{where}: {what} must be numbers, got an array of dtype {a.dtype}")
+    return a
+
+
+def checked_ids(values, what: str, where: str, limit: int = LABEL_LIMIT) -> np.ndarray:
+    """`values` as an int32 array of ids in [0, limit), checked before the cast, so that no
+    value wraps (2^32 + 9 is refused, not read as 9); ValueError naming the first bad one.
+
+    Any integer dtype is taken, and floats that hold whole numbers.
+    """
+    a = _numeric(values, what, where)
+    if a.dtype.kind == "f":
+        bad = ~np.isfinite(a) | (a != np.floor(a)) | (a < 0) | (a >= limit)
+    elif a.size and (a.min() < 0 or a.max() >= limit):
+        bad = (a < 0) | (a >= limit)
+    else:
+        return np.asarray(a, dtype=np.int32)
+    if bad.any():
+        i = int(np.flatnonzero(bad.ravel())[0])
+        raise ValueError(f"{where}: {what} must be whole numbers in [0, {limit}), got "
+                         f"{a.ravel()[i].item()!r} at point {i}")
+    return np.asarray(a, dtype=np.int32)
+
+
+def checked_probabilities(values, where: str, finite_points: np.ndarray) -> np.ndarray:
+    """(N, C) `values` as float32 probabilities, checked before the cast: finite and in [0, 1]
+    (within PROB_TOLERANCE) on every finite point (the rows of non-finite points are never
+    used). Values above 1 are refused rather than normalised: they are scores or logits given by
+    mistake, and rescaling them would hide that and change their weighting."""
+    a = _numeric(values, "probabilities", where)
+    rows = a if finite_points.all() else a[finite_points]
+    if rows.size and not (np.isfinite(rows).all() and rows.min() >= 0
+                          and rows.max() <= 1.0 + PROB_TOLERANCE):
+        bad = ~np.isfinite(rows) | (rows < 0) | (rows > 1.0 + PROB_TOLERANCE)
+        i, c = (int(k[0]) for k in np.nonzero(bad))
+        point = i if rows is a else int(np.flatnonzero(finite_points)[i])
+        raise ValueError(f"{where}: probabilities must be finite and in [0, 1], got "
+                         f"{rows[i, c].item()!r} at point {point}, class {c}")
+    return np.asarray(a, dtype=np.float32)
+
+
+def checked_stamp(stamp, where: str) -> float:
+    """A scan's stamp as float seconds: a real number, finite, |stamp| <= MAX_STAMP_S."""
+    if isinstance(stamp, (bool, np.bool_)) or not isinstance(stamp, (numbers.Real, np.number)):
+        raise ValueError(f"{where}: stamp_s must be a number of seconds, got {stamp!r}")
+    t = float(stamp)
+    if not math.isfinite(t) or abs(t) > MAX_STAMP_S:
+        raise ValueError(f"{where}: stamp_s {t!r} is not a time in seconds (a stamp is finite "
+                         f"and within +-{MAX_STAMP_S:.0e} s)")
+    return t
+
+
+def checked_pose(T, where: str) -> np.ndarray:
+    """T_world_sensor as a (4, 4) float64 array that `tisem.poses.pose_problem` accepts."""
+    T = _numeric(T, "T_world_sensor", where)
+    problem = pose_problem(T)
+    if problem is not None:
+        raise ValueError(f"{where}: {problem}")
+    return np.asarray(T, dtype=np.float64)
+
+
 @dataclass
 class Scan:
     """One labelled LiDAR scan.
 
     points_sensor: (N, 3) float32, metres, in the sensor frame.
     labels: (N,) int32 train ids (0 = unlabeled, adds no evidence), or None when `probs` is given.
-    probs: (N, C) float32 per-point class probabilities, or None.
-    T_world_sensor: (4, 4) float64 pose of the sensor in the world (map) frame.
-    stamp_s: acquisition time in seconds.
+    probs: (N, C) float32 per-point class probabilities in [0, 1], or None.
+    T_world_sensor: (4, 4) float64 pose of the sensor in the world (map) frame: a rotation and
+        a plausible position (`tisem.poses.pose_problem`).
+    stamp_s: acquisition time in seconds, finite, within +-MAX_STAMP_S.
     gt_labels: (N,) int32 ground-truth train ids, when known (evaluation only).
     index: position in the sequence (scan number); name: a human-readable source (file, topic).
     source: the reader's provenance record (None for scans built by hand).
+
+    Every value is checked here, before any cast (a `ScanError`, a ValueError, naming the scan
+    and the value): ids and probabilities of any numeric dtype, a pose, a stamp.
     """
 
     points_sensor: np.ndarray
@@ -69,32 +158,39 @@ class Scan:
     source: ScanSource | None = None
 
     def __post_init__(self) -> None:
-        self.points_sensor = np.asarray(self.points_sensor, dtype=np.float32)
-        self.T_world_sensor = np.asarray(self.T_world_sensor, dtype=np.float64)
-        n = self.points_sensor.shape[0] if self.points_sensor.ndim == 2 else -1
-        where = f"scan {self.index}" + (f" ({self.name})" if self.name else "")
+        try:
+            self._check()
+        except ValueError as e:     # (a ScanError: readers report it as a skipped scan)
+            raise ScanError(str(e), self.index, self.name) from None
+
+    def _check(self) -> None:
+        where = scan_label(self.index, self.name)
+        self.points_sensor = np.asarray(_numeric(self.points_sensor, "points", where),
+                                        dtype=np.float32)
         if self.points_sensor.ndim != 2 or self.points_sensor.shape[1] != 3:
             raise ValueError(f"{where}: points must be (N, 3), got {self.points_sensor.shape}")
-        if self.T_world_sensor.shape != (4, 4):
-            raise ValueError(f"{where}: T_world_sensor must be 4x4, got {self.T_world_sensor.shape}")
-        if not np.all(np.isfinite(self.T_world_sensor)):
-            raise ValueError(f"{where}: pose has NaN/inf entries")
+        n = self.points_sensor.shape[0]
+        self.T_world_sensor = checked_pose(self.T_world_sensor, where)
+        self.stamp_s = checked_stamp(self.stamp_s, where)
         if (self.labels is None) == (self.probs is None):
             raise ValueError(f"{where}: give exactly one of labels or probs")
         if self.labels is not None:
-            self.labels = np.asarray(self.labels, dtype=np.int32)
-            if self.labels.shape != (n,):
-                raise ValueError(f"{where}: {self.labels.shape[0] if self.labels.ndim else 0} labels "
+            labels = _numeric(self.labels, "train ids", where)
+            if labels.shape != (n,):
+                raise ValueError(f"{where}: {labels.shape[0] if labels.ndim else 0} labels "
                                  f"for {n} points")
+            self.labels = checked_ids(labels, "train ids", where)
         if self.probs is not None:
-            self.probs = np.asarray(self.probs, dtype=np.float32)
-            if self.probs.ndim != 2 or self.probs.shape[0] != n:
+            probs = _numeric(self.probs, "probabilities", where)
+            if probs.ndim != 2 or probs.shape[0] != n:
                 raise ValueError(f"{where}: probabilities must be (N, C) with N={n}, "
-                                 f"got {self.probs.shape}")
+                                 f"got {probs.shape}")
+            self.probs = checked_probabilities(probs, where, finite_rows(self.points_sensor))
         if self.gt_labels is not None:
-            self.gt_labels = np.asarray(self.gt_labels, dtype=np.int32)
-            if self.gt_labels.shape != (n,):
-                raise ValueError(f"{where}: {self.gt_labels.shape} ground-truth labels for {n} points")
+            gt = _numeric(self.gt_labels, "ground-truth train ids", where)
+            if gt.shape != (n,):
+                raise ValueError(f"{where}: {gt.shape} ground-truth labels for {n} points")
+            self.gt_labels = checked_ids(gt, "ground-truth train ids", where)
 
     @property
     def num_points(self) -> int:

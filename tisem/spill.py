@@ -11,9 +11,9 @@ is both more than half the file and more than `rewrite_floor` bytes, the next `a
 copies the live records into a new file and swaps it in, so the file stays within about twice
 what is stored (or stored + floor) however long the drive.
 
-Every write either completes or leaves all existing records as they were and raises an OSError
-that names the spill directory (a full disk, typically), so the caller can keep its own state
-unchanged too.
+Every write either completes or leaves all existing records as they were and raises a
+`SpillError` (an OSError with the errno of the failed call) that names the spill directory (a
+full disk, typically), so the caller can keep its own state unchanged too.
 """
 from __future__ import annotations
 
@@ -24,6 +24,11 @@ import numpy as np
 
 _ALIGN = 8          # each array starts 8-byte aligned, so the views `read` returns are aligned
 _COPY_CHUNK = 8 << 20
+
+
+class SpillError(OSError):
+    """The host store's spill file could not be created, written or read (a full disk, a
+    missing or read-only store_dir): one line naming the folder and the cause."""
 
 
 def _padded(n: int) -> int:
@@ -58,9 +63,10 @@ class SpillFile:
     def file_bytes(self) -> int:
         return self._size
 
-    def _error(self, action: str, e: OSError) -> OSError:
-        return OSError(e.errno, f"host store: could not {action} its spill file in {self.dir} "
-                                f"({e.strerror or e}); set store_dir to a folder with free space")
+    def _error(self, action: str, e: OSError) -> SpillError:
+        return SpillError(e.errno, f"host store: could not {action} its spill file in "
+                                   f"{self.dir} ({e.strerror or e}); set store_dir to a folder "
+                                   f"with free space")
 
     def _new_file(self):
         try:
@@ -102,6 +108,8 @@ class SpillFile:
             if garbage > self.rewrite_floor and 2 * garbage > self._size:
                 self._rewrite()
             self._write_at(self._file, self._size, chunks)
+        except SpillError:
+            raise
         except OSError as e:
             try:   # give the disk back; the bytes past _size are never read either way
                 self._file.truncate(self._size)

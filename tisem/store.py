@@ -33,11 +33,11 @@ from __future__ import annotations
 import numpy as np
 
 from kernels.layout import LEAF
-from tisem.spill import SpillFile
+from tisem.spill import SpillError, SpillFile
 from tisem.store_segments import (COMPACT, KEY_LIMIT, LOCAL_INDEX, SEGMENT_VOXELS, Payload,
                                   Segment, pack, pieces, ranges)
 
-__all__ = ["BlockStore", "KEY_LIMIT", "pack"]
+__all__ = ["BlockStore", "KEY_LIMIT", "SpillError", "pack"]
 
 
 class BlockStore:
@@ -129,15 +129,19 @@ class BlockStore:
         self._index = None
 
     # ------------------------------------------------------------------ in and out
-    def put(self, keys, counts, t_last_rel, length_m, box=None) -> None:
-        """Store voxels. `box=(center, half)`: the live window they just left. None of them may
-        lie inside it; as `take_box` takes every stored voxel inside the window each time it
-        moves, no voxel is then ever live and stored at once. The voxels are stored in one
-        segment per face of the box they left through, so each segment is a thin slab just
-        outside that face and the window overlaps few segments."""
+    def put(self, keys, counts, t_last_rel, length_m, box=None) -> int:
+        """Store voxels; returns how many segments hold them (the store's last ones, which
+        `forget_last` can take back). `box=(center, half)`: the live window they just left.
+        None of them may lie inside it; as `take_box` takes every stored voxel inside the
+        window each time it moves, no voxel is then ever live and stored at once. The voxels
+        are stored in one segment per face of the box they left through, so each segment is a
+        thin slab just outside that face and the window overlaps few segments.
+
+        A payload that cannot be written (a full disk) raises `SpillError` (an OSError) with
+        the store as it was."""
         keys = np.asarray(keys)
         if len(keys) == 0:
-            return
+            return 0
         counts = np.asarray(counts, np.float32)
         if keys.ndim != 2 or keys.shape[1] != 3 or counts.shape != (len(keys), self.C) \
                 or len(t_last_rel) != len(keys) or len(length_m) != len(keys):
@@ -165,6 +169,19 @@ class BlockStore:
         self._write(new)
         for seg, _ in new:
             self._add(seg)
+        return len(new)
+
+    def forget_last(self, segments: int) -> None:
+        """Take back the last `put` (its `segments`), which nothing has used since: the store
+        is as before it, without touching the disk (the payload becomes garbage)."""
+        for _ in range(segments):
+            seg = self._segments.pop()
+            self._spill.release(seg.record)
+            self._voxels -= seg.alive_voxels
+            self._blocks -= seg.alive_blocks
+        if segments:
+            self._box = self._box[:len(self._segments)]
+            self._index = None
 
     @staticmethod
     def _select(s: Segment, c: np.ndarray, h: np.ndarray, read) -> tuple[np.ndarray, object]:

@@ -34,6 +34,9 @@ class ScanTrace:
       training_xyz (K, 3) float32: the rows' centroids in local map metres (K = training_rows);
       training_hist (K, C) float32: the rows' class evidence (weighted per point_weight);
       origin_vox (3,) int64, resolution_m: to turn local coordinates into world ones.
+    A scan too dense for the block cap (tisem/block_cap.py) is traced as cut:
+      cut_points (N,) int64: the indices into the scan of the points it kept, which the
+        per-point arrays above then cover (None: nothing was cut).
     """
 
     point_cell: np.ndarray
@@ -48,6 +51,7 @@ class ScanTrace:
     layer_rows: np.ndarray | None = None
     training_xyz: np.ndarray | None = None
     training_hist: np.ndarray | None = None
+    cut_points: np.ndarray | None = None
 
     @property
     def kept(self) -> np.ndarray:
