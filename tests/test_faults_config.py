@@ -13,8 +13,9 @@ import logging
 import os
 
 import pytest
+import taichi as ti
 
-from test_pipeline import load_app, run_app, tiny_sequence
+from test_pipeline import Records, load_app, run_app, tiny_sequence
 from tisem.config import (MAPPER_RULES, RUN_RULES, ConfigError, MapperConfig, RunConfig,
                           load_config)
 
@@ -134,8 +135,8 @@ def test_tf_tolerance_nan_is_refused_before_the_recording_is_read(workdir):
 
 
 def run_app_named(name, argv):
-    from test_pipeline import Records
-    import taichi as ti
+    """`apps/<name>.py main(argv)` with every log record kept (test_pipeline.run_app's, for
+    any app)."""
     rec = Records()
     root = logging.getLogger()
     old = root.level
@@ -150,6 +151,7 @@ def run_app_named(name, argv):
     return rc, rec
 
 
+@pytest.mark.slow
 def test_threads_above_the_cores_are_capped_with_one_line(tmp_path):
     """--threads 100000 starts as many threads as there are cores, and says so once."""
     from tisem.backend import available_cores

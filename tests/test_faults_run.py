@@ -21,11 +21,13 @@ import numpy as np
 import pytest
 
 from helpers import fresh_runtime
+from test_faults_config import run_app_named
 from test_checkpoint import comparable_metrics, make_scans, run_config
 from test_pipeline import REPO, load_app, run_app, tiny_sequence
 from tisem.checkpoint import load_checkpoint
-from tisem.errors import RunInterrupted, SkippedScan
+from tisem.errors import RunInterrupted
 from tisem.io import mapfile
+from tisem.io.kitti_mcap import write_kitti_mcap
 from tisem.run import MappingRun
 
 FAR_M = 300e3            # a plausible place, 300 km from the drive
@@ -48,6 +50,7 @@ def errors_of(rec) -> list[logging.LogRecord]:
 
 # --------------------------------------------------------------------------- refused scans
 
+@pytest.mark.slow
 @pytest.mark.parametrize("stream", ["sequence", "iterator"])
 def test_refused_scans_are_scored_in_no_row(taichi_cpu, tmp_path, stream):
     """A scan the mapper refuses (train ids out of range) and one the pose gate refuses (300
@@ -73,6 +76,7 @@ def test_refused_scans_are_scored_in_no_row(taichi_cpu, tmp_path, stream):
 
 # --------------------------------------------------------------------------- outlier poses
 
+@pytest.mark.slow
 @pytest.mark.parametrize("where", [0, 1, 3], ids=["first", "second", "middle"])
 def test_one_outlier_pose_costs_one_scan(taichi_cpu, tmp_path, where):
     scans = make_scans(6, points=1500, seed=5)
@@ -86,6 +90,7 @@ def test_one_outlier_pose_costs_one_scan(taichi_cpu, tmp_path, where):
     assert result.metrics["final"]["accuracy"] > 0.8
 
 
+@pytest.mark.slow
 def test_an_outlier_first_pose_through_the_app(tmp_path):
     seq = tiny_sequence(tmp_path / "08", 4)
     lines = (seq / "poses.txt").read_text().splitlines()
@@ -112,6 +117,7 @@ def workdir(tmp_path, monkeypatch):
     return tmp_path
 
 
+@pytest.mark.slow
 def test_a_failed_run_creates_nothing_and_a_good_one_repoints_latest(workdir):
     rc, rec = run_app(["--data", workdir / "no-such-folder", "--no-progress"])
     assert rc == 2 and len(errors_of(rec)) == 1
@@ -132,6 +138,7 @@ def test_a_failed_run_creates_nothing_and_a_good_one_repoints_latest(workdir):
     assert (new[0] / "metrics.json").is_file()
 
 
+@pytest.mark.slow
 def test_a_non_empty_out_is_refused_unless_overwrite_clears_a_previous_run(tmp_path):
     seq = tiny_sequence(tmp_path / "00", 2)
     out = tmp_path / "out"
@@ -184,6 +191,7 @@ def ctrl_c_after(position: int):
     return press
 
 
+@pytest.mark.slow
 def test_ctrl_c_stops_at_a_scan_boundary_and_the_run_resumes(taichi_cpu, tmp_path):
     scans = make_scans(5, points=1500, seed=8)
     cfg = run_config()
@@ -208,6 +216,7 @@ def test_ctrl_c_stops_at_a_scan_boundary_and_the_run_resumes(taichi_cpu, tmp_pat
     assert predictions(out) == [0, 1, 2, 3, 4]
 
 
+@pytest.mark.slow
 def test_ctrl_c_in_the_app_exits_130_with_one_line(tmp_path, monkeypatch):
     seq = tiny_sequence(tmp_path / "00", 3)
     run = MappingRun.run
@@ -366,6 +375,7 @@ def test_resume_of_a_damaged_checkpoint_is_one_line(good_checkpoint, tmp_path):
     assert len(errors) == 1 and "last_index 'abc'" in errors[0].getMessage()
 
 
+@pytest.mark.slow
 def test_temp_files_of_a_killed_save_are_removed(good_checkpoint, tmp_path):
     folder = damaged_copy(good_checkpoint, tmp_path / "run" / "checkpoint")
     left = folder / f".{mapfile.CHECKPOINT_NAME}.k1ll3d.tmp"
@@ -383,10 +393,10 @@ def test_temp_files_of_a_killed_save_are_removed(good_checkpoint, tmp_path):
 
 # --------------------------------------------------------------------------- reported once
 
+@pytest.mark.slow
 def test_each_skipped_scan_is_reported_once_by_both_apps(tmp_path, capsys):
     """The reason of a skipped scan appears once in all the apps say (log and stdout), and the
     summary counts it."""
-    from tisem.io.kitti_mcap import write_kitti_mcap
     seq = tiny_sequence(tmp_path / "00", 4)
     lines = (seq / "poses.txt").read_text().splitlines()
     row = np.array(lines[2].split(), float)
@@ -398,7 +408,6 @@ def test_each_skipped_scan_is_reported_once_by_both_apps(tmp_path, capsys):
     capsys.readouterr()
     for name, argv in (("map_kitti", ["--data", seq]),
                        ("map_mcap", [recording, "--gt-field", "gt_label"])):
-        from test_faults_config import run_app_named
         rc, rec = run_app_named(name, [*argv, "--out", tmp_path / name, "--no-progress"])
         assert rc == 0, rec.text()
         said = "\n".join(rec.text(logging.DEBUG)) + "\n" + capsys.readouterr().out
