@@ -50,7 +50,7 @@ def main(argv: list[str] | None = None) -> int:
                                   last=args.last, compression=args.compression,
                                   label_type=args.label_type, topic=args.topic,
                                   frame_id=args.frame_id)
-    except DatasetError as exc:
+    except (DatasetError, OSError) as exc:      # a bad sequence, or an .mcap it cannot write
         log.error("%s", exc)
         return 2
     print(f"wrote {result.path}: {result.scans} scans of sequence {result.sequence} "

@@ -25,7 +25,11 @@ log = logging.getLogger("make_synthetic")
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--out", type=Path, required=True, help="sequence folder to write")
+    p.add_argument("--out", type=Path, required=True,
+                   help="sequence folder to write (new, or without a sequence in it)")
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace the sequence already in --out (its velodyne/, labels/, "
+                        "predictions/ files and poses.txt, calib.txt, times.txt; nothing else)")
     p.add_argument("--scans", type=int, default=100, help="number of scans (10 Hz, ~1 m apart)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--route", choices=ROUTES, default="street",
@@ -37,6 +41,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     args = p.parse_args(argv)
     if args.scans < 1:
         p.error("--scans must be >= 1")
+    if args.points_per_ring < 1:
+        p.error("--points-per-ring must be >= 1")
     return args
 
 
@@ -61,7 +67,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         out = write_semantickitti(args.out, args.scans, seed=args.seed, route=args.route,
                                   points_per_ring=args.points_per_ring,
-                                  progress=not args.no_progress)
+                                  progress=not args.no_progress, overwrite=args.overwrite)
     except (ValueError, OSError) as exc:
         log.error("%s", exc)
         return 2

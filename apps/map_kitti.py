@@ -32,38 +32,49 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     return cli.parse_run_args(p, argv, kept_on_resume={"input": "--input"})
 
 
-def map_sequence(args: argparse.Namespace) -> int:
+def open_sequence(data: Path, sequence: str | None, cfg):
     from tisem.io.semantickitti import SemanticKittiSequence
+    with cli.bad_input():
+        return SemanticKittiSequence(data, sequence=sequence, input=cfg.input, first=cfg.first,
+                                     last=cfg.last)
+
+
+def map_sequence(args: argparse.Namespace) -> int:
+    from tisem.labels import NUM_CLASSES
     from tisem.report import results_table
 
     plan = cli.plan_run(args)
     cfg = plan.cfg
     if args.input:
         cfg.input = args.input
+    if cfg.mapper.num_classes < NUM_CLASSES:
+        raise cli.AppError(f"config: num_classes = {cfg.mapper.num_classes}: SemanticKITTI "
+                           f"labels are train ids 0..{NUM_CLASSES - 1}; expected >= "
+                           f"{NUM_CLASSES}")
     data = plan.input_path(args.data, "data", "--data")
     sequence = args.sequence or plan.source.get("sequence")
+    # the input is opened before anything is made: a bad one leaves no results folder
+    seq = open_sequence(data, sequence, cfg) if data is not None else None
     plan.start(args)
-    if data is None:
+    if seq is None:
         from tisem.synth.sequence import write_semantickitti
         data = plan.out_dir / "synthetic"
         log.info("no --data: generating a synthetic street (%d scans, seed %d) in %s",
                  args.synthetic_scans, args.seed, data)
         write_semantickitti(data, args.synthetic_scans, seed=args.seed,
                             progress=not args.no_progress)
-    with cli.bad_input():
-        seq = SemanticKittiSequence(data, sequence=sequence, input=cfg.input, first=cfg.first,
-                                    last=cfg.last)
+        seq = open_sequence(data, sequence, cfg)
     log.info("%s: sequence %s, %d scans, mode %s, %s", seq.sequence_dir, seq.sequence_name,
              len(seq), cfg.mapper.mode, plan.device)
     source_info = {"data": str(Path(seq.sequence_dir).resolve()), "first": cfg.first,
                    "last": cfg.last, "scan_ids": list(map(int, seq.scan_ids)),
-                   "input": cfg.input, "arch": args.arch, "threads": args.threads}
+                   "input": cfg.input, "arch": args.arch, "threads": plan.threads}
     run = plan.mapping_run(seq, args, sequence_name=seq.sequence_name, total=len(seq),
                            source_info=source_info)
     result = run.run(show_progress=not args.no_progress)
     print(results_table(result.metrics))
     print(f"\nresults in {plan.out_dir}")
-    return 0
+    return plan.finish(result)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -26,6 +26,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from tisem import cli
+from tisem.errors import RunError, os_error_text
 
 if TYPE_CHECKING:                      # (imported when needed: the help stays fast)
     from tisem.io.mcap_reader import McapOptions, McapScanReader
@@ -94,7 +95,8 @@ def recording_options(args: argparse.Namespace, plan: cli.RunPlan) -> McapOption
             topic=args.topic, label_field=args.label_field, label_space=args.label_space,
             prob_field=args.prob_field, gt_field=args.gt_field, map_frame=args.map_frame,
             pose_topic=args.pose_topic, pose_child_frame=args.pose_child_frame,
-            tf_tolerance_s=args.tf_tolerance_ms / 1e3, **frames)
+            tf_tolerance_s=cli.finite_number("--tf-tolerance-ms", args.tf_tolerance_ms) / 1e3,
+            **frames)
         options.validate()
     return options
 
@@ -119,11 +121,16 @@ def map_recording(args: argparse.Namespace) -> int:
                            source_info={"mcap": str(path.resolve()), "topic": reader.topic,
                                         "frame_id": reader.frame_id,
                                         "options": vars(options), "arch": plan.device,
-                                        "threads": args.threads})
+                                        "threads": plan.threads})
     result = run.run(show_progress=not args.no_progress)
     out = plan.out_dir
-    map_path = write_map(result, reader, out / "map.mcap", args.save_scans, options.map_frame)
-    (out / "mcap_report.json").write_text(json.dumps(reader.report.to_dict(), indent=2))
+    try:
+        map_path = write_map(result, reader, out / "map.mcap", args.save_scans,
+                             options.map_frame)
+        (out / "mcap_report.json").write_text(json.dumps(reader.report.to_dict(), indent=2))
+    except OSError as exc:
+        raise RunError(f"cannot write map.mcap / mcap_report.json in {out}: "
+                       f"{os_error_text(exc)}; metrics.json and the map files are written")
     print(results_table(result.metrics))
     # the run has reported each skipped scan once already: here, only what was lost besides
     lines = dataclasses.replace(reader.report, skipped=[]).lines()
@@ -131,20 +138,21 @@ def map_recording(args: argparse.Namespace) -> int:
         print(f"\n{path.name}: not everything could be used:")
         print("\n".join(f"  - {line}" for line in lines))
     print(f"\nmap: {map_path} (Foxglove: 3D panel, topic /semantic_map)\nresults in {out}")
-    return 0
+    return plan.finish(result)
 
 
 def write_map(result: RunResult, reader: McapScanReader, path: Path, save_scans: bool,
               frame_id: str) -> Path:
-    """map.mcap from the final map; with `save_scans`, the log is read once more and every scan
-    written with its labels looked up in the final map (the same as its predictions file)."""
+    """map.mcap from the final map; with `save_scans`, the log is read once more and every
+    mapped scan written with its labels looked up in the final map (the same as its
+    predictions file; a scan that was not mapped has neither)."""
     from tisem.io.mcap_writer import write_map_mcap
     from tisem.scan import Scan
 
     scans = None
     if save_scans:
         scans = ((s, result.mapper.query(s.points_world(), with_probs=False)[0])
-                 for s in reader if isinstance(s, Scan))
+                 for s in reader if isinstance(s, Scan) and result.is_mapped(s.index))
     info = write_map_mcap(path, result.mapper.snapshot(), frame_id=frame_id, scans=scans)
     log.info("wrote %s: %d voxels, %d scans", path, info["voxels"], info["scans"])
     return path

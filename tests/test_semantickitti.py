@@ -225,9 +225,10 @@ def test_short_times_file(tmp_path):
                        match=r"times\.txt: no time for scan 2; times\.txt has 2 entries"):
         seq[2]
     assert _kinds(seq) == ["Scan", "Scan", "SkippedScan"]
-    (d / "times.txt").write_text("0.0\nabc\n")
-    with pytest.raises(DatasetError, match=r"times\.txt:2: malformed time line"):
-        SemanticKittiSequence(d)
+    (d / "times.txt").write_text("0.0\nabc\n0.2\n")
+    with pytest.raises(ScanError, match=r"times\.txt:2: malformed time line"):
+        SemanticKittiSequence(d)[1]
+    assert _kinds(SemanticKittiSequence(d)) == ["Scan", "SkippedScan", "Scan"]
 
 
 def test_missing_poses_and_calib(tmp_path):
@@ -242,11 +243,12 @@ def test_missing_poses_and_calib(tmp_path):
     (d2 / "calib.txt").unlink()
     with pytest.raises(DatasetError, match=r"seq2/calib\.txt: calibration file not found"):
         SemanticKittiSequence(d2)
-    d3 = make_sequence(tmp_path / "seq3")
-    with open(d3 / "poses.txt", "a") as f:
-        f.write("1 2 3\n")
-    with pytest.raises(DatasetError, match=r"poses\.txt:4: malformed pose line \(pose 3\).*got 3"):
-        SemanticKittiSequence(d3)
+    d3 = make_sequence(tmp_path / "seq3", n_scans=4)
+    lines = (d3 / "poses.txt").read_text().splitlines()
+    (d3 / "poses.txt").write_text("\n".join(lines[:3] + ["1 2 3"]) + "\n")
+    with pytest.raises(ScanError, match=r"poses\.txt:4: malformed pose line \(pose 3\).*got 3"):
+        SemanticKittiSequence(d3)[3]
+    assert _kinds(SemanticKittiSequence(d3)) == ["Scan", "Scan", "Scan", "SkippedScan"]
 
 
 def test_nonfinite_points_kept_in_place_for_the_mapper(tmp_path):

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import logging
+import os
 
 import taichi as ti
 
@@ -42,19 +43,44 @@ def is_initialized() -> bool:
     return ti.lang.impl.get_runtime().prog is not None
 
 
+def available_cores() -> int:
+    """CPU cores this process may run on (its affinity mask where the OS has one)."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):
+        return os.cpu_count() or 1
+
+
+def usable_threads(requested: int) -> int:
+    """The kernel threads to start for `requested`: ValueError below 1; above the cores
+    available, the cores available (each Taichi CPU thread is an OS thread: 100,000 of them
+    exhaust the machine's process limit), with one warning saying so."""
+    if isinstance(requested, bool) or not isinstance(requested, int) or requested < 1:
+        raise ValueError(f"--threads {requested}: expected a whole number >= 1 (the CPU "
+                         f"threads of the kernels)")
+    cores = available_cores()
+    if requested > cores:
+        log.warning("--threads %d: this machine has %d cores available; using %d threads",
+                    requested, cores, cores)
+        return cores
+    return requested
+
+
 def init_taichi(arch: str = "cpu", threads: int | None = 2, debug: bool = False,
                 device_memory_gb: float = 4.0) -> str:
     """Initialise Taichi on `arch` ("cpu" or "cuda"); returns the arch actually running.
 
-    Sparse SNodes exist only on CPU and CUDA in taichi 1.7.4, so other backends are refused
-    rather than silently falling back. CUDA sparse memory comes from a preallocated pool
-    (1 GB by default), so its size is set explicitly.
+    `threads`: CPU threads for the kernels (None: Taichi's default), refused below 1 and
+    capped at the cores available (`usable_threads`). Sparse SNodes exist only on CPU and
+    CUDA in taichi 1.7.4, so other backends are refused rather than silently falling back.
+    CUDA sparse memory comes from a preallocated pool (1 GB by default), so its size is set
+    explicitly.
     """
     if arch not in _ARCHS:
         raise ValueError(f"arch must be one of {sorted(_ARCHS)}, got {arch!r}")
     kwargs = dict(arch=_ARCHS[arch], debug=debug, log_level=ti.WARN, random_seed=0)
-    if arch == "cpu" and threads:
-        kwargs["cpu_max_num_threads"] = int(threads)
+    if arch == "cpu" and threads is not None:
+        kwargs["cpu_max_num_threads"] = usable_threads(threads)
     if arch == "cuda":
         kwargs["device_memory_GB"] = float(device_memory_gb)
     global _generation

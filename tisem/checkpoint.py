@@ -33,7 +33,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from tisem.config import MapperConfig, RunConfig, _apply, mapper_config_from_dict, to_dict
+from tisem.config import (ConfigError, MapperConfig, RunConfig, mapper_config_from_dict,
+                          run_config_from_dict, to_dict)
 from tisem.io import mapfile
 from tisem.progress import RunProgress
 from tisem.snapshot import MapSnapshot
@@ -105,12 +106,18 @@ class Checkpoint:
     def last_index(self) -> int | None:
         """`Scan.index` of the last scan integrated before the checkpoint (None: unknown)."""
         v = self.meta.get("last_index")
-        return None if v is None else int(v)
+        if v is not None and (isinstance(v, bool) or not isinstance(v, int) or v < 0):
+            raise mapfile.MapFileError(f"{self.path}: last_index {v!r} is not a scan number "
+                                       f"(an integer >= 0)")
+        return v
 
     @property
     def mapper_state(self) -> dict:
         # checkpoints nest the state; map.npz files (outputs.write_map_files) store it as meta
         state = self.meta.get("mapper_state", self.meta)
+        if not isinstance(state, dict):
+            raise mapfile.MapFileError(f"{self.path}: the mapper state is not a mapping: "
+                                       f"{state!r}"[:200])
         if state.get("origin_vox") is None and len(self.snapshot):
             log.warning("%s: no mapper state stored; rebuilding one from the voxels", self.path)
             return _state_from_snapshot(self.snapshot)
@@ -127,17 +134,55 @@ class Checkpoint:
         return dict(self.meta.get("source") or {})
 
     def config(self) -> MapperConfig:
-        """The `MapperConfig` the map was built with."""
-        return mapper_config_from_dict(self.mapper_config)
+        """The `MapperConfig` the map was built with. Its store_dir, a folder on the machine
+        that wrote the file, is kept only where that folder exists here."""
+        data = dict(self.mapper_config)
+        store_dir = data.get("store_dir")
+        if store_dir is not None and not (isinstance(store_dir, str)
+                                          and os.path.isdir(store_dir)):
+            log.info("%s: its store_dir %r is not a folder here; the store spills to the "
+                     "system's temp folder", self.path, store_dir)
+            data["store_dir"] = None
+        try:
+            return mapper_config_from_dict(data, f"{self.path} mapper config")
+        except ConfigError as exc:
+            raise mapfile.MapFileError(str(exc)) from None
 
     def run_config(self) -> RunConfig:
         """The resolved `RunConfig` of the run (only the mapper part for a bare map file)."""
-        cfg = RunConfig()
         data = self.meta.get("run_config")
-        if data:
-            _apply(cfg, data, f"{self.path} run_config")
-        cfg.mapper = self.config()
+        mapper = self.config()
+        if not data:
+            return RunConfig(mapper=mapper)
+        if not isinstance(data, dict):
+            raise mapfile.MapFileError(f"{self.path}: run_config is not a mapping")
+        try:
+            cfg = run_config_from_dict({k: v for k, v in data.items() if k != "mapper"},
+                                       f"{self.path} run_config")
+        except ConfigError as exc:
+            raise mapfile.MapFileError(str(exc)) from None
+        cfg.mapper = mapper
         return cfg
+
+    def check(self) -> None:
+        """Refuse (MapFileError, one line) a file whose parts do not fit together: a mapper
+        config that is not valid, voxels of another size or class count than it says, a
+        mapper state that is not one, voxels beyond the map's key range, a progress that is
+        not one a run can have saved."""
+        cfg = self.config()
+        snap = self.snapshot
+        if abs(snap.resolution_m - cfg.resolution_m) > 1e-9 * cfg.resolution_m:
+            raise mapfile.MapFileError(
+                f"{self.path}: its voxels are {snap.resolution_m:g} m but its mapper config "
+                f"says resolution_m = {cfg.resolution_m:g}")
+        if snap.counts.shape[1] != cfg.num_classes:
+            raise mapfile.MapFileError(
+                f"{self.path}: its voxels have {snap.counts.shape[1]} class counters but its "
+                f"mapper config says num_classes = {cfg.num_classes}")
+        _check_state(self.path, self.mapper_state, snap)
+        self.run_config()
+        self.progress(cfg.num_classes)
+        self.last_index
 
     def build_mapper(self, profile: bool = False, store_dir: str | None = None) -> Mapper:
         """A fresh `Mapper(config)` restored to this checkpoint's map and state. `store_dir`:
@@ -177,11 +222,62 @@ class Checkpoint:
             raise mapfile.MapFileError(f"{self.path}: {exc}") from None
 
 
+def _check_state(path: Path, state: dict, snapshot: MapSnapshot) -> None:
+    """A mapper state (`Mapper.state()`) that can be restored, and voxels within its keys'
+    range around the origin; MapFileError otherwise."""
+    from tisem.store_segments import KEY_LIMIT     # (imports the layout, and with it taichi)
+
+    def bad(what: str) -> mapfile.MapFileError:
+        return mapfile.MapFileError(f"{path}: the mapper state is not one a map can have: "
+                                    f"{what}")
+
+    def voxel(name: str, optional: bool) -> np.ndarray | None:
+        v = state.get(name)
+        if v is None and optional:
+            return None
+        if (not isinstance(v, list) or len(v) != 3
+                or not all(isinstance(x, int) and not isinstance(x, bool) for x in v)):
+            raise bad(f"{name} {v!r} is not three integers")
+        return np.asarray(v, np.int64)
+
+    if not isinstance(state, dict):
+        raise bad(f"{state!r} is not a mapping")
+    if state.get("origin_vox") is None:
+        if len(snapshot):
+            raise bad("no origin_vox for a map that has voxels")
+        return
+    origin = voxel("origin_vox", optional=False)
+    center = voxel("center_vox", optional=True)
+    for name in ("t0", "last_stamp_s"):
+        v = state.get(name)
+        if (v is not None or name == "t0") and (isinstance(v, bool)
+                                                or not isinstance(v, (int, float))
+                                                or not np.isfinite(v)):
+            raise bad(f"{name} {v!r} is not a finite time")
+    scans = state.get("scans", 0)
+    if isinstance(scans, bool) or not isinstance(scans, int) or scans < 0:
+        raise bad(f"scans {scans!r} is not a count")
+    if np.abs(origin).max() > 2 ** 62 or (center is not None
+                                          and np.abs(center).max() > KEY_LIMIT):
+        raise bad(f"origin_vox {origin.tolist()} / center_vox {state.get('center_vox')} are "
+                  f"out of range")
+    if len(snapshot):
+        # in float64: int64 keys near their limits would wrap around
+        reach = float(np.abs(snapshot.keys.astype(np.float64) - origin).max())
+        if reach > KEY_LIMIT:
+            raise mapfile.MapFileError(
+                f"{path}: voxel keys reach {reach:,.0f} voxels from the map origin; a map holds "
+                f"at most {KEY_LIMIT:,}")
+
+
 def load_checkpoint(path: str | os.PathLike) -> Checkpoint:
-    """Read a checkpoint: `path` is a results folder, its checkpoint folder or the file."""
+    """Read a checkpoint: `path` is a results folder, its checkpoint folder or the file.
+    A file whose parts do not fit together is refused (`Checkpoint.check`, MapFileError)."""
     file = checkpoint_file(path)
     snapshot, config, meta = mapfile.load_map_file(file)
-    return Checkpoint(file, snapshot, config, meta)
+    ckpt = Checkpoint(file, snapshot, config, meta)
+    ckpt.check()
+    return ckpt
 
 
 def save_checkpoint(directory: str | os.PathLike, mapper: Mapper,
@@ -215,6 +311,7 @@ def mapper_from_file(path: str | os.PathLike) -> tuple[Mapper, Checkpoint]:
     file = _map_file(path)
     snapshot, config, meta = mapfile.load_map_file(file)
     ckpt = Checkpoint(file, snapshot, config, meta)
+    ckpt.check()
     return ckpt.build_mapper(), ckpt
 
 

@@ -1,34 +1,50 @@
 """What the map apps share: their options, logging, the prologue of a run and its errors.
 
     args = cli.parse_run_args(parser, argv)          # the app's options + add_run_args
-    return cli.run_app(body, args, log)              # AppError -> one logged line, exit 2
+    return cli.run_app(body, args, log)              # errors -> one logged line, exit status
 
     def body(args):
-        plan = cli.plan_run(args)                    # the config, or the checkpoint's (--resume)
+        plan = cli.plan_run(args)                    # every option checked, the config (or the
+                                                     # checkpoint's, --resume), the results folder
         ...open the input (inside `with cli.bad_input():`)...
-        plan.start(args)                             # Taichi backend, then the results folder
+        plan.start(args)                             # Taichi backend, then --overwrite clears
         result = plan.mapping_run(scans, args).run(show_progress=not args.no_progress)
+        return plan.finish(result)                   # results/latest, exit status
+
+Everything a user can get wrong is refused before anything is created: no results folder, no
+change to results/latest. The folder itself appears with the run's first file and
+results/latest points to it once the run has finished.
+
+Exit status: 0 done; 1 the run could not finish (a full disk: `RunError`), what it wrote is
+kept; 2 a bad command line, config or input (`AppError`, `ConfigError`, `DatasetError`); 130
+interrupted (Ctrl-C, `RunInterrupted`).
 """
 from __future__ import annotations
 
 import argparse
 import datetime as _dt
 import logging
+import math
 import os
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Callable, Iterable, Iterator
 
-from tisem.config import MODES, RunConfig, load_config
+from tisem.config import MODES, RunConfig, check_run_config, load_config
+from tisem.errors import ConfigError, DatasetError, RunError, RunInterrupted
+from tisem.outputs import clear_previous_run, is_results_folder
 
 if TYPE_CHECKING:                      # (the run imports the mapper, which starts Taichi)
     from tisem.checkpoint import Checkpoint
-    from tisem.run import MappingRun
+    from tisem.run import MappingRun, RunResult
 
+EXIT_RUN_FAILED = 1
 EXIT_BAD_INPUT = 2
+EXIT_INTERRUPTED = 130                 # 128 + SIGINT, what a shell reports for Ctrl-C
 # options a resumed run takes from its checkpoint: dest -> flag
 CONFIG_OPTIONS = {"config": "--config", "overrides": "--set", "mode": "--mode"}
+RESULTS_ROOT = "results"
 
 
 # --------------------------------------------------------------------------- options
@@ -44,9 +60,15 @@ def add_run_args(parser: argparse.ArgumentParser) -> None:
                    help="override a config value, e.g. --set tau_s=1.5 (repeatable)")
     g.add_argument("--first", type=int, help="first scan (inclusive)")
     g.add_argument("--last", type=int, help="last scan (inclusive)")
-    g.add_argument("--out", type=Path, help="output folder (default results/<timestamp>/)")
+    g.add_argument("--out", type=Path, help="output folder (default results/<timestamp>/); "
+                                            "must be empty or new, unless --overwrite")
+    g.add_argument("--overwrite", action="store_true",
+                   help="replace the results of a previous run in --out (its config.yaml, "
+                        "run.json, metrics.json, map files, predictions, checkpoint and "
+                        "synthetic data; nothing else in the folder is touched)")
     g.add_argument("--arch", choices=("cpu", "cuda"), default="cpu", help="Taichi backend")
-    g.add_argument("--threads", type=int, default=2, help="CPU threads for the kernels")
+    g.add_argument("--threads", type=int, default=2,
+                   help="CPU threads for the kernels (>= 1; capped at the cores available)")
     g.add_argument("--no-progress", action="store_true", help="no progress bar")
     g.add_argument("-v", "--verbose", action="store_true")
     g = parser.add_argument_group("checkpoints")
@@ -80,6 +102,13 @@ def setup_logging(verbose: bool = False) -> None:
                         format="%(levelname)s %(name)s: %(message)s")
 
 
+def finite_number(flag: str, value: float, low: float = 0.0) -> float:
+    """A command-line number that must be finite and >= low; AppError otherwise."""
+    if not (isinstance(value, (int, float)) and math.isfinite(value) and value >= low):
+        raise AppError(f"{flag} {value}: expected a finite number >= {low:g}")
+    return float(value)
+
+
 # --------------------------------------------------------------------------- errors
 
 class AppError(Exception):
@@ -97,19 +126,29 @@ def bad_input(prefix: str = "") -> Iterator[None]:
     try:
         yield
     except (KeyError, ValueError, OSError) as exc:
-        raise AppError(f"{prefix}{exc}") from None
+        message = exc.args[0] if isinstance(exc, KeyError) and exc.args else exc
+        raise AppError(f"{prefix}{message}") from None
 
 
 def run_app(body: Callable[[argparse.Namespace], int], args: argparse.Namespace,
             app_log: logging.Logger) -> int:
-    """Set up logging and run an app's `body(args)`; an `AppError` is logged on `app_log` as
-    one line (no traceback) and gives exit status 2."""
+    """Set up logging and run an app's `body(args)`; its errors are logged on `app_log` as
+    one line each (no traceback), with the exit status of the module docstring."""
     setup_logging(args.verbose)
     try:
         return body(args)
-    except AppError as exc:
+    except (AppError, ConfigError, DatasetError) as exc:
         app_log.error("%s", exc)
         return EXIT_BAD_INPUT
+    except RunError as exc:
+        app_log.error("%s", exc)
+        return EXIT_RUN_FAILED
+    except RunInterrupted as exc:
+        app_log.error("%s", exc)
+        return EXIT_INTERRUPTED
+    except KeyboardInterrupt:
+        app_log.error("interrupted")
+        return EXIT_INTERRUPTED
 
 
 # --------------------------------------------------------------------------- the prologue
@@ -125,21 +164,27 @@ def run_config_from_args(args: argparse.Namespace) -> RunConfig:
 
 
 def apply_frame_range(cfg: RunConfig, args: argparse.Namespace) -> None:
+    """--first / --last into `cfg`, checked with the rest of the config (ConfigError)."""
     if args.first is not None:
         cfg.first = args.first
     if args.last is not None:
         cfg.last = args.last
+    check_run_config(cfg)
 
 
 @dataclass
 class RunPlan:
-    """A map app's run before it starts: its config and, with --resume, the checkpoint it
-    continues; `start` adds the backend and the results folder."""
+    """A map app's run before it starts: its config, with --resume the checkpoint it
+    continues, and the results folder it will write (not made yet); `start` adds the
+    backend."""
 
     cfg: RunConfig
     checkpoint: Checkpoint | None = None
     out_dir: Path | None = None
     device: str = ""
+    threads: int = 2
+    overwrite: bool = False
+    link_latest: bool = False          # a results/<timestamp>/ folder: re-point results/latest
 
     @property
     def source(self) -> dict:
@@ -158,70 +203,127 @@ class RunPlan:
 
     def start(self, args: argparse.Namespace) -> None:
         """Start the Taichi backend (first, so that one that cannot start costs nothing), then
-        make the results folder: --out, the resumed run's folder, or results/<timestamp>/."""
+        with --overwrite clear what a previous run left in the results folder."""
         try:
-            self.device = init_backend(args)
+            self.device = init_backend(args.arch, self.threads)
         except BackendError as exc:
             raise AppError(str(exc)) from None
-        out = args.out
-        if out is None and self.checkpoint is not None:
-            out = self.checkpoint.results_dir
-        self.out_dir = results_dir(out)
+        if self.overwrite and self.out_dir.is_dir():
+            removed = clear_previous_run(self.out_dir)
+            if removed:
+                logging.getLogger(__name__).info("--overwrite: removed %d files of a previous "
+                                                 "run from %s", removed, self.out_dir)
 
     def mapping_run(self, scans: Iterable, args: argparse.Namespace, **options) -> MappingRun:
         """The run over `scans` (new, or the checkpoint's continued), checkpointing every
         --checkpoint-every scans; `options`: `MappingRun`'s (sequence_name, total, ...)."""
         from tisem.run import MappingRun
-        if self.checkpoint is None:
-            return MappingRun(scans, self.cfg, self.out_dir,
-                              checkpoint_every=args.checkpoint_every or 0, **options)
-        return MappingRun.resume(scans, self.checkpoint, self.cfg, self.out_dir,
-                                 checkpoint_every=args.checkpoint_every, **options)
+        with bad_input("resume: " if self.checkpoint is not None else ""):
+            if self.checkpoint is None:
+                return MappingRun(scans, self.cfg, self.out_dir,
+                                  checkpoint_every=args.checkpoint_every or 0, **options)
+            return MappingRun.resume(scans, self.checkpoint, self.cfg, self.out_dir,
+                                     checkpoint_every=args.checkpoint_every, **options)
+
+    def finish(self, result: RunResult) -> int:
+        """After the run: results/latest points to it, unless mapping stopped early (then one
+        line says so); the app's exit status."""
+        if result.stopped:
+            logging.getLogger(__name__).error(
+                "mapping stopped %s; the %d scans mapped before it are scored and written in "
+                "%s", result.stopped, result.metrics["scans"], self.out_dir)
+            return EXIT_RUN_FAILED
+        if self.link_latest:
+            point_latest(self.out_dir)
+        return 0
 
 
 def plan_run(args: argparse.Namespace) -> RunPlan:
-    """The config from the options, or with --resume the checkpoint's (--first / --last may
-    still change the frame range). Raises AppError."""
+    """Check every option, then the config from the options, or with --resume the
+    checkpoint's (--first / --last may still change the frame range), and the results folder.
+    Raises AppError / ConfigError; creates nothing."""
+    with bad_input():
+        from tisem.backend import usable_threads
+        threads = usable_threads(args.threads)
+    if args.checkpoint_every is not None and args.checkpoint_every < 1:
+        raise AppError(f"--checkpoint-every {args.checkpoint_every}: expected a whole number "
+                       f">= 1 (mapped scans between checkpoints)")
     if args.resume is None:
         with bad_input("config: "):
-            return RunPlan(run_config_from_args(args))
-    from tisem.checkpoint import load_checkpoint
-    with bad_input("resume: "):
-        ckpt = load_checkpoint(args.resume)
-        cfg = ckpt.run_config()
-    apply_frame_range(cfg, args)
-    return RunPlan(cfg, ckpt)
+            plan = RunPlan(run_config_from_args(args))
+    else:
+        from tisem.checkpoint import load_checkpoint
+        with bad_input("resume: "):
+            ckpt = load_checkpoint(args.resume)
+            cfg = ckpt.run_config()
+            apply_frame_range(cfg, args)
+        plan = RunPlan(cfg, ckpt)
+    plan.threads = threads
+    plan.overwrite = args.overwrite
+    plan.out_dir, plan.link_latest = choose_results_dir(args.out, plan.checkpoint,
+                                                        args.overwrite)
+    return plan
 
 
-def init_backend(args: argparse.Namespace) -> str:
+def init_backend(arch: str, threads: int) -> str:
     """Start Taichi as the options say; a backend that cannot start raises BackendError."""
     from tisem.backend import describe, init_taichi
     try:
-        init_taichi(args.arch, threads=args.threads)
+        init_taichi(arch, threads=threads)
     except RuntimeError as exc:
         raise BackendError(str(exc)) from None
     return describe()
 
 
-def results_dir(out: Path | None, root: str | Path = "results") -> Path:
-    """`out` (made if missing), or results/<timestamp>/ with a `latest` link next to it."""
-    if out is not None:
-        out = Path(out)
-        out.mkdir(parents=True, exist_ok=True)
-        return out
-    root = Path(root)
+# --------------------------------------------------------------------------- results folder
+
+def choose_results_dir(out: Path | None, checkpoint: Checkpoint | None, overwrite: bool,
+                       root: str | Path = RESULTS_ROOT) -> tuple[Path, bool]:
+    """The folder the run will write (not made here) and whether results/latest is to point
+    to it: --out; else the resumed run's folder; else a new results/<timestamp>/.
+
+    --out must be a folder that is new or empty, or the folder of the run being resumed, or,
+    with --overwrite, a previous run's results folder; AppError otherwise."""
+    resumed = checkpoint.results_dir.resolve() if checkpoint is not None else None
+    if out is None:
+        if resumed is not None:
+            return checkpoint.results_dir, False
+        return new_timestamped_dir(Path(root)), True
+    out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise AppError(f"--out {out}: is a file, not a folder")
+    if not out.is_dir() or out.resolve() == resumed:
+        return out, False
+    contents = sorted(p.name for p in out.iterdir())
+    if not contents:
+        return out, False
+    shown = ", ".join(contents[:5]) + (", ..." if len(contents) > 5 else "")
+    if not overwrite:
+        raise AppError(f"--out {out}: the folder is not empty ({shown}); give --overwrite to "
+                       f"replace a previous run's results there, or another --out")
+    if not is_results_folder(out):
+        raise AppError(f"--out {out}: the folder is not empty ({shown}) and holds no tisem "
+                       f"results (no run.json) for --overwrite to replace; choose another --out")
+    return out, False
+
+
+def new_timestamped_dir(root: Path) -> Path:
+    """results/<timestamp>/ (with a suffix when taken); not made here."""
     stamp = _dt.datetime.now().strftime("%Y-%m-%d_%H-%M-%S")
     out = root / stamp
     k = 1
     while out.exists():
         out = root / f"{stamp}_{k}"
         k += 1
-    out.mkdir(parents=True)
-    latest = root / "latest"
+    return out
+
+
+def point_latest(out: Path) -> None:
+    """results/latest -> `out` (a sibling), replacing the old link."""
+    latest = out.parent / "latest"
     try:
         if latest.is_symlink() or latest.exists():
             latest.unlink()
         os.symlink(out.name, latest)
     except OSError:
         pass   # a filesystem without links: the timestamped folder is what counts
-    return out

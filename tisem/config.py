@@ -1,5 +1,12 @@
 """Configuration: a dataclass per concern, loaded from YAML, overridable with `key=value`.
 
+Every field has one rule (`MAPPER_RULES`, `RUN_RULES`, tisem/config_rules.py): its type, its
+range, and that it is finite. `MapperConfig.validate()` applies them, then the rules between
+fields, then asks the map geometry (`tisem.geometry.MapGeometry`) whether a map of these sizes
+can be built. A mistake is one `ConfigError` line naming the key, the value and what is allowed.
+
+YAML is read with safe tags only and with YAML 1.2 numbers: `1e-4` is the number a user means,
+not the string YAML 1.1 makes of it; a quoted `"0.2"` stays a string, and is refused as one.
 Every results folder gets the resolved config (`config.yaml`), so a run can be repeated.
 """
 from __future__ import annotations
@@ -8,9 +15,16 @@ import dataclasses
 from dataclasses import dataclass, field, fields
 from pathlib import Path
 
+import numpy as np
 import yaml
 
-MODES = ("st", "adaptive", "spatial", "bki", "csm")
+from tisem.config_rules import (INPUTS, MAX_CLASSES, MODES, Choice, Flag, Folder, Number,
+                                check_fields, read_yaml, yaml_value)
+from tisem.errors import ConfigError
+
+__all__ = ["MODES", "INPUTS", "MAX_CLASSES", "MapperConfig", "RunConfig", "ConfigError",
+           "load_config", "save_config", "to_dict", "set_value", "mapper_config_from_dict",
+           "run_config_from_dict"]
 
 
 @dataclass
@@ -55,28 +69,19 @@ class MapperConfig:
                                      # checkpoint uses the run's, not the saved one
 
     def validate(self) -> None:
-        if self.mode not in MODES:
-            raise ValueError(f"mode must be one of {MODES}, got {self.mode!r}")
-        if self.point_weight not in ("unit", "count"):
-            raise ValueError(f"point_weight must be 'unit' or 'count', got {self.point_weight!r}")
-        positive = ("resolution_m", "max_range_m", "sigma0", "ell_min_m", "ell_max_m",
-                    "ell_fixed_vox", "tau_s", "window_xy_m", "window_z_m")
-        for name in positive:
-            if not getattr(self, name) > 0:
-                raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
-        if self.ell_min_m > self.ell_max_m:
-            raise ValueError(f"ell_min_m ({self.ell_min_m}) > ell_max_m ({self.ell_max_m})")
-        if self.min_range_m < 0 or self.min_range_m >= self.max_range_m:
-            raise ValueError("need 0 <= min_range_m < max_range_m")
-        if self.max_range_m >= 1000:
-            raise ValueError("max_range_m must be < 1000 m (points beyond 1 km are treated as "
-                             "corrupt)")
+        """Every field against its rule (`MAPPER_RULES`), the rules between fields, then the
+        sizes the map would be built with (`tisem.geometry.MapGeometry`); ConfigError."""
+        check_fields(self, MAPPER_RULES)
+        if self.min_range_m >= self.max_range_m:
+            raise ConfigError(f"min_range_m = {self.min_range_m:g}: must be below max_range_m "
+                              f"= {self.max_range_m:g}")
         if self.min_z_m >= self.max_z_m:
-            raise ValueError("need min_z_m < max_z_m")
-        if self.prior < 0:
-            raise ValueError("prior must be >= 0")
-        if self.num_classes < 2:
-            raise ValueError("num_classes must be >= 2")
+            raise ConfigError(f"min_z_m = {self.min_z_m:g}: must be below max_z_m = "
+                              f"{self.max_z_m:g}")
+        if self.ell_min_m > self.ell_max_m:
+            raise ConfigError(f"ell_min_m = {self.ell_min_m:g}: must not exceed ell_max_m = "
+                              f"{self.ell_max_m:g}")
+        check_geometry(self)
 
     # the kernel length bounds that the chosen mode actually uses
     @property
@@ -111,62 +116,138 @@ class RunConfig:
     online_eval: bool = True
 
 
-def _coerce(value: str, current):
-    """Parse a `--set` value with YAML rules, keeping the field's type where obvious."""
-    parsed = yaml.safe_load(value)
-    if isinstance(current, bool) or current is None:
-        return parsed
-    if isinstance(current, float) and isinstance(parsed, int):
-        return float(parsed)
-    return parsed
+# what each field may hold (tisem/config_rules.py); ranges wider than any sensible value, the
+# sizes the map is built with are checked by `check_geometry`
+MAPPER_RULES = {
+    "mode": Choice(MODES),
+    "resolution_m": Number(float, 0.01, 10.0, low_open=False, unit="m"),
+    # the kernels keep a scan voxel's classes as the bits of an int32
+    "num_classes": Number(int, 2, MAX_CLASSES),
+    "min_range_m": Number(float, 0.0, 1000.0, unit="m"),
+    # points beyond 1 km are treated as corrupt data
+    "max_range_m": Number(float, 0.0, 1000.0, low_open=True, high_open=True, unit="m"),
+    "min_z_m": Number(float, -1000.0, 1000.0, unit="m"),
+    "max_z_m": Number(float, -1000.0, 1000.0, unit="m"),
+    "min_points": Number(int, 1, 1_000_000),
+    # pseudo-counts and kernel heights beyond 1e6 swamp any evidence float32 counters can add
+    "prior": Number(float, 0.0, 1.0e6),
+    "sigma0": Number(float, 0.0, 1.0e6, low_open=True),
+    "ell_min_m": Number(float, 0.0, 100.0, low_open=True, unit="m"),
+    "ell_max_m": Number(float, 0.0, 100.0, low_open=True, unit="m"),
+    "ell_fixed_vox": Number(float, 0.0, 100.0, low_open=True, unit="voxels"),
+    "point_weight": Choice(("count", "unit")),
+    # 1/tau is a float32 in the kernels; below 1 us every decay is exp(-1e5) = 0 anyway (mode
+    # spatial), and tau = inf is mode adaptive
+    "tau_s": Number(float, 1.0e-6, 1.0e12, unit="s"),
+    "window_xy_m": Number(float, 0.0, 1.0e5, low_open=True, unit="m"),
+    "window_z_m": Number(float, 0.0, 1.0e5, low_open=True, unit="m"),
+    "max_live_blocks": Number(int, 1, 2 ** 31 - 1),
+    "store_dir": Folder(),
+}
+
+# a live window of 5 km at 0.2 m voxels (2^29 top cells of the SNode tree) takes 1.2 GB when the
+# map is built, measured; more is refused before any field exists
+MAX_TOP_CELLS = 2 ** 29
+
+RUN_RULES = {
+    "mapper": None,                # a section: its own rules
+    "input": Choice(INPUTS),
+    "first": Number(int, 0, 2 ** 62),
+    "last": Number(int, 0, 2 ** 62, optional=True),
+    "online_eval": Flag(),
+}
 
 
-def _apply(obj, data: dict, where: str) -> None:
-    names = {f.name: f for f in fields(obj)}
+def check_geometry(cfg: MapperConfig) -> None:
+    """Whether a map of `cfg`'s sizes can be built: the live window holds a scan and its
+    kernel reach, the scan's table fits, the kernel reach fits the table's margin
+    (`MapGeometry.from_config` holds those rules); the window's storage stays within memory
+    and within the store's key range."""
+    from kernels.layout import TOP
+    from tisem.geometry import MapGeometry
+    from tisem.store_segments import KEY_LIMIT
+    try:
+        geometry = MapGeometry.from_config(cfg)
+    except ValueError as exc:
+        reason = str(exc)
+        if reason.startswith("kernel reach"):
+            key = "ell_max_m" if cfg.adaptive else "ell_fixed_vox"
+            reason = (f"{key} = {getattr(cfg, key):g} at resolution_m = "
+                      f"{cfg.resolution_m:g}: {reason}")
+        raise ConfigError(reason) from None
+    windows = f"window_xy_m = {cfg.window_xy_m:g} / window_z_m = {cfg.window_z_m:g}"
+    top_cells = int(np.prod([n // TOP for n in geometry.storage_extent]))
+    if top_cells > MAX_TOP_CELLS:
+        raise ConfigError(f"{windows} at resolution_m = {cfg.resolution_m:g}: the live "
+                          f"window's storage needs {top_cells:,} top cells; tisem takes at most "
+                          f"{MAX_TOP_CELLS:,} (1.2 GB): lower the window sizes or raise "
+                          f"resolution_m")
+    if int(geometry.window_half_vox.max()) * 4 >= KEY_LIMIT:
+        raise ConfigError(f"{windows}: the live window must stay under "
+                          f"{KEY_LIMIT // 4 * cfg.resolution_m:,.0f} m at resolution_m = "
+                          f"{cfg.resolution_m:g} (a quarter of the map's key range)")
+
+
+def check_run_config(cfg: RunConfig) -> None:
+    """Every field of `cfg` (its mapper section included) against its rule; ConfigError."""
+    check_fields(cfg, RUN_RULES)
+    if cfg.last is not None and cfg.last < cfg.first:
+        raise ConfigError(f"last = {cfg.last}: must not be before first = {cfg.first}")
+    cfg.mapper.validate()
+
+
+def _apply(obj, data: dict, where: str, rules: dict) -> None:
+    """Set the fields of `obj` from `data`, each value checked by its rule; `where` (a file,
+    `--set`) starts every message."""
+    names = {f.name for f in fields(obj)}
     for key, value in data.items():
         if key not in names:
-            raise KeyError(f"{where}: unknown key {key!r}; known: {sorted(names)}")
+            raise ConfigError(f"{where}: unknown key {key!r}; known: {', '.join(sorted(names))}")
         current = getattr(obj, key)
         if dataclasses.is_dataclass(current):
             if not isinstance(value, dict):
-                raise ValueError(f"{where}: {key} must be a mapping")
-            _apply(current, value, f"{where}.{key}")
+                raise ConfigError(f"{where}: {key} must be a mapping of its keys, got "
+                                  f"{value!r}")
+            _apply(current, value, f"{where}: {key}", MAPPER_RULES)
         else:
-            setattr(obj, key, value)
+            setattr(obj, key, rules[key].check(key, value, where))
 
 
 def set_value(cfg: RunConfig, assignment: str) -> None:
     """Apply one `key=value` override. Mapper keys may be given bare (`tau_s=1`) or dotted."""
     if "=" not in assignment:
-        raise ValueError(f"--set expects key=value, got {assignment!r}")
-    key, value = assignment.split("=", 1)
+        raise ConfigError(f"--set {assignment}: expected key=value")
+    key, text = assignment.split("=", 1)
     path = key.strip().split(".")
     if len(path) == 1 and not hasattr(cfg, path[0]):
         path = ["mapper"] + path
-    obj = cfg
-    for part in path[:-1]:
-        obj = getattr(obj, part, None)
-        if not dataclasses.is_dataclass(obj):
-            raise KeyError(f"--set {assignment}: {part!r} is not a config section")
-    if not hasattr(obj, path[-1]) or dataclasses.is_dataclass(getattr(obj, path[-1])):
-        raise KeyError(f"--set {assignment}: unknown key {key!r}")
-    setattr(obj, path[-1], _coerce(value, getattr(obj, path[-1])))
+    if path[0] == "mapper" and len(path) == 2:
+        obj, rules = cfg.mapper, MAPPER_RULES
+    elif len(path) == 1:
+        obj, rules = cfg, RUN_RULES
+    else:
+        raise ConfigError(f"--set {assignment}: unknown key {key.strip()!r}")
+    if path[-1] not in rules or rules[path[-1]] is None:
+        raise ConfigError(f"--set {assignment}: unknown key {key.strip()!r}; known: "
+                          f"{', '.join(sorted(k for k in MAPPER_RULES))} (and input, first, "
+                          f"last, online_eval)")
+    value = yaml_value(text, f"--set {assignment}")
+    setattr(obj, path[-1], rules[path[-1]].check(path[-1], value, "--set"))
 
 
 def load_config(path: str | Path | None = None, overrides: list[str] | tuple = ()) -> RunConfig:
+    """The default RunConfig, then the YAML file `path` (a whole RunConfig or just its mapper
+    section), then the `key=value` overrides; validated (ConfigError)."""
     cfg = RunConfig()
     if path is not None:
-        with open(path) as f:
-            data = yaml.safe_load(f) or {}
-        if not isinstance(data, dict):
-            raise ValueError(f"{path}: expected a mapping at the top level")
+        data = read_yaml(path)
         # a file may hold a whole RunConfig or just the mapper section
-        if "mapper" not in data and any(k in {f.name for f in fields(MapperConfig)} for k in data):
+        if "mapper" not in data and any(k in MAPPER_RULES for k in data):
             data = {"mapper": data}
-        _apply(cfg, data, str(path))
+        _apply(cfg, data, str(path), RUN_RULES)
     for assignment in overrides:
         set_value(cfg, assignment)
-    cfg.mapper.validate()
+    check_run_config(cfg)
     return cfg
 
 
@@ -179,8 +260,21 @@ def save_config(cfg: RunConfig, path: str | Path) -> None:
         yaml.safe_dump(to_dict(cfg), f, sort_keys=False)
 
 
-def mapper_config_from_dict(data: dict) -> MapperConfig:
+def mapper_config_from_dict(data: dict, where: str = "mapper") -> MapperConfig:
+    """A validated MapperConfig from a dict (a checkpoint's, a map file's); ConfigError."""
     cfg = MapperConfig()
-    _apply(cfg, data, "mapper")
+    if not isinstance(data, dict):
+        raise ConfigError(f"{where}: expected a mapping of mapper keys, got {data!r}")
+    _apply(cfg, data, where, MAPPER_RULES)
     cfg.validate()
+    return cfg
+
+
+def run_config_from_dict(data: dict, where: str = "run config") -> RunConfig:
+    """A validated RunConfig from a dict (a checkpoint's); ConfigError."""
+    cfg = RunConfig()
+    if not isinstance(data, dict):
+        raise ConfigError(f"{where}: expected a mapping of config keys, got {data!r}")
+    _apply(cfg, data, where, RUN_RULES)
+    check_run_config(cfg)
     return cfg

@@ -1,6 +1,8 @@
 """The files of a results folder: config.yaml and run.json first, metrics.json at the end,
 then the map files (map.npz, map.ply, map_bev.png). Per-point predictions are written scan by
-scan (`tisem.io.semantickitti.write_predictions`)."""
+scan (`tisem.io.semantickitti.write_predictions`), checkpoints to checkpoint/; map_mcap.py adds
+map.mcap and mcap_report.json, map_kitti.py's embedded default its synthetic/ sequence,
+render.py compare.png. `clear_previous_run` removes exactly these, for --overwrite."""
 from __future__ import annotations
 
 import json
@@ -17,7 +19,14 @@ if TYPE_CHECKING:
 
 log = logging.getLogger(__name__)
 
-__all__ = ["write_run_info", "write_metrics", "write_map_files"]
+__all__ = ["write_run_info", "write_metrics", "write_map_files", "is_results_folder",
+           "clear_previous_run", "RUN_FILES"]
+
+# what a run writes at the top of its folder
+RUN_FILES = ("config.yaml", "run.json", "metrics.json", "map.npz", "map.ply", "map_bev.png",
+             "map.mcap", "mcap_report.json", "compare.png")
+CHECKPOINT_FILES = ("checkpoint.npz", ".checkpoint.npz.*.tmp")
+PREDICTION_FILES = ("*.label", "*.label.tmp")
 
 
 def write_run_info(out_dir: Path, cfg: RunConfig, info: dict) -> None:
@@ -54,3 +63,44 @@ def write_map_files(out_dir: Path, mapper: Mapper, config: MapperConfig,
         log.warning("the map is empty: no %s written", paths["bev"].name)
         del paths["bev"]
     return paths
+
+
+def is_results_folder(folder: Path) -> bool:
+    """Whether `folder` holds a tisem run's results (its run.json)."""
+    return (Path(folder) / "run.json").is_file()
+
+
+def clear_previous_run(folder: Path) -> int:
+    """Remove what a run wrote in `folder` (module docstring): the files of RUN_FILES,
+    sequences/*/predictions/ label files, checkpoint/ files and the synthetic/ sequence;
+    folders left empty go too, anything else stays. Returns the number of files removed."""
+    from tisem.synth.sequence import clear_sequence
+    folder = Path(folder)
+    removed = 0
+
+    def remove(paths) -> None:
+        nonlocal removed
+        for path in paths:
+            if path.is_file() or path.is_symlink():
+                path.unlink()
+                removed += 1
+
+    remove(folder / name for name in RUN_FILES)
+    for predictions in folder.glob("sequences/*/predictions"):
+        remove(p for pattern in PREDICTION_FILES for p in predictions.glob(pattern))
+        _remove_empty(predictions, up_to=folder)
+    checkpoint = folder / "checkpoint"
+    remove(p for pattern in CHECKPOINT_FILES for p in checkpoint.glob(pattern))
+    _remove_empty(checkpoint, up_to=folder)
+    synthetic = folder / "synthetic"
+    if synthetic.is_dir():
+        removed += clear_sequence(synthetic)
+        _remove_empty(synthetic, up_to=folder)
+    return removed
+
+
+def _remove_empty(path: Path, up_to: Path) -> None:
+    """Remove `path` and its parents below `up_to` while they are empty folders."""
+    while path != up_to and path.is_dir() and not any(path.iterdir()):
+        path.rmdir()
+        path = path.parent

@@ -48,9 +48,21 @@ class DropLog:
 
     @classmethod
     def from_dict(cls, saved: dict | None) -> DropLog:
-        """The log `to_dict()` saved (None: an empty one)."""
+        """The log `to_dict()` saved (None: an empty one); ValueError for counts that are not
+        whole numbers >= 0."""
         saved = saved or {}
-        return cls(saved.get("totals"), saved.get("scans"))
+        if not isinstance(saved, dict):
+            raise ValueError(f"progress dropped: expected a mapping, got {saved!r}")
+        totals = saved.get("totals") or {}
+        scans = saved.get("scans") or []
+        if not isinstance(totals, dict) or not isinstance(scans, list) \
+                or not all(isinstance(s, dict) for s in scans):
+            raise ValueError("progress dropped: expected totals {kind: count} and a list of "
+                             "per-scan records")
+        for kind, count in totals.items():
+            if isinstance(count, bool) or not isinstance(count, int) or count < 0:
+                raise ValueError(f"progress dropped {kind}: {count!r} is not a count >= 0")
+        return cls(totals, scans)
 
     def add(self, scan: Scan, report: IntegrationReport) -> None:
         """Count what `Mapper.integrate` (its `IntegrationReport`) and the reader dropped."""
@@ -74,7 +86,9 @@ class RunProgress:
     online / input: confusions of the map right after each scan and of the network's own
     labels; seconds: mapping time of each integrated scan; skipped: scans not mapped, in
     order; trajectory: sensor positions of the integrated scans; drops: points lost;
-    last_index: `Scan.index` of the last integrated scan (None before the first).
+    last_index: `Scan.index` of the last integrated scan (None before the first); indices:
+    `Scan.index` of every integrated scan (None: a progress saved without them, where a scan
+    up to last_index that was not skipped was mapped).
     """
 
     online: Confusion
@@ -84,6 +98,8 @@ class RunProgress:
     trajectory: list[np.ndarray] = field(default_factory=list)
     drops: DropLog = field(default_factory=DropLog)
     last_index: int | None = None
+    indices: list[int] | None = field(default_factory=list)
+    _mapped: set[int] = field(default_factory=set, init=False, repr=False, compare=False)
 
     @classmethod
     def start(cls, num_classes: int) -> RunProgress:
@@ -99,12 +115,24 @@ class RunProgress:
         """Whether the scan with this `Scan.index` was skipped (by its reader or the mapper)."""
         return any(s.index == index for s in self.skipped)
 
+    def is_mapped(self, index: int) -> bool:
+        """Whether the scan with this `Scan.index` was integrated (the final pass scores
+        exactly these)."""
+        if self.indices is not None:
+            if len(self._mapped) != len(self.indices):
+                self._mapped = set(self.indices)
+            return index in self._mapped
+        return (self.last_index is not None and index <= self.last_index
+                and not self.was_skipped(index))
+
     def add_mapped(self, scan: Scan, seconds: float, report: IntegrationReport) -> None:
         """Record one integrated scan (`report`: what `Mapper.integrate` returned)."""
         self.seconds.append(float(seconds))
         self.drops.add(scan, report)
         self.trajectory.append(scan.T_world_sensor[:3, 3])
         self.last_index = int(scan.index)
+        if self.indices is not None:
+            self.indices.append(int(scan.index))
 
     def add_skipped(self, skipped: SkippedScan) -> None:
         """Record a scan that was not mapped (the run logs it)."""
@@ -126,24 +154,83 @@ class RunProgress:
                         for s in self.skipped],
             "trajectory": [np.asarray(t, np.float64).tolist() for t in self.trajectory],
             "dropped": self.drops.to_dict(),
+            "indices": None if self.indices is None else [int(i) for i in self.indices],
         }
 
     @classmethod
     def from_dict(cls, saved: dict, num_classes: int) -> RunProgress:
-        """The progress `to_dict()` saved; ValueError when its confusions do not have
-        `num_classes` classes."""
+        """The progress `to_dict()` saved; ValueError (naming the entry) when anything in it
+        is not what a run can have written: confusions of another class count or with
+        negative counts, times or positions that are not finite, a last_index that is not a
+        scan number, lists of different lengths."""
+        if not isinstance(saved, dict):
+            raise ValueError(f"progress: expected a mapping, got {type(saved).__name__}")
         confusions = []
         for name in ("online", "input"):
             matrix = saved.get(name)
-            conf = Confusion(num_classes) if matrix is None else Confusion.from_matrix(matrix)
+            try:
+                conf = (Confusion(num_classes) if matrix is None
+                        else Confusion.from_matrix(np.asarray(matrix)))
+            except (ValueError, TypeError) as exc:
+                raise ValueError(f"progress {name} confusion: {exc}") from None
             if conf.num_classes != num_classes:
                 raise ValueError(f"{name} confusion of shape {conf.matrix.shape}, expected "
                                  f"{num_classes} classes")
             confusions.append(conf)
+        seconds = _floats(saved.get("seconds", []), "seconds", minimum=0.0)
+        trajectory = _positions(saved.get("trajectory", []))
+        if len(trajectory) != len(seconds):
+            raise ValueError(f"progress: {len(seconds)} scan times but {len(trajectory)} "
+                             f"positions")
+        indices = saved.get("indices")
+        if indices is not None:
+            indices = [_scan_index(i, "indices") for i in _list(indices, "indices")]
+            if len(indices) != len(seconds):
+                raise ValueError(f"progress: {len(seconds)} scan times but {len(indices)} "
+                                 f"scan indices")
         last = saved.get("last_index")
-        return cls(*confusions,
-                   seconds=[float(s) for s in saved.get("seconds", [])],
-                   skipped=[SkippedScan(**s) for s in saved.get("skipped", [])],
-                   trajectory=[np.asarray(t, np.float64) for t in saved.get("trajectory", [])],
-                   drops=DropLog.from_dict(saved.get("dropped")),
-                   last_index=None if last is None else int(last))
+        last = None if last is None else _scan_index(last, "last_index")
+        return cls(*confusions, seconds=seconds,
+                   skipped=[_skipped(s) for s in _list(saved.get("skipped", []), "skipped")],
+                   trajectory=trajectory, drops=DropLog.from_dict(saved.get("dropped")),
+                   last_index=last, indices=indices)
+
+
+def _list(value, name: str) -> list:
+    if not isinstance(value, list):
+        raise ValueError(f"progress {name}: expected a list, got {type(value).__name__}")
+    return value
+
+
+def _floats(values, name: str, minimum: float) -> list[float]:
+    out = []
+    for v in _list(values, name):
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not np.isfinite(v) \
+                or v < minimum:
+            raise ValueError(f"progress {name}: {v!r} is not a finite number >= {minimum:g}")
+        out.append(float(v))
+    return out
+
+
+def _positions(values) -> list[np.ndarray]:
+    out = []
+    for v in _list(values, "trajectory"):
+        p = np.asarray(v, dtype=object)
+        if p.shape != (3,) or not all(isinstance(x, (int, float)) and not isinstance(x, bool)
+                                      and np.isfinite(x) for x in p):
+            raise ValueError(f"progress trajectory: {v!r} is not a finite x y z position")
+        out.append(p.astype(np.float64))
+    return out
+
+
+def _scan_index(value, name: str) -> int:
+    if isinstance(value, bool) or not isinstance(value, int) or value < 0:
+        raise ValueError(f"progress {name}: {value!r} is not a scan number (an integer >= 0)")
+    return int(value)
+
+
+def _skipped(entry) -> SkippedScan:
+    if not isinstance(entry, dict) or set(entry) != {"index", "name", "reason"}:
+        raise ValueError(f"progress skipped: {entry!r} is not an index / name / reason record")
+    return SkippedScan(_scan_index(entry["index"], "skipped index"), str(entry["name"]),
+                       str(entry["reason"]))

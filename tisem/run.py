@@ -3,12 +3,19 @@
     result = MappingRun(SemanticKittiSequence(path), load_config(), "results/run").run()
     result = MappingRun.resume(SemanticKittiSequence(path), "results/run").run()  # after a crash
 
-The steps, in order: write config.yaml and run.json; map every scan (scoring the network's
-labels and, with `online_eval`, the map right after the scan), saving a checkpoint every N
-mapped scans; look every scan up in the finished map (the final-map protocol), writing its
-per-point predictions in SemanticKITTI layout; write metrics.json; write the map files.
-Bad scans arrive as `SkippedScan`s, or the mapper refuses them: each is logged once and
-listed in metrics.json, and the rest is mapped.
+The steps, in order: map every scan (scoring the network's labels and, with `online_eval`, the
+map right after the scan), saving a checkpoint every N mapped scans; look every mapped scan up
+in the finished map (the final-map protocol), writing its per-point predictions in
+SemanticKITTI layout; write metrics.json; write the map files. config.yaml and run.json are
+written with the first file, so a run that maps nothing leaves no folder behind.
+
+Bad scans arrive as `SkippedScan`s, or the pose gate (`tisem.pose_gate`: a pose far from the
+drive) or the mapper refuses them: each is logged once, listed in metrics.json and has no
+predictions file, and every protocol (input, online, final) scores the same scans, the mapped
+ones. Ctrl-C is acted on between scans (`RunInterrupted`, after a checkpoint when checkpoints
+are on); a disk that cannot take a checkpoint or the outputs ends the run with a `RunError`;
+a store that cannot spill stops the mapping, and the scans mapped so far are scored and
+written (`RunResult.stopped` says why).
 """
 from __future__ import annotations
 
@@ -26,10 +33,13 @@ from tqdm import tqdm
 from tisem import outputs
 from tisem.checkpoint import CHECKPOINT_DIR, Checkpoint, open_checkpoint, save_checkpoint
 from tisem.config import RunConfig
-from tisem.errors import SkippedScan
+from tisem.errors import NothingMapped, RunError, RunInterrupted, SkippedScan, os_error_text
 from tisem.evaluate import Confusion, network_labels, score_scan
+from tisem.interrupt import StopRequest
+from tisem.io.mapfile import remove_stale_temp_files
 from tisem.io.semantickitti import write_predictions
 from tisem.mapper import Mapper
+from tisem.pose_gate import Anchor, PoseGate, Verdict
 from tisem.progress import RunProgress
 from tisem.report import run_metrics
 from tisem.scan import Scan
@@ -43,13 +53,21 @@ OnScan = Callable[[Mapper, Scan, int], None]
 
 @dataclass
 class RunResult:
-    """A finished run: its metrics.json, the mapper holding the final map, where it wrote."""
+    """A finished run: its metrics.json, the mapper holding the final map, where it wrote;
+    `stopped`: why mapping ended before the stream did (None: it did not); `progress`: the
+    run's accumulators (`is_mapped` asks it)."""
 
     metrics: dict
     mapper: Mapper
     out_dir: Path
     skipped: list[SkippedScan] = field(default_factory=list)
     trajectory: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    stopped: str | None = None
+    progress: RunProgress | None = None
+
+    def is_mapped(self, index: int) -> bool:
+        """Whether the scan with this `Scan.index` was mapped (has predictions, is scored)."""
+        return self.progress is not None and self.progress.is_mapped(index)
 
 
 class MappingRun:
@@ -75,6 +93,8 @@ class MappingRun:
         self.sequence_name = sequence_name
         self.total = total
         self.checkpoint_every = int(checkpoint_every or 0)
+        if self.checkpoint_every < 0:
+            raise ValueError(f"checkpoint_every must be >= 0, got {checkpoint_every}")
         self.checkpoint_dir = (Path(checkpoint_dir) if checkpoint_dir is not None
                                else self.out_dir / CHECKPOINT_DIR)
         # run.json; a resumed run finds its checkpoint cadence there
@@ -82,6 +102,10 @@ class MappingRun:
                          sequence=sequence_name)
         self.mapper = mapper or Mapper(cfg.mapper)
         self.progress = progress or RunProgress.start(self.mapper.C)
+        self.checkpointed_index: int | None = None   # last_index of the newest checkpoint
+        self.stopped: str | None = None
+        self._info_written = False
+        self._stop = StopRequest()
 
     @classmethod
     def resume(cls, scans: Iterable[Scan | SkippedScan], checkpoint: Checkpoint | str | os.PathLike,
@@ -93,10 +117,12 @@ class MappingRun:
         config, results folder, sequence name, run.json and checkpoint cadence. `scans` is the
         whole stream again; what the checkpoint holds is passed over. A `cfg` whose mapper
         config differs from the checkpoint's is refused (ValueError) before any map is built.
+        Temporary files a killed save left beside the checkpoint are removed.
         """
         ckpt = open_checkpoint(checkpoint)
         cfg = cfg if cfg is not None else ckpt.run_config()
         ckpt.check_run_config(cfg)
+        remove_stale_temp_files(ckpt.path)
         source = ckpt.source
         mapper = ckpt.build_mapper(store_dir=cfg.mapper.store_dir)
         progress = ckpt.progress(mapper.C)
@@ -105,63 +131,105 @@ class MappingRun:
         if source_info is None:
             source_info = {k: v for k, v in source.items()
                            if k not in ("sequence", "checkpoint_every")}
-        return cls(scans, cfg, out_dir if out_dir is not None else ckpt.results_dir,
-                   sequence_name=sequence_name or source.get("sequence", "00"),
-                   source_info=source_info,
-                   checkpoint_every=(checkpoint_every if checkpoint_every is not None
-                                     else source.get("checkpoint_every", 0)),
-                   mapper=mapper, progress=progress, **options)
+        run = cls(scans, cfg, out_dir if out_dir is not None else ckpt.results_dir,
+                  sequence_name=sequence_name or source.get("sequence", "00"),
+                  source_info=source_info,
+                  checkpoint_every=(checkpoint_every if checkpoint_every is not None
+                                    else source.get("checkpoint_every", 0)),
+                  mapper=mapper, progress=progress, **options)
+        run.checkpointed_index = progress.last_index
+        return run
 
     # ------------------------------------------------------------------ the steps
     def run(self, *, show_progress: bool = True, on_scan: OnScan | None = None,
             write_map_files: bool = True) -> RunResult:
         """Every step (module docstring); `on_scan(mapper, scan, k)` is called after each
-        integrated scan (k: its position in the stream)."""
-        outputs.write_run_info(self.out_dir, self.cfg, self.info)
-        final_scans = self.map_scans(show_progress, on_scan)
-        final = self.final_pass(final_scans)
+        integrated scan (k: its position in the stream). Raises `NothingMapped` when every
+        scan was skipped (nothing is written then), `RunInterrupted`, `RunError`."""
+        with self._stop:
+            final_scans = self.map_scans(show_progress, on_scan)
+            if self.progress.mapped == 0:
+                if self.stopped:
+                    raise RunError(f"mapping stopped {self.stopped}; no scan was mapped")
+                raise NothingMapped(self._nothing_mapped())
+            final = self.final_pass(final_scans)
         metrics = run_metrics(self.progress, final, self.mapper, self.cfg)
-        outputs.write_metrics(self.out_dir, metrics)
+        if self.stopped:
+            metrics["stopped"] = self.stopped
+        with self._writing("metrics.json"):
+            outputs.write_metrics(self.out_dir, metrics)
         result = RunResult(metrics, self.mapper, self.out_dir, list(self.progress.skipped),
-                           self.progress.trajectory_array())
+                           self.progress.trajectory_array(), self.stopped, self.progress)
         if write_map_files:
-            outputs.write_map_files(self.out_dir, self.mapper, self.cfg.mapper,
-                                    result.trajectory)
+            with self._writing("the map files"):
+                outputs.write_map_files(self.out_dir, self.mapper, self.cfg.mapper,
+                                        result.trajectory)
         return result
 
     def map_scans(self, show_progress: bool = True,
                   on_scan: OnScan | None = None) -> Iterable[Scan | SkippedScan]:
         """Integrate every scan not integrated before; returns the scans for the final pass
         (the stream itself when it can be read again, else the scans kept in memory)."""
-        progress = self.progress
-        done_upto = progress.last_index
+        done_upto = self.progress.last_index
         keep_in_memory = iter(self.scans) is self.scans       # an iterator: read once
         kept: list[Scan] = []
+        gate = PoseGate(self._anchor())
         bar = tqdm(self.scans, total=self.total, unit="scan",
                    desc=f"mapping ({self.cfg.mapper.mode})", disable=not show_progress)
-        for k, item in enumerate(bar):
-            if done_upto is not None and item.index <= done_upto:
-                # in the checkpoint already; the final pass still needs what was mapped
-                if (keep_in_memory and not isinstance(item, SkippedScan)
-                        and not progress.was_skipped(item.index)):
-                    kept.append(item)
-                continue
-            if isinstance(item, SkippedScan):
-                self._skip(item)
+        try:
+            for k, item in enumerate(bar):
+                if done_upto is not None and item.index <= done_upto:
+                    # in the checkpoint already; the final pass still needs what was mapped
+                    if (keep_in_memory and isinstance(item, Scan)
+                            and self.progress.is_mapped(item.index)):
+                        kept.append(item)
+                    continue
+                if not self._decide(gate.offer(k, item), kept if keep_in_memory else None,
+                                    on_scan, bar):
+                    break
+                if self._stop.requested:
+                    self._interrupted()
+            else:
+                self._decide(gate.finish(), kept if keep_in_memory else None, on_scan, bar)
+        finally:
+            bar.close()
+        return kept if keep_in_memory else self.scans
+
+    def _decide(self, verdicts: Iterable[Verdict], kept: list[Scan] | None,
+                on_scan: OnScan | None, bar: tqdm) -> bool:
+        """Map or skip what the pose gate let out, in order, checkpointing on cadence and
+        stopping at the scan boundary after a Ctrl-C; False once mapping has to stop (the
+        store could not spill)."""
+        for k, item, reason in verdicts:
+            if reason is not None:
+                self._skip(SkippedScan(item.index, item.name, reason))
                 continue
             if not self._integrate(item):
+                if self.stopped:
+                    return False
                 continue
-            if keep_in_memory:
+            if kept is not None:
                 kept.append(item)
             if on_scan is not None:
                 on_scan(self.mapper, item, k)
-            if self.checkpoint_every and progress.mapped % self.checkpoint_every == 0:
+            if self.checkpoint_every and self.progress.mapped % self.checkpoint_every == 0:
                 self.write_checkpoint()
             bar.set_postfix(voxels=f"{self.mapper.live_voxels / 1e3:.0f}k", refresh=False)
-        return kept if keep_in_memory else self.scans
+            if self._stop.requested:
+                self._interrupted()
+        return True
+
+    def _anchor(self) -> Anchor | None:
+        """Where the last mapped scan was (a resumed run's gate starts from there)."""
+        if not self.progress.trajectory or self.progress.last_index is None:
+            return None
+        stamp = self.mapper.last_stamp_s
+        return Anchor(self.progress.last_index, self.progress.trajectory_array()[-1],
+                      float("nan") if stamp is None else float(stamp))
 
     def _integrate(self, scan: Scan) -> bool:
-        """Map one scan and score it; False when the mapper refused it (it is skipped)."""
+        """Map one scan and score it; False when the mapper refused it (it is skipped) or
+        the store could not take what the window evicted (`stopped` says so)."""
         try:
             ti.sync()
             start = time.perf_counter()
@@ -170,6 +238,9 @@ class MappingRun:
             seconds = time.perf_counter() - start
         except ValueError as exc:   # a scan the mapper refuses (bad labels, pose far away, ...)
             self._skip(SkippedScan(scan.index, scan.name, str(exc)))
+            return False
+        except OSError as exc:      # the store's spill folder is full or gone
+            self.stopped = f"at scan {scan.index}: {os_error_text(exc)}"
             return False
         self.progress.add_mapped(scan, seconds, report)
         if scan.gt_labels is not None:
@@ -182,23 +253,85 @@ class MappingRun:
     def _skip(self, skipped: SkippedScan) -> None:
         """The one place a skipped scan is reported: one line as it happens (the end-of-run
         table counts them, metrics.json lists them)."""
+        if self.progress.was_skipped(skipped.index):
+            return
         self.progress.add_skipped(skipped)
         log.warning("skipped scan %s (%s): %s", skipped.index, skipped.name, skipped.reason)
 
+    def _nothing_mapped(self) -> str:
+        skipped = self.progress.skipped
+        if not skipped:
+            return "no scan could be mapped: the input holds no scans in the frame range"
+        first = skipped[0]
+        return (f"no scan could be mapped: all {len(skipped)} were skipped (the first, scan "
+                f"{first.index}: {first.reason})")
+
+    def _interrupted(self) -> None:
+        """Ctrl-C: checkpoint (when checkpoints are on) and stop."""
+        checkpoint = None
+        if self.checkpoint_every and self.progress.mapped:
+            checkpoint = self.write_checkpoint()
+        raise RunInterrupted(self.progress.last_index, checkpoint, self.out_dir)
+
+    # ------------------------------------------------------------------ writing
+    def _write_info(self) -> None:
+        """config.yaml and run.json, with the first file the run writes."""
+        if not self._info_written:
+            with self._writing("config.yaml and run.json"):
+                outputs.write_run_info(self.out_dir, self.cfg, self.info)
+            self._info_written = True
+
+    def _writing(self, what: str):
+        return _Writing(self, what)
+
     def write_checkpoint(self) -> Path:
-        """The map and the progress so far, to `checkpoint_dir` (atomically)."""
-        return save_checkpoint(self.checkpoint_dir, self.mapper, self.progress,
-                               run_config=self.cfg, source=self.info)
+        """The map and the progress so far, to `checkpoint_dir` (atomically); a disk that
+        cannot take it raises RunError (the previous checkpoint is kept)."""
+        self._write_info()
+        with self._writing("the checkpoint"):
+            path = save_checkpoint(self.checkpoint_dir, self.mapper, self.progress,
+                                   run_config=self.cfg, source=self.info)
+        self.checkpointed_index = self.progress.last_index
+        return path
 
     def final_pass(self, scans: Iterable[Scan | SkippedScan]) -> Confusion:
-        """The final-map protocol: every scan looked up in the finished map; writes its
-        predictions (one label per point of the scan) and returns the pooled confusion."""
+        """The final-map protocol: every mapped scan looked up in the finished map; writes its
+        predictions (one label per point of the scan) and returns the pooled confusion.
+        Scans that were not mapped are passed over: no predictions file, not scored."""
+        self._write_info()
         final = Confusion(self.mapper.C)
         for item in scans:
-            if isinstance(item, SkippedScan):
+            if not isinstance(item, Scan) or not self.progress.is_mapped(item.index):
                 continue
             labels, _ = self.mapper.query(item.points_world(), with_probs=False)
-            write_predictions(self.out_dir, self.sequence_name, item.index, labels)
+            with self._writing("the predictions"):
+                write_predictions(self.out_dir, self.sequence_name, item.index, labels)
             if item.gt_labels is not None:
                 score_scan(final, item, labels)
+            if self._stop.requested:
+                self._interrupted()
         return final
+
+
+class _Writing:
+    """Inside: an OSError (a full disk, a folder that cannot be written) becomes one RunError
+    line saying what could not be written and what is kept."""
+
+    def __init__(self, run: MappingRun, what: str):
+        self.run, self.what = run, what
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, kind, exc, tb):
+        if exc is None or not isinstance(exc, OSError):
+            return False
+        run = self.run
+        if run.checkpointed_index is not None:
+            kept = (f"the checkpoint of scan {run.checkpointed_index} is kept: continue with "
+                    f"--resume {run.out_dir} once there is room")
+        else:
+            kept = "no checkpoint to resume from"
+        stopped = f" (mapping had stopped {run.stopped})" if run.stopped else ""
+        raise RunError(f"cannot write {self.what} in {run.out_dir}: {os_error_text(exc)}; "
+                       f"{kept}{stopped}") from None

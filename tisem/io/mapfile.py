@@ -29,7 +29,8 @@ from tisem.labels import CLASS_COLORS_RGB, CLASS_NAMES, LEARNING_MAP_INV
 from tisem.snapshot import MapSnapshot
 
 __all__ = ["MapFileError", "atomic_write", "save_map", "load_map_file", "save_checkpoint_file",
-           "load_checkpoint_file", "CHECKPOINT_NAME", "FORMAT_NAME", "FORMAT_VERSION"]
+           "load_checkpoint_file", "remove_stale_temp_files", "CHECKPOINT_NAME", "FORMAT_NAME",
+           "FORMAT_VERSION"]
 
 FORMAT_NAME = "tisem-map"
 FORMAT_VERSION = 1
@@ -194,13 +195,56 @@ def load_map_file(path: str | os.PathLike) -> tuple[MapSnapshot, dict, dict]:
         meta = json.loads(str(data["meta_json"]))
     except (yaml.YAMLError, json.JSONDecodeError) as exc:
         raise MapFileError(f"{path}: damaged tisem map file, unreadable config/meta text: "
-                           f"{exc}") from exc
+                           f"{' '.join(str(exc).split())}") from None
+    if not isinstance(config, dict) or not isinstance(meta, dict):
+        raise MapFileError(f"{path}: damaged tisem map file, its mapper config and meta must "
+                           f"be mappings")
+    _check_values(path, keys, counts, t_last, ell_m, data["resolution_m"])
     snapshot = MapSnapshot(keys=keys.astype(np.int64, copy=False),
                            counts=counts.astype(np.float32, copy=False),
                            t_last=t_last.astype(np.float64, copy=False),
                            ell_m=ell_m.astype(np.float32, copy=False),
                            resolution_m=float(data["resolution_m"]))
     return snapshot, config, meta
+
+
+def _check_values(path: Path, keys, counts, t_last, ell_m, resolution_m) -> None:
+    """What no map can hold: MapFileError naming the array and the value (the arrays' CRCs
+    can be right and their contents still not a map, e.g. a file written by other code)."""
+    def bad(what: str) -> MapFileError:
+        return MapFileError(f"{path}: damaged tisem map file, {what}")
+
+    if not np.issubdtype(keys.dtype, np.integer):
+        raise bad(f"voxel keys of type {keys.dtype}, not integers")
+    for name, a in (("counts", counts), ("t_last", t_last), ("ell_m", ell_m)):
+        if not np.issubdtype(a.dtype, np.floating) and not np.issubdtype(a.dtype, np.integer):
+            raise bad(f"{name} of type {a.dtype}, not numbers")
+        if a.size and not np.isfinite(a).all():
+            raise bad(f"{name} holds NaN/inf values ({int((~np.isfinite(a)).sum())} of them)")
+    for name, a in (("counts", counts), ("ell_m", ell_m)):
+        if a.size and a.min() < 0:
+            raise bad(f"{name} holds negative values (down to {float(a.min()):g})")
+    try:
+        res = float(resolution_m)
+    except (TypeError, ValueError):
+        raise bad(f"resolution_m {resolution_m!r} is not a number") from None
+    if not np.isfinite(res) or res <= 0:
+        raise bad(f"resolution_m {res!r} is not a voxel size > 0")
+
+
+def remove_stale_temp_files(path: str | os.PathLike) -> list[Path]:
+    """Remove the temporary files (`.<name>.*.tmp`, `atomic_write`'s) that a save killed
+    before its rename left beside `path`; returns what was removed. Only for files one
+    process writes at a time (a checkpoint): a live save's file would go too."""
+    path = Path(path)
+    removed = []
+    for tmp in path.parent.glob(f".{path.name}.*.tmp"):
+        try:
+            tmp.unlink()
+            removed.append(tmp)
+        except OSError:
+            pass        # not ours to fight over: the next save tries again
+    return removed
 
 
 def save_checkpoint_file(directory: str | os.PathLike, snapshot: MapSnapshot,
@@ -213,6 +257,7 @@ def save_checkpoint_file(directory: str | os.PathLike, snapshot: MapSnapshot,
     """
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
+    remove_stale_temp_files(directory / CHECKPOINT_NAME)
     return save_map(directory / CHECKPOINT_NAME, snapshot, mapper_config, meta, compress=False)
 
 

@@ -11,11 +11,20 @@ Layout of one sequence folder::
 
 The LiDAR pose of scan i is ``T_world_lidar = Tr^-1 . pose_i . Tr``.
 
-Errors: a problem with the sequence as a whole (no `velodyne/`, no `Tr:`, no or malformed
+Errors: a problem with the sequence as a whole (no `velodyne/`, two scan files with the same
+number, no `Tr:` or two of them, a `Tr` that is not a rigid transform, no or empty
 `poses.txt`, missing input label folder, empty frame range) raises `DatasetError` from the
 constructor; a problem with one scan (truncated `.bin`, missing label file, label count !=
-point count, no pose for it, 0 points, all points non-finite) raises `ScanError` from
-``seq[k]`` and becomes a `SkippedScan` when iterating. Every message names the file.
+point count, 0 points, all points non-finite, no pose or time for it, a pose line that is not
+a pose by `tisem.poses.pose_problem`, a time that is not plausible) raises `ScanError` from
+``seq[k]`` and becomes a `SkippedScan` when iterating. Every message names the file, and for
+poses.txt, times.txt and calib.txt the line.
+
+A plausible time is a finite number of seconds in [0, MAX_TIME_S], and the map's clock never
+runs backwards: of the selected scans, those whose times keep the longest non-decreasing run
+are kept, each scan whose time breaks it (one wild value, or a time earlier than the scans
+around it) is refused. So one bad time costs its own scan, never the ones after it. The
+file helpers (calib.txt, poses.txt, times.txt) are tisem/io/kitti_files.py.
 """
 from __future__ import annotations
 
@@ -27,125 +36,19 @@ from typing import Iterator
 import numpy as np
 
 from tisem.errors import DatasetError, ScanError, SkippedScan
+from tisem.io.kitti_files import (MAX_TIME_S, camera_poses_to_lidar, out_of_order,
+                                  read_calib_tr, read_pose_lines, read_poses, read_time_lines,
+                                  read_times)
 from tisem.labels import raw_to_train, train_to_raw
 from tisem.scan import KittiSource, Scan, finite_rows
 
 __all__ = ["SemanticKittiSequence", "write_predictions", "read_calib_tr", "read_poses",
-           "read_times", "camera_poses_to_lidar", "DEFAULT_SCAN_PERIOD_S"]
+           "read_pose_lines", "read_times", "camera_poses_to_lidar", "DEFAULT_SCAN_PERIOD_S",
+           "MAX_TIME_S"]
 
 DEFAULT_SCAN_PERIOD_S = 0.1  # 10 Hz, used when there is no times.txt
 INPUTS = ("predictions", "labels")
 _BIN_RE = re.compile(r"^(\d+)\.bin$")
-
-
-# --------------------------------------------------------------------------- pose helpers
-
-def _row_to_4x4(values: np.ndarray) -> np.ndarray:
-    T = np.eye(4, dtype=np.float64)
-    T[:3, :4] = np.asarray(values, dtype=np.float64).reshape(3, 4)
-    return T
-
-
-def _parse_pose_row(text: str, where: str, line: str, subject: str) -> np.ndarray:
-    """Twelve numbers (a 3x4 row-major transform, as calib.txt and poses.txt store them) as a
-    (4, 4) float64 matrix. The DatasetError for anything else starts with `where` (file:line)
-    and names `line` (what the line is) or `subject` (what it holds)."""
-    try:
-        values = np.array([float(v) for v in text.split()], dtype=np.float64)
-    except ValueError:
-        raise DatasetError(f"{where}: malformed {line}, non-numeric value in "
-                           f"{text.strip()[:80]!r}") from None
-    if values.size != 12:
-        raise DatasetError(f"{where}: malformed {line}, expected 12 numbers (3x4 row-major), "
-                           f"got {values.size}")
-    if not np.all(np.isfinite(values)):
-        raise DatasetError(f"{where}: {subject} has NaN/inf values")
-    return _row_to_4x4(values)
-
-
-def _read_text(path: Path, what: str) -> str:
-    try:
-        return path.read_text()
-    except (OSError, UnicodeDecodeError) as exc:
-        raise DatasetError(f"{path}: cannot read {what}: {exc}") from exc
-
-
-def read_calib_tr(path: str | os.PathLike) -> np.ndarray:
-    """The `Tr:` line of a SemanticKITTI calib.txt as a (4, 4) float64 velodyne -> camera matrix.
-
-    Raises DatasetError (naming the file) when the file is missing, has no `Tr:` line, or the
-    line is not 12 finite numbers forming an invertible transform.
-    """
-    path = Path(path)
-    if not path.is_file():
-        raise DatasetError(f"{path}: calibration file not found (needs a 'Tr:' line, "
-                           f"velodyne -> camera)")
-    for lineno, line in enumerate(_read_text(path, "calibration file").splitlines(), start=1):
-        key, sep, rest = line.partition(":")
-        if not sep or key.strip() != "Tr":
-            continue
-        T = _parse_pose_row(rest, f"{path}:{lineno}", "'Tr:' line", "'Tr:' line")
-        if abs(np.linalg.det(T[:3, :3])) < 1e-6:
-            raise DatasetError(f"{path}:{lineno}: 'Tr:' rotation is singular, cannot invert")
-        return T
-    raise DatasetError(f"{path}: no 'Tr:' line (velodyne -> camera calibration) in the file")
-
-
-def read_poses(path: str | os.PathLike) -> np.ndarray:
-    """poses.txt (one 3x4 row-major pose per line) as (M, 4, 4) float64.
-
-    Trailing blank lines are ignored; any other line that is not 12 finite numbers raises
-    DatasetError naming the file and line. The poses are in the frame they are stored in
-    (the left camera for SemanticKITTI): see `camera_poses_to_lidar`.
-    """
-    path = Path(path)
-    if not path.is_file():
-        raise DatasetError(f"{path}: poses file not found (one 3x4 pose per scan)")
-    lines = _read_text(path, "poses file").rstrip().splitlines()
-    poses = np.empty((len(lines), 4, 4), dtype=np.float64)
-    for i, line in enumerate(lines):
-        poses[i] = _parse_pose_row(line, f"{path}:{i + 1}", f"pose line (pose {i})", f"pose {i}")
-    return poses
-
-
-def read_times(path: str | os.PathLike) -> np.ndarray:
-    """times.txt (one time in seconds per line) as (M,) float64; DatasetError when malformed."""
-    path = Path(path)
-    lines = _read_text(path, "times file").rstrip().splitlines()
-    times = np.empty(len(lines), dtype=np.float64)
-    for i, line in enumerate(lines):
-        fields = line.split()
-        try:
-            if len(fields) != 1:
-                raise ValueError
-            times[i] = float(fields[0])
-        except ValueError:
-            raise DatasetError(f"{path}:{i + 1}: malformed time line, expected one number, "
-                               f"got {line.strip()[:80]!r}") from None
-        if not np.isfinite(times[i]):
-            raise DatasetError(f"{path}:{i + 1}: time is NaN/inf")
-    return times
-
-
-def camera_poses_to_lidar(poses: np.ndarray, Tr: np.ndarray) -> np.ndarray:
-    """Camera-frame poses -> LiDAR poses: ``T_world_lidar = Tr^-1 . pose . Tr``.
-
-    `poses` is (4, 4) or (M, 4, 4) (3x4 rows are accepted too); `Tr` is velodyne -> camera.
-    The world frame stays the first camera frame, as in SemanticKITTI.
-    """
-    poses = np.asarray(poses, dtype=np.float64)
-    Tr = np.asarray(Tr, dtype=np.float64)
-    if Tr.shape == (3, 4):
-        Tr = _row_to_4x4(Tr)
-    if poses.shape[-2:] == (3, 4):
-        full = np.zeros(poses.shape[:-2] + (4, 4))
-        full[..., :3, :] = poses
-        full[..., 3, 3] = 1.0
-        poses = full
-    if Tr.shape != (4, 4) or poses.shape[-2:] != (4, 4):
-        raise ValueError(f"need Tr (4, 4) and poses (..., 4, 4), got {Tr.shape} and {poses.shape}")
-    Tr_inv = np.linalg.inv(Tr)
-    return Tr_inv @ poses @ Tr
 
 
 # --------------------------------------------------------------------------- writer
@@ -255,8 +158,13 @@ class SemanticKittiSequence:
         bin_names: dict[int, str] = {}
         for p in sorted(self.velodyne_dir.iterdir()):
             m = _BIN_RE.match(p.name)
-            if m:
-                bin_names.setdefault(int(m.group(1)), p.name)
+            if not m:
+                continue
+            sid = int(m.group(1))
+            if sid in bin_names:
+                raise DatasetError(f"{self.velodyne_dir}: {bin_names[sid]} and {p.name} are both "
+                                   f"scan {sid}; each scan number must have one file")
+            bin_names[sid] = p.name
         if not bin_names:
             raise DatasetError(f"{self.velodyne_dir}: no NNNNNN.bin scans")
         all_ids = sorted(bin_names)
@@ -268,22 +176,29 @@ class SemanticKittiSequence:
 
         self.Tr = read_calib_tr(d / "calib.txt")
         self.poses_file = d / "poses.txt"
-        poses_cam = read_poses(self.poses_file)
+        poses_cam, pose_problems = read_pose_lines(self.poses_file)
         self.num_poses = int(poses_cam.shape[0])
-        lidar_all = camera_poses_to_lidar(poses_cam, self.Tr) if self.num_poses else \
-            np.empty((0, 4, 4))
+        lidar_all = camera_poses_to_lidar(poses_cam, self.Tr)
         ids = np.asarray(self.scan_ids, dtype=np.int64)
         self.has_pose = ids < self.num_poses
         self.poses_lidar = np.full((len(ids), 4, 4), np.nan)
         self.poses_lidar[self.has_pose] = lidar_all[ids[self.has_pose]]
+        # why a scan cannot be used although its files can: {scan id: the ScanError message}
+        self.problems: dict[int, str] = {int(sid): pose_problems[int(sid)] for sid in ids
+                                         if int(sid) in pose_problems}
 
         self.times_file = d / "times.txt"
         if self.times_file.is_file():
-            all_times = read_times(self.times_file)
+            all_times, time_problems = read_time_lines(self.times_file)
             self.times = np.full(len(ids), np.nan)
             ok = ids < all_times.size
             self.times[ok] = all_times[ids[ok]]
             self._num_times = int(all_times.size)
+            for sid in self.scan_ids:
+                if sid in time_problems:
+                    self.problems.setdefault(sid, time_problems[sid])
+            for k, why in out_of_order(self.times, self.scan_ids, self.times_file).items():
+                self.problems.setdefault(self.scan_ids[k], why)
         else:
             self.times = ids.astype(np.float64) * DEFAULT_SCAN_PERIOD_S
             self._num_times = None
@@ -349,6 +264,8 @@ class SemanticKittiSequence:
                 raise ScanError(f"{self.poses_file}: no pose for scan {sid} ({bin_path.name}); "
                                 f"poses.txt has {self.num_poses} poses (scans 0.."
                                 f"{self.num_poses - 1})", sid, name)
+            if sid in self.problems:
+                raise ScanError(self.problems[sid], sid, name)
             if not np.isfinite(self.times[k]):
                 raise ScanError(f"{self.times_file}: no time for scan {sid}; times.txt has "
                                 f"{self._num_times} entries", sid, name)

@@ -146,14 +146,50 @@ def to_scan(frame: SynthFrame) -> Scan:
                 name=f"synthetic/{frame.index:06d}")
 
 
+# the files of a sequence folder: {folder: pattern} and the text files beside them
+SEQUENCE_FILES = {"velodyne": "*.bin", "labels": "*.label", "predictions": "*.label"}
+SEQUENCE_TEXTS = ("poses.txt", "calib.txt", "times.txt")
+
+
+def _sequence_files(folder: Path) -> list[Path]:
+    found = [p for sub, pattern in SEQUENCE_FILES.items() for p in (folder / sub).glob(pattern)]
+    return found + [folder / name for name in SEQUENCE_TEXTS if (folder / name).is_file()]
+
+
+def clear_sequence(folder: str | Path) -> int:
+    """Remove a SemanticKITTI sequence's files from `folder` (scans, label files, poses,
+    calibration, times) and its sub-folders left empty; anything else stays. Returns the
+    number of files removed."""
+    folder = Path(folder)
+    files = _sequence_files(folder)
+    for path in files:
+        path.unlink()
+    for sub in SEQUENCE_FILES:
+        if (folder / sub).is_dir() and not any((folder / sub).iterdir()):
+            (folder / sub).rmdir()
+    return len(files)
+
+
 def write_semantickitti(out_dir: str | Path, num_scans: int, seed: int = 0, route: str = "street",
-                        points_per_ring: int = 1024, progress: bool = True) -> Path:
+                        points_per_ring: int = 1024, progress: bool = True,
+                        overwrite: bool = False) -> Path:
     """Write a synthetic sequence as one SemanticKITTI sequence folder; returns its path.
 
     Poses go to poses.txt in the left camera frame, pose_cam = Tr T_world_lidar Tr^-1, so a
-    reader's T_world_lidar = Tr^-1 pose_cam Tr gets the LiDAR poses back.
+    reader's T_world_lidar = Tr^-1 pose_cam Tr gets the LiDAR poses back. A folder that holds
+    a sequence already is refused (FileExistsError: its scans would mix with the new ones),
+    unless `overwrite`, which removes that sequence first (`clear_sequence`).
     """
     out = Path(out_dir)
+    if out.exists() and not out.is_dir():
+        raise FileExistsError(f"{out}: is a file, not a folder")
+    existing = _sequence_files(out) if out.is_dir() else []
+    if existing and not overwrite:
+        raise FileExistsError(f"{out}: holds a sequence already ({len(existing)} files, e.g. "
+                              f"{existing[0].relative_to(out)}); give overwrite=True "
+                              f"(--overwrite) to replace it, or another folder")
+    if existing:
+        log.info("%s: removing the %d files of the sequence there", out, clear_sequence(out))
     for sub in ("velodyne", "labels", "predictions"):
         (out / sub).mkdir(parents=True, exist_ok=True)
     Tr = kitti08_tr()

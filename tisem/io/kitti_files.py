@@ -1,0 +1,222 @@
+"""The text files of a SemanticKITTI sequence: calib.txt (`Tr:`), poses.txt and times.txt.
+
+Each line is checked on its own: a line that is not a pose, or not a plausible time, is
+reported with its file and line number ({line index: message}), so the reader can refuse that
+one scan and map the others; `read_calib_tr` refuses the sequence (there is one calibration).
+
+A plausible time is a finite number of seconds in [0, MAX_TIME_S] (seconds since the start of
+the drive, or since the Unix epoch); `out_of_order` finds the times that would run the map's
+clock backwards.
+"""
+from __future__ import annotations
+
+import os
+from bisect import bisect_right
+from pathlib import Path
+
+import numpy as np
+
+from tisem.errors import DatasetError
+from tisem.poses import pose_problem
+
+__all__ = ["read_calib_tr", "read_pose_lines", "read_poses", "read_time_lines", "read_times",
+           "out_of_order", "camera_poses_to_lidar", "MAX_TIME_S"]
+
+MAX_TIME_S = 1.0e10      # the year 2286 in Unix time: any later stamp is corrupt data
+
+
+def _row_to_4x4(values: np.ndarray) -> np.ndarray:
+    T = np.eye(4, dtype=np.float64)
+    T[:3, :4] = np.asarray(values, dtype=np.float64).reshape(3, 4)
+    return T
+
+
+def _parse_pose_row(text: str, where: str, line: str, subject: str) -> np.ndarray:
+    """Twelve numbers (a 3x4 row-major transform, as calib.txt and poses.txt store them) as a
+    (4, 4) float64 matrix. The DatasetError for anything else starts with `where` (file:line)
+    and names `line` (what the line is) or `subject` (what it holds)."""
+    try:
+        values = np.array([float(v) for v in text.split()], dtype=np.float64)
+    except ValueError:
+        raise DatasetError(f"{where}: malformed {line}, non-numeric value in "
+                           f"{text.strip()[:80]!r}") from None
+    if values.size != 12:
+        raise DatasetError(f"{where}: malformed {line}, expected 12 numbers (3x4 row-major), "
+                           f"got {values.size}")
+    if not np.all(np.isfinite(values)):
+        raise DatasetError(f"{where}: {subject} has NaN/inf values")
+    return _row_to_4x4(values)
+
+
+def _read_text(path: Path, what: str) -> str:
+    try:
+        return path.read_text()
+    except (OSError, UnicodeDecodeError) as exc:
+        raise DatasetError(f"{path}: cannot read {what}: {exc}") from exc
+
+
+def read_calib_tr(path: str | os.PathLike) -> np.ndarray:
+    """The `Tr:` line of a SemanticKITTI calib.txt as a (4, 4) float64 velodyne -> camera matrix.
+
+    Raises DatasetError (naming the file and line) when the file is missing, has no `Tr:`
+    line or two of them, or the line is not 12 finite numbers forming a rigid transform
+    (`tisem.poses.pose_problem`: a rotation, not scaled, sheared or mirrored).
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise DatasetError(f"{path}: calibration file not found (needs a 'Tr:' line, "
+                           f"velodyne -> camera)")
+    found: tuple[int, np.ndarray] | None = None
+    for lineno, line in enumerate(_read_text(path, "calibration file").splitlines(), start=1):
+        key, sep, rest = line.partition(":")
+        if not sep or key.strip() != "Tr":
+            continue
+        if found is not None:
+            raise DatasetError(f"{path}:{lineno}: a second 'Tr:' line (the first is line "
+                               f"{found[0]}); the calibration must be one transform")
+        T = _parse_pose_row(rest, f"{path}:{lineno}", "'Tr:' line", "'Tr:' line")
+        problem = pose_problem(T)
+        if problem is not None:
+            raise DatasetError(f"{path}:{lineno}: 'Tr:' (velodyne -> camera) is not a rigid "
+                               f"transform: {problem}")
+        found = (lineno, T)
+    if found is None:
+        raise DatasetError(f"{path}: no 'Tr:' line (velodyne -> camera calibration) in the file")
+    return found[1]
+
+
+def read_pose_lines(path: str | os.PathLike) -> tuple[np.ndarray, dict[int, str]]:
+    """poses.txt (one 3x4 row-major pose per line) as (M, 4, 4) float64, NaN where a line is
+    not a pose, and {line index: why} for those lines (messages name the file and line).
+
+    Trailing blank lines are ignored. A line is a pose when it holds 12 finite numbers that
+    `tisem.poses.pose_problem` accepts. DatasetError when the file is missing, unreadable or
+    empty. The poses are in the frame they are stored in (the left camera for
+    SemanticKITTI): see `camera_poses_to_lidar`.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise DatasetError(f"{path}: poses file not found (one 3x4 pose per scan)")
+    lines = _read_text(path, "poses file").rstrip().splitlines()
+    if not lines:
+        raise DatasetError(f"{path}: the poses file is empty (one 3x4 pose per scan)")
+    poses = np.full((len(lines), 4, 4), np.nan)
+    problems: dict[int, str] = {}
+    for i, line in enumerate(lines):
+        where = f"{path}:{i + 1}"
+        try:
+            T = _parse_pose_row(line, where, f"pose line (pose {i})", f"pose {i}")
+        except DatasetError as exc:
+            problems[i] = str(exc)
+            continue
+        problem = pose_problem(T)
+        if problem is not None:
+            problems[i] = f"{where}: pose {i} is not a pose: {problem}"
+            continue
+        poses[i] = T
+    return poses, problems
+
+
+def read_poses(path: str | os.PathLike) -> np.ndarray:
+    """poses.txt as (M, 4, 4) float64 (`read_pose_lines`); any line that is not a pose raises
+    DatasetError naming the file and line."""
+    poses, problems = read_pose_lines(path)
+    if problems:
+        raise DatasetError(problems[min(problems)])
+    return poses
+
+
+def camera_poses_to_lidar(poses: np.ndarray, Tr: np.ndarray) -> np.ndarray:
+    """Camera-frame poses -> LiDAR poses: ``T_world_lidar = Tr^-1 . pose . Tr``.
+
+    `poses` is (4, 4) or (M, 4, 4) (3x4 rows are accepted too); `Tr` is velodyne -> camera.
+    The world frame stays the first camera frame, as in SemanticKITTI.
+    """
+    poses = np.asarray(poses, dtype=np.float64)
+    Tr = np.asarray(Tr, dtype=np.float64)
+    if Tr.shape == (3, 4):
+        Tr = _row_to_4x4(Tr)
+    if poses.shape[-2:] == (3, 4):
+        full = np.zeros(poses.shape[:-2] + (4, 4))
+        full[..., :3, :] = poses
+        full[..., 3, 3] = 1.0
+        poses = full
+    if Tr.shape != (4, 4) or poses.shape[-2:] != (4, 4):
+        raise ValueError(f"need Tr (4, 4) and poses (..., 4, 4), got {Tr.shape} and {poses.shape}")
+    Tr_inv = np.linalg.inv(Tr)
+    return Tr_inv @ poses @ Tr
+
+
+def read_time_lines(path: str | os.PathLike) -> tuple[np.ndarray, dict[int, str]]:
+    """times.txt (one time in seconds per line) as (M,) float64, NaN where a line is not a
+    plausible time, and {line index: why} for those lines (messages name the file and line).
+    Trailing blank lines are ignored; DatasetError when the file cannot be read."""
+    path = Path(path)
+    lines = _read_text(path, "times file").rstrip().splitlines()
+    times = np.full(len(lines), np.nan)
+    problems: dict[int, str] = {}
+    for i, line in enumerate(lines):
+        where = f"{path}:{i + 1}"
+        fields = line.split()
+        try:
+            if len(fields) != 1:
+                raise ValueError
+            t = float(fields[0])
+        except ValueError:
+            problems[i] = (f"{where}: malformed time line, expected one number, got "
+                           f"{line.strip()[:80]!r}")
+            continue
+        if not (np.isfinite(t) and 0.0 <= t <= MAX_TIME_S):
+            problems[i] = (f"{where}: time {t:g} s is not a plausible time (finite, 0 to "
+                           f"{MAX_TIME_S:.0e} s)")
+            continue
+        times[i] = t
+    return times, problems
+
+
+def read_times(path: str | os.PathLike) -> np.ndarray:
+    """times.txt as (M,) float64 (`read_time_lines`); DatasetError naming the file and line
+    for a line that is not a plausible time."""
+    times, problems = read_time_lines(path)
+    if problems:
+        raise DatasetError(problems[min(problems)])
+    return times
+
+
+def out_of_order(times: np.ndarray, scan_ids: list[int], path: Path) -> dict[int, str]:
+    """{position: why} for the scans whose time would run the map's clock backwards.
+
+    `times` (NaN: no time) belong to the scans `scan_ids`, in order. The longest run of
+    non-decreasing times is kept (the first such run found), so one wild time costs its own
+    scan only; every other scan with a time is out of order and named with its line.
+    """
+    known = [k for k in range(len(times)) if np.isfinite(times[k])]
+    # patience sorting: tails[j] = the smallest last time of a non-decreasing run of j + 1
+    tails: list[float] = []
+    tail_at: list[int] = []
+    before: dict[int, int | None] = {}
+    for k in known:
+        j = bisect_right(tails, times[k])
+        before[k] = tail_at[j - 1] if j else None
+        if j == len(tails):
+            tails.append(times[k])
+            tail_at.append(k)
+        else:
+            tails[j], tail_at[j] = times[k], k
+    kept: set[int] = set()
+    k = tail_at[-1] if tail_at else None
+    while k is not None:
+        kept.add(k)
+        k = before[k]
+    ordered = sorted(kept)
+    problems = {}
+    for k in known:
+        if k in kept:
+            continue
+        prev = max((j for j in ordered if j < k), default=None)
+        nxt = min((j for j in ordered if j > k), default=None)
+        around = " and ".join(f"scan {scan_ids[j]} at {times[j]:g} s" for j in (prev, nxt)
+                              if j is not None)
+        problems[k] = (f"{path}:{scan_ids[k] + 1}: time {times[k]:g} s is out of order "
+                       f"({around}): the map's clock cannot run backwards")
+    return problems
