@@ -3,11 +3,14 @@
 `McapScanReader` reads the file twice, through its record layer (`tisem.io.mcap_records`,
 which survives damage and reports what was lost):
 - a survey pass decodes only pose messages (/tf, /tf_static, `--pose-topic`), counts messages,
-  picks the cloud topic and checks the first cloud's fields and frame, so every "this cannot
-  work" error comes before any mapping;
+  picks the cloud topic and checks that a cloud has the fields and frame the options need, so
+  every "this cannot work" error comes before any mapping (with the damage that may be why);
 - the second pass decodes clouds one at a time and yields `Scan`s with the pose looked up at
   the header stamp from the full transform buffer (exactly what tf2 gives offline). A scan
-  that cannot be used becomes a `SkippedScan` with the reason.
+  that cannot be used (a lost message, a layout that disagrees with its data, no points, no
+  pose) becomes a `SkippedScan` with the reason. A scan read from bytes that nothing vouches
+  for in a file known to be damaged, or posed across lost /tf messages, is marked in
+  `report.suspect`; labels that are no labels count as unknown (0, no evidence).
 """
 from __future__ import annotations
 
@@ -24,16 +27,15 @@ from mcap.records import Channel, Schema
 from tisem.errors import DatasetError, ScanError, SkippedScan
 from tisem.io import pointcloud2 as pc2
 from tisem.io.mcap_messages import (CLOUD_SCHEMAS, POSE_SCHEMAS, TF_SCHEMAS, UNSUPPORTED_CLOUDS,
-                                    MessageDecoders, cloud_parts, pose_edges)
+                                    MessageDecoders, cloud_labels, cloud_parts,
+                                    cloud_probabilities, pose_edges)
 from tisem.io.mcap_records import Loss, LostMessages, McapMessage, McapRecords, ReadReport
 from tisem.io.stamps import split_ns
 from tisem.io.tf import TfBuffer, TfError
-from tisem.labels import NUM_CLASSES, raw_to_train
+from tisem.labels import NUM_CLASSES
 from tisem.scan import McapSource, Scan, finite_rows
 
 log = logging.getLogger(__name__)
-
-PROBABILITY_SLACK = 1e-3       # rounding in a network's softmax may leave a value just above 1
 
 
 @dataclass
@@ -384,11 +386,13 @@ class McapScanReader:
             labels = probs = gt = None
             unknown = unknown_gt = 0
             if opts.prob_field:
-                probs, unknown = self._probs(arr)
+                probs, unknown = cloud_probabilities(arr, opts.prob_field, opts.num_classes)
             else:
-                labels, unknown = self._train_ids(arr, opts.label_field)
+                labels, unknown = cloud_labels(arr, opts.label_field, opts.label_space,
+                                               opts.num_classes)
             if opts.gt_field:
-                gt, unknown_gt = self._train_ids(arr, opts.gt_field)
+                gt, unknown_gt = cloud_labels(arr, opts.gt_field, opts.label_space,
+                                              opts.num_classes)
             self._count_unknown(index, unknown, unknown_gt)
             return Scan(points_sensor=points, T_world_sensor=T, stamp_s=stamp_ns / 1e9,
                         labels=labels, probs=probs, gt_labels=gt, index=index, name=name,
@@ -405,30 +409,3 @@ class McapScanReader:
         self._unknown[index] = (unknown, unknown_gt)
         self.report.unknown_labels = sum(u for u, _ in self._unknown.values())
         self.report.unknown_gt_labels = sum(g for _, g in self._unknown.values())
-
-    def _train_ids(self, arr: np.ndarray, field_name: str) -> tuple[np.ndarray, int]:
-        """Train ids and how many points had an unknown or invalid label (those become 0)."""
-        values, invalid = pc2.integer_labels(pc2.column(arr, field_name), field_name)
-        if self.options.label_space == "raw":
-            train, unknown = raw_to_train(values)      # invalid values are 0 there: no evidence
-            return train, unknown + int(np.count_nonzero(invalid))
-        bad = invalid | (values < 0) | (values >= self.options.num_classes)
-        return np.where(bad, 0, values).astype(np.int32), int(np.count_nonzero(bad))
-
-    def _probs(self, arr: np.ndarray) -> tuple[np.ndarray, int]:
-        """(N, C) probabilities; a point with a value that is no probability (NaN, inf,
-        negative, above 1) gets a zero row, no evidence, and is counted as unknown."""
-        name = self.options.prob_field
-        probs = pc2.column(arr, name)
-        if probs.ndim != 2 or probs.shape[1] != self.options.num_classes:
-            per = 1 if probs.ndim == 1 else probs.shape[1]
-            raise pc2.CloudFormatError(f"probability field {name!r} has {per} value(s) per point; "
-                                       f"the map has {self.options.num_classes} classes")
-        if probs.dtype.kind != "f":
-            raise pc2.CloudFormatError(f"probability field {name!r} has type {probs.dtype}, not "
-                                       f"a floating-point type")
-        with np.errstate(invalid="ignore"):
-            bad = ~np.all((probs >= 0) & (probs <= 1 + PROBABILITY_SLACK), axis=1)   # NaN too
-        probs = probs.astype(np.float32)
-        probs[bad] = 0.0
-        return probs, int(np.count_nonzero(bad))

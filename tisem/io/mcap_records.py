@@ -22,7 +22,7 @@ from mcap.records import Channel, ChunkIndex, Schema
 
 from tisem.errors import DatasetError
 from tisem.io.mcap_report import Loss, ReadReport
-from tisem.io.mcap_summary import MAGIC, read_footer, read_summary
+from tisem.io.mcap_summary import MAGIC, crc_of_range, read_footer, read_summary
 from tisem.io.mcap_walk import LostMessages, McapMessage, Walk
 
 __all__ = ["McapRecords", "McapMessage", "LostMessages", "Loss", "ReadReport", "MAGIC"]
@@ -50,7 +50,9 @@ class McapRecords:
             self.footer = read_footer(f, self.size)
             self.summary, self.summary_problem = (read_summary(f, self.footer) if self.footer
                                                   else (None, None))
-        self.limit = self.footer.offset if self.footer else self.size    # where the data ends
+        # where the data ends: the summary's start (when it is used), the footer, the file's end
+        self.limit = (self.summary.start if self.summary else
+                      self.footer.offset if self.footer else self.size)
         self.index: dict[int, list[ChunkIndex]] = {}                      # offset -> entries
         for entry in self.summary.chunk_indexes if self.summary else ():
             self.index.setdefault(entry.chunk_start_offset, []).append(entry)
@@ -77,11 +79,24 @@ class McapRecords:
                     report.messages[ch.topic] += 1
                 yield rec
         walk.finish()
+        self._check_data_crc(report, walk)
         for cid, n in orphans.items():
             report.losses.append(Loss(f"channel {cid}", "its Channel record was lost, so its "
                                       "messages cannot be decoded", messages=n,
                                       topics=Counter({f"channel {cid}": n})))
         self._check_counts(report)
+
+    def _check_data_crc(self, report: ReadReport, walk: Walk) -> None:
+        """The data section's CRC, from the data-end record the footer leads to (the walk may
+        not have reached it), once per file."""
+        footer = self.footer
+        if self.data_crc is None and footer is not None and footer.data_end_at is not None:
+            with open(self.path, "rb") as f:
+                crc = crc_of_range(f, 0, footer.data_end_at)
+            self.data_crc = ("absent" if footer.data_end_crc == 0 else
+                             "match" if crc == footer.data_end_crc else "mismatch")
+        if self.data_crc == "mismatch":
+            report.losses.append(Loss("data section", walk.data_crc_mismatch()))
 
     def _notes(self, report: ReadReport) -> None:
         if self.footer is None:

@@ -7,6 +7,7 @@ must be consistent in every field that can be checked without trusting it (a chu
 compression name, its data length against its record length, and a valid record right after
 it). What the skipped stretch held is counted from the message index records of the chunks
 the index places there; without an index the count is unknown, and the reader says so.
+After a pass, `index_disagreements` compares the index with the chunks the data held.
 """
 from __future__ import annotations
 
@@ -127,6 +128,8 @@ class RecordFinder:
         """Messages per channel the chunk index places in [start, end) (but not at the offsets
         in `skip`, chunks already read or lost), counted from their message index records in
         the data; None when one cannot be read."""
+        if not self.index:                     # an index of no chunks says nothing
+            return None
         counts = Counter()
         for offset, entries in self.index.items():
             if not start <= offset < end or offset in skip:
@@ -145,3 +148,28 @@ class RecordFinder:
                     return None
                 counts[channel_id] += n
         return counts
+
+
+def _offsets(offsets) -> str:
+    shown = ", ".join(str(o) for o in sorted(offsets)[:5])
+    return shown + (f" and {len(offsets) - 5} more" if len(offsets) > 5 else "")
+
+
+def index_disagreements(index: dict[int, list], seen: dict[int, int], reached: int) -> list[str]:
+    """How a chunk index (offset -> entries) disagrees with the chunks the data holds
+    (offset -> record length) up to byte `reached`; empty when it agrees."""
+    problems = []
+    dupes = {o: len(es) - 1 for o, es in index.items() if len(es) > 1}
+    if dupes:
+        problems.append(f"{sum(dupes.values())} duplicate entr(ies) for the chunk(s) at byte "
+                        f"{_offsets(dupes)}")
+    missing = [o for o in seen if o not in index]
+    if missing:
+        problems.append(f"no entry for the chunk(s) at byte {_offsets(missing)}")
+    extra = [o for o in index if o not in seen and o < reached]
+    if extra:
+        problems.append(f"entries for chunks the data does not have, at byte {_offsets(extra)}")
+    wrong = [o for o in seen if o in index and all(e.chunk_length != seen[o] for e in index[o])]
+    if wrong:
+        problems.append(f"other lengths for the chunk(s) at byte {_offsets(wrong)}")
+    return problems

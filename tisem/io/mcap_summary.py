@@ -153,17 +153,27 @@ def parse_message_index(buf) -> tuple[int, int]:
     return channel_id, len(entries) // 16
 
 
-def attachment_crc_problem(buf) -> str | None:
-    """None when an Attachment record's CRC matches or is absent, else what is wrong."""
-    f = Fields(buf, "attachment record")
-    f.u64(), f.u64()
-    name = f.text()
-    f.text()
-    f.blob(8)
-    body = f.pos
-    crc = f.u32()
-    if crc and zlib.crc32(f.buf[:body]) != crc:
-        return f"attachment {name!r}: its CRC does not match (tisem does not use attachments)"
+def attachment_problem(f: BinaryIO, pos: int, length: int) -> str | None:
+    """What is wrong with the Attachment record at `pos` (content `length` bytes), or None.
+    Its CRC covers its fields and data, which are read piece by piece (tisem does not use
+    attachments, so they are only checked)."""
+    start = pos + RECORD_HEADER
+    f.seek(start)
+    fields = Fields(f.read(min(length, 1 << 16)), "attachment record")
+    try:
+        fields.u64(), fields.u64()
+        name = fields.text()
+        fields.text()
+        size = fields.u64()
+        body = fields.pos + size
+        if body + 4 > length:
+            raise Malformed(f"its data claims {size} bytes, the record holds less")
+    except Malformed as e:
+        return f"unparseable ({e})"
+    f.seek(start + body)
+    crc = struct.unpack("<I", f.read(4))[0]
+    if crc and crc_of_range(f, start, start + body) != crc:
+        return f"{name!r}: its CRC does not match (tisem does not use attachments)"
     return None
 
 
@@ -201,7 +211,8 @@ class Footer:
     offset: int                 # where the footer record starts (the data or summary ends here)
     summary_start: int          # 0 = no summary
     summary_crc: int
-    data_end_crc: int | None = None   # the DataEnd record's data-section CRC, when found
+    data_end_at: int | None = None    # where the DataEnd record is, when found ...
+    data_end_crc: int = 0             # ... and its data-section CRC (0: none)
 
 
 @dataclass
@@ -234,7 +245,7 @@ def read_footer(f: BinaryIO, size: int) -> Footer | None:
         f.seek(data_end)
         opcode, length, crc = struct.unpack("<BQI", f.read(DATA_END_RECORD))
         if opcode == Opcode.DATA_END and length == 4:
-            footer.data_end_crc = crc
+            footer.data_end_at, footer.data_end_crc = data_end, crc
     return footer
 
 

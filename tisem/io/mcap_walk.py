@@ -21,10 +21,10 @@ from mcap.records import Channel
 from tisem.io.mcap_chunks import (BadChunk, checked_records, chunk_header, inflate, inner_records,
                                   messages_in_damaged)
 from tisem.io.mcap_report import Loss, ReadReport
-from tisem.io.mcap_resync import RecordFinder
-from tisem.io.mcap_summary import (MAGIC, RECORD_HEADER, Fields, Malformed, crc_of_range,
-                                   opcode_name, parse_channel, parse_message_index, parse_schema,
-                                   valid_opcode)
+from tisem.io.mcap_resync import RecordFinder, index_disagreements
+from tisem.io.mcap_summary import (MAGIC, RECORD_HEADER, Malformed, attachment_problem,
+                                   crc_of_range, opcode_name, parse_channel, parse_message_index,
+                                   parse_schema, valid_opcode)
 
 if TYPE_CHECKING:
     from tisem.io.mcap_records import McapRecords
@@ -41,8 +41,7 @@ class McapMessage:
     channel_id: int
     log_time: int
     data: bytes
-    crc_checked: bool              # its chunk's CRC matched
-    chunk: int | None              # the byte offset of its chunk; None outside chunks
+    crc_checked: bool              # its chunk's CRC matched (False outside chunks)
 
 
 @dataclass
@@ -65,11 +64,11 @@ class _LostChunk:
     index_damaged: bool = False
 
 
-def _message(content, crc_checked: bool, chunk: int | None) -> McapMessage:
+def _message(content, crc_checked: bool) -> McapMessage:
     if len(content) < 22:
         raise Malformed(f"a message record of {len(content)} bytes (a message has at least 22)")
     channel_id, _, log_time, _ = struct.unpack_from("<HIQQ", content)
-    return McapMessage(channel_id, log_time, bytes(content[22:]), crc_checked, chunk)
+    return McapMessage(channel_id, log_time, bytes(content[22:]), crc_checked)
 
 
 def _time_range(start: int, end: int) -> str:
@@ -78,11 +77,6 @@ def _time_range(start: int, end: int) -> str:
 
 def _why(e: Exception) -> str:
     return str(e) if isinstance(e, (BadChunk, Malformed)) else f"{type(e).__name__}: {e}"
-
-
-def _offsets(offsets) -> str:
-    shown = ", ".join(str(o) for o in sorted(offsets)[:5])
-    return shown + (f" and {len(offsets) - 5} more" if len(offsets) > 5 else "")
 
 
 class Walk:
@@ -221,7 +215,7 @@ class Walk:
                 return
             if opcode == Opcode.MESSAGE:
                 self.outside += 1
-                yield _message(content, False, None)
+                yield _message(content, False)
                 return
             rec = parse_schema(content) if opcode == Opcode.SCHEMA else parse_channel(content)
         except Malformed as e:
@@ -238,11 +232,11 @@ class Walk:
             self.channels[rec.id] = rec
         yield rec
 
-    def _records_of_chunk(self, records, checked: bool, pos: int, where: str) -> Iterator:
+    def _records_of_chunk(self, records, checked: bool, where: str) -> Iterator:
         for opcode, content in records:
             try:
                 if opcode == Opcode.MESSAGE:
-                    yield _message(content, checked, pos)
+                    yield _message(content, checked)
                 elif opcode in (Opcode.SCHEMA, Opcode.CHANNEL):
                     rec = parse_schema(content) if opcode == Opcode.SCHEMA else \
                         parse_channel(content)
@@ -276,7 +270,7 @@ class Walk:
             return pos + RECORD_HEADER + length
         self.no_crc += not checked
         self.chunk_ok = True
-        yield from self._records_of_chunk(records, checked, pos, where)
+        yield from self._records_of_chunk(records, checked, where)
         return pos + RECORD_HEADER + length
 
     def _chunk_by_index(self, pos: int, where: str) -> Iterator:
@@ -298,7 +292,7 @@ class Walk:
                                            "length"))
             self.seen[pos] = entry.chunk_length
             self.no_crc += not checked
-            yield from self._records_of_chunk(records, checked, pos, where)
+            yield from self._records_of_chunk(records, checked, where)
             return pos + entry.chunk_length
         return None
 
@@ -378,7 +372,7 @@ class Walk:
         except _UNTRUSTED:
             return
         self.report.partial_chunk_messages += sum(op == Opcode.MESSAGE for op, _ in records)
-        yield from self._records_of_chunk(records, False, pos, loss.where)
+        yield from self._records_of_chunk(records, False, loss.where)
 
     def _no_data_end(self, pos: int) -> None:
         if self.o.footer is None:
@@ -390,39 +384,26 @@ class Walk:
                                            "data-end record"))
 
     def _data_end(self, pos: int, length: int) -> None:
-        """Check the data section's CRC (once per file: the result is kept)."""
+        """The data section's CRC is checked once the walk is over (`McapRecords`), from
+        where the footer puts this record; without a footer, here."""
         self.reached = self.o.limit
-        crc = struct.unpack("<I", self.f.read(4))[0] if length >= 4 else 0
-        if self.o.data_crc is None:
+        if self.o.footer is None and self.o.data_crc is None:
+            crc = struct.unpack("<I", self.f.read(4))[0] if length >= 4 else 0
             self.o.data_crc = ("absent" if crc == 0 else
                                "match" if crc_of_range(self.f, 0, pos) == crc else "mismatch")
-        if self.o.data_crc == "mismatch":
-            what = ("its CRC (in the data-end record) does not match: some bytes are corrupted"
-                    + ("; every message lies in a chunk whose own CRC matched, so none is "
-                       "affected" if self.outside == 0 and self.no_crc == 0 else
-                       "; messages without a CRC of their own cannot be told apart from "
-                       "damaged ones (their scans are marked suspect)"))
-            self.report.losses.append(Loss("data section", what))
+
+    def data_crc_mismatch(self) -> str:
+        """What a data-section CRC that does not match means for this file's messages."""
+        return ("its CRC (in the data-end record) does not match: some bytes are corrupted"
+                + ("; every message lies in a chunk whose own CRC matched, so none is affected"
+                   if self.outside == 0 and self.no_crc == 0 else
+                   "; messages without a CRC of their own cannot be told apart from damaged "
+                   "ones (their scans are marked suspect)"))
 
     def _attachment(self, pos: int, length: int) -> None:
-        """An attachment's CRC covers its fields and data; tisem does not use attachments."""
-        f = Fields(self._at(pos + RECORD_HEADER, min(length, 1 << 16)), "attachment")
-        try:
-            f.u64(), f.u64()
-            name = f.text()
-            f.text()
-            size = f.u64()
-            body = f.pos + size
-            if body + 4 > length:
-                raise Malformed(f"its data claims {size} bytes, the record holds less")
-            start = pos + RECORD_HEADER
-            crc = struct.unpack("<I", self._at(start + body, 4))[0]
-        except Malformed as e:
-            self.report.losses.append(Loss(f"attachment at byte {pos}", f"unparseable ({e})"))
-            return
-        if crc and crc_of_range(self.f, start, start + body) != crc:
-            self.report.losses.append(Loss(f"attachment {name!r} at byte {pos}", "its CRC does "
-                                           "not match (tisem does not use attachments)"))
+        problem = attachment_problem(self.f, pos, length)
+        if problem is not None:
+            self.report.losses.append(Loss(f"attachment at byte {pos}", problem))
 
     def finish(self) -> None:
         """After the walk: what the CRCs could not cover, and the index against the data."""
@@ -434,27 +415,8 @@ class Walk:
                                      f"data section carries no CRC: corrupted bytes in them "
                                      f"cannot be detected")
         if self.o.summary is not None and self.o.summary.chunk_indexes:
-            self._cross_check()
-
-    def _cross_check(self) -> None:
-        index, seen = self.o.index, self.seen
-        problems = []
-        dupes = {o: len(es) - 1 for o, es in index.items() if len(es) > 1}
-        if dupes:
-            problems.append(f"{sum(dupes.values())} duplicate entr(ies) for the chunk(s) at "
-                            f"byte {_offsets(dupes)}")
-        missing = [o for o in seen if o not in index]
-        if missing:
-            problems.append(f"no entry for the chunk(s) at byte {_offsets(missing)}")
-        extra = [o for o in index if o not in seen and o < self.reached]
-        if extra:
-            problems.append(f"entries for chunks the data does not have, at byte "
-                            f"{_offsets(extra)}")
-        wrong = [o for o in seen if o in index
-                 and all(e.chunk_length != seen[o] for e in index[o])]
-        if wrong:
-            problems.append(f"other lengths for the chunk(s) at byte {_offsets(wrong)}")
-        if problems:
-            self.report.losses.append(Loss("chunk index (summary section)", "disagrees with the "
-                                           f"data ({'; '.join(problems)}): the file was read "
-                                           f"from its data"))
+            problems = index_disagreements(self.o.index, self.seen, self.reached)
+            if problems:
+                self.report.losses.append(Loss(
+                    "chunk index (summary section)", f"disagrees with the data "
+                    f"({'; '.join(problems)}): the file was read from its data"))

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import resource
 import signal
 import subprocess
@@ -221,7 +222,8 @@ def replay(target: str, seed: int, case: int, folder: Path) -> tuple[str, Path, 
 
 
 def summary_table(results: list[CaseResult]) -> str:
-    """Cases and outcomes per target, as a Markdown table, then every failure."""
+    """Cases and outcomes per target as a Markdown table, then the failures: grouped by the
+    kind of mutation (numbers left out), each with how many and its first seed and case."""
     head = "| target | cases | " + " | ".join(OUTCOMES) + " |\n|---|---:|" + "---:|" * len(
         OUTCOMES)
     rows = []
@@ -231,7 +233,11 @@ def summary_table(results: list[CaseResult]) -> str:
             counts = Counter(r.outcome for r in mine)
             rows.append(f"| {target} | {len(mine)} | " +
                         " | ".join(str(counts[o]) for o in OUTCOMES) + " |")
-    failures = [r.line() for r in results if r.outcome == "failure"]
+    kinds: dict[str, list[CaseResult]] = {}
+    for r in results:
+        if r.outcome == "failure":
+            kinds.setdefault(re.sub(r"\d+", "N", f"{r.target}: {r.what}"), []).append(r)
+    failures = [f"{len(rs)} x {kind} (first: {rs[0].line()})" for kind, rs in kinds.items()]
     return "\n".join([head, *rows] + (["", "failures:", *failures] if failures else []))
 
 

@@ -78,28 +78,27 @@ def _scan_file(rng, folder: str, suffix: str) -> str:
 def _binary_file(rng) -> Mutation:
     name = _pick(rng, ["velodyne", "predictions", "labels"])
     rel = _scan_file(rng, name, "bin" if name == "velodyne" else "label")
-    unit = 16 if name == "velodyne" else 4
-    edit, detectable = _pick(rng, [("cut by 1 byte", -1), ("cut by one value", -unit // 4 * 1),
-                                   ("cut by one point", -unit), ("extended by 1 byte", 1),
-                                   ("extended by one point", unit), ("emptied", None),
-                                   ("removed", "rm"), ("a bit flipped", "flip")]), True
-    what, delta = edit
+    point = 16 if name == "velodyne" else 4                   # bytes per point
+    what, delta = _pick(rng, [("cut by 1 byte", -1), ("cut by one value", -4),
+                              ("cut by one point", -point), ("extended by 1 byte", 1),
+                              ("extended by one point", point), ("emptied", "empty"),
+                              ("removed", "remove"), ("a bit flipped", "flip")])
 
     def apply(folder: Path) -> None:
         path = folder / rel
-        if delta == "rm":
+        if delta == "remove":
             path.unlink()
         elif delta == "flip":
             data = bytearray(path.read_bytes())
             data[len(data) // 3] ^= 0x10
             path.write_bytes(bytes(data))
-        elif delta is None:
+        elif delta == "empty":
             path.write_bytes(b"")
         else:
             _resize(path, delta)
     # a flipped bit in a point or a label is another valid value; a removed scan file takes
     # its scan out of the sequence, which no reader can tell from a shorter drive
-    detectable = delta not in ("flip",) and not (delta == "rm" and name == "velodyne")
+    detectable = delta != "flip" and not (delta == "remove" and name == "velodyne")
     return Mutation(f"{rel}: {what}", detectable, apply)
 
 
