@@ -502,3 +502,22 @@ def test_more_messages_than_the_summary_counts_marks_the_scans_from_there(tmp_pa
     assert list(reader.report.suspect) == [N_SCANS]
     assert any("the data holds more messages than the summary counts (1 on /velodyne_points)"
                in line for line in reader.report.lines())
+
+
+def test_the_data_crc_is_checked_even_when_the_walk_never_reaches_the_data_end(tmp_path):
+    """Zeros over the end of the last message and the header after it: the walk stops there,
+    yet the footer leads to the data-end record, whose CRC says the data is corrupted."""
+    path = tmp_path / "log.mcap"
+    write_synthetic_log(path, n_scans=4, n_points=200, chunked=False, compression="none",
+                        data_crc=True)
+    last = regions_of(path, "message")[-1]
+    data = bytearray(path.read_bytes())
+    data[last.start - 8:last.start + 2] = bytes(10)
+    path.write_bytes(bytes(data))
+    reader = McapScanReader(path)
+    scans = [s for s in reader if not isinstance(s, SkippedScan)]
+    lines = reader.report.lines()
+    assert lines[0].startswith(f"bytes {last.start}-") and "invalid record opcode 0x0" in lines[0]
+    assert any(line.startswith("data section: its CRC (in the data-end record) does not "
+                               "match") for line in lines)
+    assert sorted(reader.report.suspect) == [s.index for s in scans]

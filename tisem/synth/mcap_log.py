@@ -132,3 +132,53 @@ def add_data_crc(path: str | Path) -> None:
         pos += 9 + struct.unpack_from("<Q", data, pos + 1)[0]
     struct.pack_into("<I", data, pos + 9, zlib.crc32(data[:pos]))
     Path(path).write_bytes(bytes(data))
+
+
+def write_foxglove_log(path: str | Path, n_scans: int = 5, n_points: int = 2000, *,
+                       seed: int = 0, t0_s: float = 100.0, tf_rate_hz: float = 50.0,
+                       chunk_size: int = 1 << 20) -> dict:
+    """The same drive as `write_synthetic_log` the way Foxglove tools log it (protobuf,
+    zstd chunks with CRCs): `foxglove.FrameTransform` on /tf (the mount logged once, so it is
+    taken as static) and `foxglove.PointCloud` on /lidar_top. Returns the truth likewise."""
+    from foxglove_schemas_protobuf.FrameTransform_pb2 import FrameTransform
+    from foxglove_schemas_protobuf.Quaternion_pb2 import Quaternion
+    from foxglove_schemas_protobuf.Vector3_pb2 import Vector3
+    from google.protobuf.timestamp_pb2 import Timestamp
+    from mcap_protobuf.writer import Writer
+
+    from tisem.io.pointcloud2 import array_to_foxglove_cloud
+    from tisem.io.stamps import split_ns
+    from tisem.io.tf import matrix_to_quat
+
+    def transform(parent: str, child: str, t: int, T: np.ndarray) -> FrameTransform:
+        q = matrix_to_quat(T[:3, :3])
+        sec, nanos = split_ns(t)
+        return FrameTransform(timestamp=Timestamp(seconds=sec, nanos=nanos),
+                              parent_frame_id=parent, child_frame_id=child,
+                              translation=Vector3(x=T[0, 3], y=T[1, 3], z=T[2, 3]),
+                              rotation=Quaternion(x=q[0], y=q[1], z=q[2], w=q[3]))
+
+    rng = np.random.default_rng(seed)
+    t0 = int(t0_s * 1e9)
+    scan_stamps = [t0 + SCAN_OFFSET_NS + i * SCAN_PERIOD_NS for i in range(n_scans)]
+    tf_stamps = range(t0, scan_stamps[-1] + SCAN_PERIOD_NS + 1, int(1e9 / tf_rate_hz))
+    events = sorted([(t, 0, None) for t in tf_stamps] +
+                    [(t + RECEIVE_LAG_NS, 1, i) for i, t in enumerate(scan_stamps)])
+    truth = {"stamps_ns": scan_stamps, "points": [],
+             "T_world_sensor": np.array([synthetic_pose((t - t0) / 1e9) @ T_BASE_LIDAR
+                                         for t in scan_stamps]).reshape(-1, 4, 4)}
+    with open(path, "wb") as f, Writer(f, chunk_size=chunk_size) as w:
+        w.write_message("/tf", transform("base_link", "lidar_top", t0, T_BASE_LIDAR),
+                        log_time=t0, publish_time=t0)
+        for log_time, kind, i in events:
+            if kind == 0:
+                msg = transform("map", "base_link", log_time,
+                                synthetic_pose((log_time - t0) / 1e9))
+                w.write_message("/tf", msg, log_time=log_time, publish_time=log_time)
+            else:
+                arr = synthetic_points(n_points, rng)
+                truth["points"].append(arr)
+                w.write_message("/lidar_top", array_to_foxglove_cloud(arr, "lidar_top",
+                                                                      scan_stamps[i]),
+                                log_time=log_time, publish_time=log_time)
+    return truth

@@ -17,10 +17,10 @@ from typing import Callable
 
 import numpy as np
 
-from tisem.synth.mcap_log import write_synthetic_log
+from tisem.synth.mcap_log import write_foxglove_log, write_synthetic_log
 
-# the intact recordings: every layout the reader handles, all with CRCs (without one a flipped
-# byte in a cloud cannot be noticed, by any reader)
+# the intact recordings: every layout the reader handles, ROS 2 and Foxglove, all with CRCs
+# (without one a flipped byte in a cloud cannot be noticed, by any reader)
 BASES = {
     "zstd": dict(compression="zstd"),
     "lz4": dict(compression="lz4"),
@@ -28,6 +28,7 @@ BASES = {
     "unchunked": dict(compression="none", chunked=False, data_crc=True),
     "no summary": dict(compression="zstd", indexed=False),
     "float labels": dict(compression="zstd", label_dtype="<f8"),
+    "foxglove": dict(foxglove=True),
 }
 _COMMON = dict(n_scans=5, n_points=40, chunk_size=1500, tf_rate_hz=20.0, seed=7)
 _NAMES = {0x01: "header", 0x02: "footer", 0x03: "schema", 0x04: "channel", 0x05: "message",
@@ -92,12 +93,20 @@ class Base:
     options: dict
 
 
+def _write(path: Path, options: dict, hook=None) -> None:
+    if options.get("foxglove"):
+        write_foxglove_log(path, **{k: options[k] for k in ("n_scans", "n_points", "seed",
+                                                           "chunk_size", "tf_rate_hz")})
+    else:
+        write_synthetic_log(path, **options, cloud_hook=hook)
+
+
 def write_bases(folder: Path) -> dict[str, Base]:
     """The intact recordings, written into `folder`."""
     out = {}
     for name, options in BASES.items():
         path = folder / f"{name.replace(' ', '_')}.mcap"
-        write_synthetic_log(path, **_COMMON, **options)
+        _write(path, {**_COMMON, **options})
         data = path.read_bytes()
         out[name] = Base(name, path, data, layout(data), {**_COMMON, **options})
     return out
@@ -117,7 +126,7 @@ class Mutation:
         if self.data is not None:
             path.write_bytes(self.data)
         else:
-            write_synthetic_log(path, **bases[self.base].options, cloud_hook=self.hook)
+            _write(path, bases[self.base].options, self.hook)
 
 
 # ---- byte edits ------------------------------------------------------------------------------
