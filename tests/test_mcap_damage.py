@@ -360,7 +360,7 @@ def test_a_damaged_chunk_index_neither_duplicates_nor_renumbers_a_scan(tmp_path,
     assert [i.index for i in items] == list(range(N_SCANS))
     assert check_scans_against_truth(items, truth) == list(range(N_SCANS))
     (line,) = [x.line() for x in reader.report.losses]
-    what = ("1 duplicate entr(ies) for the chunk(s) at byte" if edit == "duplicate"
+    what = ("1 duplicated entry for the chunk(s) at byte" if edit == "duplicate"
             else "no entry for the chunk(s) at byte")
     assert line.startswith("chunk index (summary section): disagrees with the data (" + what)
     assert line.endswith("): the file was read from its data")

@@ -161,8 +161,9 @@ def index_disagreements(index: dict[int, list], seen: dict[int, int], reached: i
     problems = []
     dupes = {o: len(es) - 1 for o, es in index.items() if len(es) > 1}
     if dupes:
-        problems.append(f"{sum(dupes.values())} duplicate entr(ies) for the chunk(s) at byte "
-                        f"{_offsets(dupes)}")
+        n = sum(dupes.values())
+        problems.append(f"{n} duplicated {'entry' if n == 1 else 'entries'} for the chunk(s) "
+                        f"at byte {_offsets(dupes)}")
     missing = [o for o in seen if o not in index]
     if missing:
         problems.append(f"no entry for the chunk(s) at byte {_offsets(missing)}")
