@@ -31,8 +31,9 @@ __all__ = ["McapRecords", "McapMessage", "LostMessages", "Loss", "ReadReport", "
 class McapRecords:
     """Schema, Channel and Message records of an MCAP file, in data order, surviving damage.
 
-    After a complete pass, `data_crc` is "match", "mismatch" or "absent" (None before, or when
-    the data section has no data-end record to check).
+    After a pass, `data_crc` is "match", "mismatch" or "absent" (None before, or when the
+    data section has no data-end record to check), and `excess` counts, per topic, messages
+    beyond what the summary's statistics record (damaged records taken for messages).
     """
 
     def __init__(self, path: str | Path) -> None:
@@ -91,10 +92,12 @@ class McapRecords:
         not have reached it), once per file."""
         footer = self.footer
         if self.data_crc is None and footer is not None and footer.data_end_at is not None:
-            with open(self.path, "rb") as f:
-                crc = crc_of_range(f, 0, footer.data_end_at)
-            self.data_crc = ("absent" if footer.data_end_crc == 0 else
-                             "match" if crc == footer.data_end_crc else "mismatch")
+            if footer.data_end_crc == 0:
+                self.data_crc = "absent"
+            else:
+                with open(self.path, "rb") as f:
+                    crc = crc_of_range(f, 0, footer.data_end_at)
+                self.data_crc = "match" if crc == footer.data_end_crc else "mismatch"
         if self.data_crc == "mismatch":
             report.losses.append(Loss("data section", walk.data_crc_mismatch()))
 
