@@ -5,7 +5,12 @@ recovered, the damaged part is reported (never a traceback), and no scan carries
 """
 from __future__ import annotations
 
+import json
+import os
 import struct
+import subprocess
+import sys
+import zlib
 
 import numpy as np
 import pytest
@@ -16,6 +21,7 @@ from tisem.io.mcap_reader import McapOptions, McapScanReader
 from tisem.labels import raw_to_train
 from tisem.scan import Scan
 from tisem.synth.mcap_log import write_synthetic_log
+from tisem.testing.mcap_damage import layout
 
 N_SCANS = 6
 
@@ -154,17 +160,28 @@ def test_a_chunk_with_a_bad_crc_is_skipped_and_reported(tmp_path, compression, s
     assert "1 on /velodyne_points" in loss.line()
 
 
-def test_a_damaged_chunk_header_loses_only_that_chunk(tmp_path):
+@pytest.mark.parametrize("summary", ["intact", "cut off"])
+def test_a_damaged_chunk_length_field_loses_at_most_that_chunk(tmp_path, summary):
     path = tmp_path / "log.mcap"
     truth = write_synthetic_log(path, n_scans=N_SCANS, n_points=600, chunk_size=8_000)
     chunk = chunk_of_scan(path, truth, 4)
     data = bytearray(path.read_bytes())
+    if summary == "cut off":
+        data = data[:[r for r in top_level_records(bytes(data)) if r[0] == 0x0F][0][1]]
     data[chunk.chunk_start_offset + 1:chunk.chunk_start_offset + 9] = b"\xff" * 8   # its length
     path.write_bytes(bytes(data))
     reader = McapScanReader(path)
     items = list(reader)
-    assert check_scans_against_truth(items, truth) == [0, 1, 2, 3, 5]
-    assert "does not match the index" in reader.report.lines()[0]
+    if summary == "intact":      # the chunk index gives the length, and the chunk checks out
+        assert check_scans_against_truth(items, truth) == list(range(N_SCANS))
+        assert "its record header is damaged; the chunk index gives its length" in \
+            reader.report.lines()[0]
+    else:                        # the next chunk is found in the bytes; the loss is counted
+        assert check_scans_against_truth(items, truth) == [0, 1, 2, 3, 5]
+        assert isinstance(items[4], SkippedScan) and items[4].index == 4
+        (loss,) = [x for x in reader.report.losses if "reading went on" in x.what]
+        assert loss.topics["/velodyne_points"] == 1 and "past the end of the file" in loss.what
+        assert not reader.report.suspect
 
 
 @pytest.mark.parametrize("variant", [dict(indexed=False), dict(chunked=False),
@@ -207,3 +224,300 @@ def test_lost_clouds_outside_first_last_are_not_reported(tmp_path):
     flip(path, chunk.chunk_start_offset + chunk.chunk_length - 100)
     reader = McapScanReader(path, McapOptions(first=2))
     assert [i.index for i in reader] == [2, 3, 4, 5] and reader.total == 4
+
+
+# ---- lengths taken on trust, the summary and its index, CRCs -------------------------------
+
+def regions_of(path, kind):
+    return [r for r in layout(path.read_bytes()) if r.kind == kind]
+
+
+def set_field(path, region, name, value) -> None:
+    at, size = region.fields[name]
+    data = bytearray(path.read_bytes())
+    data[at:at + size] = value.to_bytes(size, "little")
+    path.write_bytes(bytes(data))
+
+
+def refresh_summary_crc(path) -> None:
+    """Recompute the footer's summary CRC after editing the summary (a consistent index)."""
+    data = bytearray(path.read_bytes())
+    footer = len(data) - 37
+    start = struct.unpack_from("<Q", data, footer + 9)[0]
+    struct.pack_into("<I", data, footer + 25, zlib.crc32(data[start:footer + 25]))
+    path.write_bytes(bytes(data))
+
+
+def read_with_memory_limit(path, limit_mb: int = 1500) -> dict:
+    """Read in a child process whose address space is limited: a length taken on trust that
+    allocates gigabytes is a MemoryError there (what it was under a 3 GB limit)."""
+    code = (f"import json, resource; resource.setrlimit(resource.RLIMIT_AS, ({limit_mb << 20},"
+            f" {limit_mb << 20}))\n"
+            "from tisem.io.mcap_reader import McapScanReader\n"
+            "from tisem.scan import Scan\n"
+            f"r = McapScanReader({str(path)!r})\n"
+            "items = list(r)\n"
+            "print(json.dumps({'scans': [s.index for s in items if isinstance(s, Scan)],"
+            " 'lines': r.report.lines()}))\n")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                          env={**os.environ, "OPENBLAS_NUM_THREADS": "1"})
+    assert done.returncode == 0, done.stderr[-2000:]
+    return json.loads(done.stdout)
+
+
+@pytest.mark.parametrize("kind,name,value", [
+    ("summary schema", "record length", 2 ** 32),       # was a MemoryError under 3 GB
+    ("summary channel", "string length", 2 ** 32 - 1),
+    ("chunk index", "offsets length", 2 ** 31),
+    ("statistics", "counts length", 2 ** 32 - 1),
+    ("footer", "summary start", 2 ** 63),
+])
+def test_huge_lengths_in_the_summary_only_cost_the_summary(tmp_path, kind, name, value):
+    path = tmp_path / "log.mcap"
+    write_synthetic_log(path, n_scans=N_SCANS, n_points=200, chunk_size=3_000)
+    set_field(path, regions_of(path, kind)[0], name, value)
+    refresh_summary_crc(path)       # the CRC alone would already refuse the summary
+    got = read_with_memory_limit(path)
+    assert got["scans"] == list(range(N_SCANS))
+    assert any(line.startswith("summary section: ") and "it was not used and the file was read "
+               "from its data" in line for line in got["lines"])
+
+
+@pytest.mark.parametrize("name,value", [("uncompressed size", 2 ** 63),     # an OverflowError
+                                        ("uncompressed size", 2 ** 40),
+                                        ("data length", 2 ** 64 - 1),
+                                        ("compression length", 2 ** 32 - 1)])
+def test_huge_lengths_in_a_chunk_lose_that_chunk_only(tmp_path, name, value):
+    path = tmp_path / "log.mcap"
+    truth = write_synthetic_log(path, n_scans=N_SCANS, n_points=200, chunk_size=3_000)
+    chunk = chunk_of_scan(path, truth, 2)
+    (region,) = [r for r in regions_of(path, "chunk") if r.start == chunk.chunk_start_offset]
+    set_field(path, region, name, value)
+    got = read_with_memory_limit(path)
+    assert got["scans"] == [0, 1, 3, 4, 5]
+    assert any(line.startswith(f"chunk at byte {chunk.chunk_start_offset}") and
+               "chunk skipped" in line and "1 on /velodyne_points" in line
+               for line in got["lines"])
+
+
+def test_a_lost_chunk_is_counted_from_the_data_not_from_index_offsets(tmp_path):
+    """The chunk index's message index offsets pointing anywhere (a seek error before) do not
+    matter: what a lost chunk held is counted from the records after it in the data."""
+    path = tmp_path / "log.mcap"
+    truth = write_synthetic_log(path, n_scans=N_SCANS, n_points=200, chunk_size=3_000)
+    chunk = chunk_of_scan(path, truth, 3)
+    flip(path, chunk.chunk_start_offset + chunk.chunk_length - 50)
+    data = bytearray(path.read_bytes())
+    for entry in regions_of(path, "chunk index"):
+        at = entry.fields["offsets length"][0] + 4
+        n = struct.unpack_from("<I", data, at - 4)[0] // 10
+        for k in range(n):                           # (u16 channel, u64 offset) pairs
+            struct.pack_into("<Q", data, at + 10 * k + 2, 2 ** 64 - 1 - k)
+    path.write_bytes(bytes(data))
+    refresh_summary_crc(path)
+    reader = McapScanReader(path)
+    items = list(reader)
+    assert check_scans_against_truth(items, truth) == [0, 1, 2, 4, 5]
+    assert isinstance(items[3], SkippedScan)
+    (loss,) = [x for x in reader.report.losses if "chunk skipped" in x.what]
+    assert loss.topics["/velodyne_points"] == 1
+
+
+def test_a_summary_whose_crc_fails_is_not_used(tmp_path):
+    path = tmp_path / "log.mcap"
+    truth = write_synthetic_log(path, n_scans=N_SCANS, n_points=200, chunk_size=3_000)
+    entry = regions_of(path, "chunk index")[1]
+    set_field(path, entry, "chunk offset", 8)             # an index that points elsewhere
+    reader = McapScanReader(path)
+    assert check_scans_against_truth(list(reader), truth) == list(range(N_SCANS))
+    assert reader.report.lines()[0] == (
+        "summary section: the summary section's CRC does not match (corrupted bytes); it was "
+        "not used and the file was read from its data")
+
+
+@pytest.mark.parametrize("edit", ["duplicate", "delete"])
+def test_a_damaged_chunk_index_neither_duplicates_nor_renumbers_a_scan(tmp_path, edit):
+    """Entries duplicated or deleted in a summary whose CRC was made to match: the data is
+    read, each cloud once and numbered by its place in the data, and the disagreement said."""
+    path = tmp_path / "log.mcap"
+    truth = write_synthetic_log(path, n_scans=N_SCANS, n_points=200, chunk_size=3_000)
+    entries = regions_of(path, "chunk index")
+    data = bytearray(path.read_bytes())
+    first = entries[0]
+    shift = first.end - first.start
+    if edit == "duplicate":
+        data[first.end:first.end] = data[first.start:first.end]
+    else:
+        del data[first.start:first.end]
+        shift = -shift
+    footer = len(data) - 37
+    offset_start = struct.unpack_from("<Q", data, footer + 17)[0]
+    struct.pack_into("<Q", data, footer + 17, offset_start + shift)
+    path.write_bytes(bytes(data))
+    refresh_summary_crc(path)
+    reader = McapScanReader(path)
+    items = list(reader)
+    assert [i.index for i in items] == list(range(N_SCANS))
+    assert check_scans_against_truth(items, truth) == list(range(N_SCANS))
+    (line,) = [x.line() for x in reader.report.losses]
+    what = ("1 duplicated entry for the chunk(s) at byte" if edit == "duplicate"
+            else "no entry for the chunk(s) at byte")
+    assert line.startswith("chunk index (summary section): disagrees with the data (" + what)
+    assert line.endswith("): the file was read from its data")
+
+
+def test_a_flipped_bit_in_an_unchunked_file_marks_its_scans_suspect(tmp_path):
+    """Records outside chunks have no CRC of their own; the data section's CRC (in the
+    data-end record) says that something is corrupted, not where: every scan is marked."""
+    path = tmp_path / "log.mcap"
+    truth = write_synthetic_log(path, n_scans=4, n_points=200, chunked=False,
+                                compression="none", data_crc=True)
+    clouds = [r for r in regions_of(path, "message") if r.end - r.start > 2000]
+    flip(path, clouds[2].end - 100)                   # a point of cloud 2
+    reader = McapScanReader(path)
+    items = list(reader)
+    assert [type(i).__name__ for i in items] == ["Scan"] * 4
+    assert sorted(reader.report.suspect) == [0, 1, 2, 3]
+    assert check_scans_against_truth([i for i in items if i.index != 2], truth) == [0, 1, 3]
+    lines = reader.report.lines()
+    assert lines[0] == ("data section: its CRC (in the data-end record) does not match: some "
+                        "bytes are corrupted; messages without a CRC of their own cannot be "
+                        "told apart from damaged ones (their scans are marked suspect)")
+    assert "scan(s) 0-3 mapped but suspect: the data section's CRC does not match" in lines[-1]
+    # intact, the same file is clean
+    write_synthetic_log(path, n_scans=4, n_points=200, chunked=False, compression="none",
+                        data_crc=True)
+    assert McapScanReader(path).report.lines() == ["no chunk index: the file was read linearly"]
+
+
+@pytest.mark.parametrize("compression,counted", [("none", True), ("zstd", False)])
+def test_a_bad_chunk_in_a_file_without_index_is_counted_or_said_unknown(tmp_path, compression,
+                                                                       counted):
+    """Without message index records, an uncompressed damaged chunk still shows its records;
+    a compressed one cannot be counted: the loss says so and the scans after it are marked
+    (their numbers may differ from those in the intact file)."""
+    path = tmp_path / "log.mcap"
+    truth = write_synthetic_log(path, n_scans=N_SCANS, n_points=200, chunk_size=3_000,
+                                indexed=False, compression=compression)
+    chunks = regions_of(path, "chunk")
+    flip(path, chunks[2].end - 60)
+    reader = McapScanReader(path)
+    items = list(reader)
+    (loss,) = [x for x in reader.report.losses if "chunk skipped" in x.what]
+    if counted:
+        assert "(counted from its damaged records)" in loss.what and loss.messages > 0
+        assert [i.index for i in items] == list(range(N_SCANS)) and not reader.report.suspect
+        skipped = [i.index for i in items if isinstance(i, SkippedScan)]
+        assert check_scans_against_truth(items, truth) == sorted(set(range(N_SCANS)) -
+                                                                 set(skipped))
+    else:
+        assert loss.uncounted and loss.line().endswith(": an unknown number of messages lost")
+        scans = [i for i in items if not isinstance(i, SkippedScan)]
+        first_after = min(reader.report.suspect)
+        assert sorted(reader.report.suspect) == [s.index for s in scans
+                                                 if s.index >= first_after]
+        assert reader.report.suspect[first_after].endswith(
+            "holding an unknown number of messages, came before it, so its number may differ "
+            "from the intact file's")
+        check_scans_against_truth([s for s in scans if s.index < first_after], truth)
+
+
+def test_an_attachment_with_a_bad_crc_is_reported(tmp_path):
+    from mcap.writer import Writer
+    path = tmp_path / "log.mcap"
+    write_synthetic_log(path, n_scans=2, n_points=50, chunked=False, compression="none")
+    with open(tmp_path / "att.mcap", "wb") as f:
+        w = Writer(f)
+        w.start()
+        w.add_attachment(create_time=1, log_time=1, name="calib.yaml",
+                         media_type="text/yaml", data=b"k: 1\n" * 20)
+        w.finish()
+    (att,) = regions_of(tmp_path / "att.mcap", "attachment")
+    record = bytearray((tmp_path / "att.mcap").read_bytes()[att.start:att.end])
+    record[-10] ^= 0xFF                                 # its data, not its CRC
+    data = bytearray(path.read_bytes())
+    header = regions_of(path, "header")[0]
+    data[header.end:header.end] = record                 # right after the header record
+    path.write_bytes(bytes(data))
+    reader = McapScanReader(path)
+    assert len([s for s in reader if not isinstance(s, SkippedScan)]) == 2
+    assert f"attachment at byte {header.end}: 'calib.yaml': its CRC does not match (tisem " \
+        "does not use attachments)" in reader.report.lines()
+
+
+def test_scans_posed_across_lost_tf_messages_are_marked(tmp_path):
+    """A lost chunk also held /tf samples: a scan whose pose is interpolated across the gap
+    gets another pose than from the intact file, so it is marked; the others are identical."""
+    from tisem.testing.oracle import signature
+    path = tmp_path / "log.mcap"
+    # /tf at 20 Hz: the sample after scan 2's stamp is logged after its cloud, in the next chunk
+    write_synthetic_log(path, n_scans=N_SCANS, n_points=200, chunk_size=3_000, tf_rate_hz=20)
+    intact = {s.index: signature(s) for s in McapScanReader(path)}
+    chunks = regions_of(path, "chunk")
+    flip(path, chunks[3].end - 60)
+    reader = McapScanReader(path)
+    items = [s for s in reader if not isinstance(s, SkippedScan)]
+    suspect = reader.report.suspect
+    assert sorted(suspect) == [2] and all(why.startswith("pose messages were lost and its pose is "
+                                          "interpolated across the gap: edge map -> base_link "
+                                          "has no samples from") for why in suspect.values())
+    assert all(signature(s) == intact[s.index] for s in items if s.index not in suspect)
+
+
+def test_a_message_index_whose_opcode_turned_message_is_not_taken_for_a_cloud(tmp_path):
+    """0x07 -> 0x05 is one bit: the chunk index says a message index record starts there."""
+    path = tmp_path / "log.mcap"
+    truth = write_synthetic_log(path, n_scans=N_SCANS, n_points=200, chunk_size=3_000)
+    index = regions_of(path, "message index")[2]
+    data = bytearray(path.read_bytes())
+    data[index.start] = 0x05
+    path.write_bytes(bytes(data))
+    reader = McapScanReader(path)
+    assert check_scans_against_truth(list(reader), truth) == list(range(N_SCANS))
+    assert reader.report.lines()[0] == (f"byte {index.start}: the chunk index has a message index "
+                                        f"record here, the data opcode 0x5: taken as a damaged "
+                                        f"message index record")
+
+
+def test_more_messages_than_the_summary_counts_marks_the_scans_from_there(tmp_path):
+    """A cloud record outside the chunks that the summary does not count: damage taken for a
+    message, so its scan (and any after it) is marked."""
+    path, loose = tmp_path / "log.mcap", tmp_path / "unchunked.mcap"
+    truth = write_synthetic_log(path, n_scans=N_SCANS, n_points=200, chunk_size=3_000)
+    write_synthetic_log(loose, n_scans=N_SCANS, n_points=200, chunked=False)
+    extra = [r for r in regions_of(loose, "message") if r.end - r.start > 2000][1]
+    record = loose.read_bytes()[extra.start:extra.end]
+    data = bytearray(path.read_bytes())
+    (data_end,) = regions_of(path, "data end")
+    data[data_end.start:data_end.start] = record
+    footer = len(data) - 37
+    for at in (footer + 9, footer + 17):                   # summary start, summary offsets
+        struct.pack_into("<Q", data, at, struct.unpack_from("<Q", data, at)[0] + len(record))
+    path.write_bytes(bytes(data))
+    refresh_summary_crc(path)
+    reader = McapScanReader(path)
+    items = list(reader)
+    assert check_scans_against_truth(items[:N_SCANS], truth) == list(range(N_SCANS))
+    assert [i.index for i in items] == list(range(N_SCANS + 1))
+    assert list(reader.report.suspect) == [N_SCANS]
+    assert any("the data holds more messages than the summary counts (1 on /velodyne_points)"
+               in line for line in reader.report.lines())
+
+
+def test_the_data_crc_is_checked_even_when_the_walk_never_reaches_the_data_end(tmp_path):
+    """Zeros over the end of the last message and the header after it: the walk stops there,
+    yet the footer leads to the data-end record, whose CRC says the data is corrupted."""
+    path = tmp_path / "log.mcap"
+    write_synthetic_log(path, n_scans=4, n_points=200, chunked=False, compression="none",
+                        data_crc=True)
+    last = regions_of(path, "message")[-1]
+    data = bytearray(path.read_bytes())
+    data[last.start - 8:last.start + 2] = bytes(10)
+    path.write_bytes(bytes(data))
+    reader = McapScanReader(path)
+    scans = [s for s in reader if not isinstance(s, SkippedScan)]
+    lines = reader.report.lines()
+    assert lines[0].startswith(f"bytes {last.start}-") and "invalid record opcode 0x0" in lines[0]
+    assert any(line.startswith("data section: its CRC (in the data-end record) does not "
+                               "match") for line in lines)
+    assert sorted(reader.report.suspect) == [s.index for s in scans]

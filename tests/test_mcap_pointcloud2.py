@@ -61,8 +61,8 @@ def test_decode_matches_the_reference(order, layout, itemsize):
     expect = np.stack([ref["x"], ref["y"], ref["z"]], 1).astype(np.float32)
     assert xyz.dtype == np.float32 and xyz.flags.c_contiguous
     assert np.array_equal(xyz, expect)
-    labels = pc2.integer_labels(pc2.column(arr, "label"), "label")
-    assert np.array_equal(labels, ref["label"])
+    labels, invalid = pc2.integer_labels(pc2.column(arr, "label"), "label")
+    assert np.array_equal(labels, ref["label"]) and not invalid.any()
     if pc2.has_field(arr, "prob"):
         prob = pc2.column(arr, "prob")
         assert prob.shape == (257, 20) and prob.dtype.isnative
@@ -105,19 +105,88 @@ def test_short_data_and_missing_fields_are_clear_errors():
     arr = pack(reference(10, 0), "<", XYZ_FIRST[:4], 16)
     msg = ros_round_trip(arr)
     msg.data = msg.data[:-1]
-    with pytest.raises(pc2.CloudFormatError, match="need 160"):
+    with pytest.raises(pc2.CloudFormatError, match="data has 159 bytes.*needs 160"):
         pc2.ros_cloud_to_array(msg)
     with pytest.raises(pc2.CloudFormatError, match=r"no field 'class'.*x:float32.*label:uint32"):
         pc2.column(arr, "class")
 
 
 def test_label_types():
-    assert pc2.integer_labels(np.array([1.0, 40.0], np.float32), "l").tolist() == [1, 40]
-    with pytest.raises(pc2.CloudFormatError, match="whole"):
-        pc2.integer_labels(np.array([1.5], np.float32), "l")
+    values, invalid = pc2.integer_labels(np.array([1.0, 40.0], np.float32), "l")
+    assert values.tolist() == [1, 40] and not invalid.any()
     with pytest.raises(pc2.CloudFormatError, match="probability field"):
         pc2.integer_labels(np.zeros((3, 2), np.uint8), "l")
-    assert pc2.integer_labels(np.array([-1, 3], np.int8), "l").tolist() == [-1, 3]
+    values, invalid = pc2.integer_labels(np.array([-1, 3], np.int8), "l")
+    assert values.tolist() == [-1, 3] and not invalid.any()
+
+
+def test_float_labels_that_are_no_label_are_marked_invalid():
+    """NaN, inf, huge, negative and fractional floats cannot be labels: 0 and marked, so the
+    reader counts them as unknown (a 1e300 used to wrap silently into a small class)."""
+    raw = np.array([40.0, np.nan, np.inf, -np.inf, 1e300, -1.0, 0.5, 2.0 ** 32, 2.0 ** 32 - 1,
+                    10.0], np.float64)
+    values, invalid = pc2.integer_labels(raw, "l")
+    assert invalid.tolist() == [False, True, True, True, True, True, True, True, False, False]
+    assert values.tolist() == [40, 0, 0, 0, 0, 0, 0, 0, 2 ** 32 - 1, 10]
+
+
+def _cloud(n=4, **overrides):
+    arr = pack(reference(n, 0), "<", XYZ_FIRST[:4], 16)
+    msg = SimpleNamespace(fields=[SimpleNamespace(name=nm, offset=o, datatype=d, count=1)
+                                  for nm, o, d in (("x", 0, 7), ("y", 4, 7), ("z", 8, 7),
+                                                   ("label", 12, 6))],
+                          point_step=16, row_step=16 * n, height=1, width=n,
+                          is_bigendian=False, data=arr.tobytes())
+    for key, value in overrides.items():
+        setattr(msg, key, value)
+    return msg
+
+
+@pytest.mark.parametrize("overrides,message", [
+    (dict(height=0), "declares no points, but the cloud carries 64 bytes"),
+    (dict(width=0), "declares no points, but the cloud carries 64 bytes"),
+    (dict(width=3, row_step=48), "data has 64 bytes; height 1 x row_step 48"),   # fewer points
+    (dict(width=5, row_step=80), "data has 64 bytes; height 1 x row_step 80"),   # more points
+    (dict(height=2, width=2, row_step=16), "row_step 16 < width 2 x point_step 16"),
+    (dict(height=3, width=2, row_step=32), "data has 64 bytes; height 3 x row_step 32"),
+    (dict(point_step=0), "point_step 0 is not in 1..65536"),
+    (dict(point_step=2 ** 32 - 1), "point_step 4294967295 is not in"),
+    (dict(point_step=17, row_step=68), "data has 64 bytes"),
+])
+def test_layouts_that_do_not_match_the_data_are_refused(overrides, message):
+    """Points must neither go missing nor be invented: the header must describe the data."""
+    with pytest.raises(pc2.CloudFormatError, match=message):
+        pc2.ros_cloud_to_array(_cloud(**overrides))
+
+
+def test_an_empty_cloud_is_an_empty_array_and_a_padded_last_row_is_optional():
+    assert len(pc2.ros_cloud_to_array(_cloud(width=0, row_step=0, data=b""))) == 0
+    msg = _cloud(height=2, width=2, row_step=40)                    # 8 bytes of padding a row
+    rows = msg.data[:32] + b"\0" * 8 + msg.data[32:]
+    for data in (rows, rows + b"\0" * 8):                          # last row padded or not
+        out = pc2.ros_cloud_to_array(_cloud(height=2, width=2, row_step=40, data=data))
+        assert np.array_equal(out["x"], np.frombuffer(msg.data, "<f4")[::4])
+
+
+@pytest.mark.parametrize("fields,message", [
+    ([("x", 0, 7, 1), ("y", 2, 7, 1), ("z", 8, 7, 1), ("label", 12, 6, 1)],
+     r"fields 'x' \(bytes 0-4\) and 'y' \(bytes 2-6\) overlap"),
+    ([("x", 0, 7, 3), ("y", 12, 7, 1), ("z", 16, 7, 1), ("label", 20, 6, 1)],
+     "field 'x' has 3 values per point"),
+    ([("x", 0, 7, 1), ("y", 4, 7, 1), ("z", 8, 7, 1), ("label", 10, 4, 1)],
+     "fields 'label' .* and 'z' .* overlap"),
+])
+def test_used_fields_must_be_single_and_apart(fields, message):
+    arr = np.zeros(3, pc2.fields_dtype(fields, 24))
+    with pytest.raises(pc2.CloudFormatError, match=message):
+        pc2.check_used_fields(arr, ["x", "y", "z", "label"])
+    if "overlap" in message:
+        pc2.check_used_fields(arr, ["x", "label"] if "'y'" in message else ["x"])  # apart: fine
+
+
+def test_foxglove_stride_zero_is_a_clear_error():
+    with pytest.raises(pc2.CloudFormatError, match="point_stride 0"):
+        pc2.foxglove_cloud_to_array(SimpleNamespace(point_stride=0, fields=[], data=b"x"))
 
 
 def test_xyz_in_float64_takes_the_general_path():

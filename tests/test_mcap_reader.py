@@ -1,6 +1,9 @@
 """McapScanReader on whole recordings: poses, labels, topics, pose sources, foxglove logs."""
 from __future__ import annotations
 
+import re
+import struct
+
 import numpy as np
 import pytest
 
@@ -263,3 +266,144 @@ def test_stopping_early_leaves_nothing_behind(tmp_path, monkeypatch, variant):
     del it
     gc.collect()
     assert unraisable == []
+
+
+# ---- clouds that cannot be what they say, errors that say why -------------------------------
+
+def _hook(k, change):
+    return lambda i, msg: change(msg) if i == k else msg
+
+
+@pytest.mark.parametrize("change,reason", [
+    (lambda m: dict(m, height=0), "height 0 x width 30 declares no points, but the cloud "
+                                  "carries 540 bytes of data"),
+    (lambda m: dict(m, width=29, row_step=29 * 18), "data has 540 bytes; height 1 x row_step "
+                                                    "522 (width 29 x point_step 18) needs 522"),
+    (lambda m: dict(m, width=31, row_step=31 * 18), "data has 540 bytes; height 1 x row_step "
+                                                    "558 (width 31 x point_step 18) needs 558"),
+    (lambda m: dict(m, width=0, row_step=0, data=b""), "the cloud has 0 points"),
+    (lambda m: dict(m, fields=[dict(f, offset=2) if f["name"] == "x" else f
+                               for f in m["fields"]]), "fields 'x' (bytes 2-6) and 'y' (bytes "
+                                                       "4-8) overlap"),
+])
+def test_clouds_whose_layout_disagrees_with_their_data_are_skipped(tmp_path, change, reason):
+    """Points neither dropped nor invented: the scan is skipped, saying why."""
+    path = tmp_path / "log.mcap"
+    truth = write_synthetic_log(path, n_scans=4, n_points=30, cloud_hook=_hook(1, change))
+    items = scans_of(path)
+    assert isinstance(items[1], SkippedScan) and items[1].index == 1
+    assert items[1].reason == reason
+    for s in (items[0], items[2], items[3]):
+        assert np.array_equal(s.points_sensor[:, 0], truth["points"][s.index]["x"])
+
+
+def test_a_log_of_empty_clouds_skips_every_scan_with_the_reason(tmp_path):
+    path = tmp_path / "log.mcap"
+    write_synthetic_log(path, n_scans=3, n_points=10,
+                        cloud_hook=lambda i, m: dict(m, width=0, row_step=0, data=b""))
+    reader = McapScanReader(path)
+    items = list(reader)
+    assert [(type(i).__name__, i.reason) for i in items] == [("SkippedScan",
+                                                             "the cloud has 0 points")] * 3
+    assert [s.index for s in reader.report.skipped] == [0, 1, 2]
+
+
+def test_labels_that_are_no_labels_become_unknown_and_are_counted(tmp_path):
+    """Float labels of NaN, inf, 1e300, -1 or 0.5 are no SemanticKITTI id: 0 (no evidence),
+    counted once per point however often the log is read."""
+    bad = [np.nan, np.inf, 1e300, -1.0, 0.5, 2.0 ** 32]
+
+    def labels(i, msg):
+        arr = np.frombuffer(msg["data"], np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"),
+                                                    ("intensity", "<f4"),
+                                                    ("label", "<f8")])).copy()
+        if i == 1:
+            arr["label"][:len(bad)] = bad
+        return dict(msg, data=arr.tobytes())
+
+    path = tmp_path / "log.mcap"
+    truth = write_synthetic_log(path, n_scans=2, n_points=20, label_dtype="<f8",
+                                cloud_hook=labels)
+    reader = McapScanReader(path)
+    for _ in range(2):                                  # the final pass reads the log again
+        first, second = list(reader)
+    assert second.labels[:len(bad)].tolist() == [0] * len(bad)
+    expect = raw_to_train(truth["points"][1]["label"][len(bad):].astype(np.uint32))[0]
+    assert np.array_equal(second.labels[len(bad):], expect)
+    assert second.source.unknown_raw_ids == len(bad) and first.source.unknown_raw_ids == 0
+    assert reader.report.unknown_labels == len(bad)
+    assert f"{len(bad)} point(s) with an unknown label id (or an invalid value) mapped to 0" in \
+        reader.report.lines()
+
+
+def test_probabilities_that_are_no_probabilities_give_no_evidence(tmp_path):
+    path = tmp_path / "f.mcap"
+    arrays = write_fields_log(path, (("probs", "<f4", (20,)),), frames=1)
+    arr = arrays[0]
+    arr["probs"] = 0.05
+    arr["probs"][0, 3] = np.nan
+    arr["probs"][1, 0] = 3e38
+    arr["probs"][2, 5] = -0.1
+    with Ros2McapWriter(path) as w:
+        w.write_transforms([("map", "velodyne", 0, np.eye(4))], 0, static=True)
+        w.write_cloud("/points", arr, "velodyne", 10 ** 8, 10 ** 8)
+    reader = McapScanReader(path, McapOptions(prob_field="probs"))
+    (s,) = list(reader)
+    assert np.all(s.probs[:3] == 0) and np.all(s.probs[3:] == np.float32(0.05))
+    assert s.source.unknown_raw_ids == 3 and reader.report.unknown_labels == 3
+
+
+def test_when_no_cloud_decodes_the_error_says_why(tmp_path):
+    path = tmp_path / "log.mcap"
+    write_synthetic_log(path, n_scans=3, n_points=10,
+                        cloud_hook=lambda i, m: dict(m, point_step=0, row_step=0))
+    with pytest.raises(DatasetError, match=r"none of the 3 messages on /velodyne_points could "
+                       r"be decoded \(the first: CloudFormatError: point_step 0 is not in "
+                       r"1..65536\)"):
+        McapScanReader(path)
+
+
+def test_a_missing_map_frame_names_the_transforms_that_were_ignored(tmp_path):
+    path = tmp_path / "log.mcap"
+    with Ros2McapWriter(path) as w:
+        for k in range(16):
+            w.write("/tf", "tf2_msgs/msg/TFMessage", {"transforms": [{
+                "header": {"stamp": ros_time(T0 + k * 10 ** 8), "frame_id": "map"},
+                "child_frame_id": "velodyne",
+                "transform": {"translation": {"x": 0.0, "y": 0.0, "z": 0.0},
+                              "rotation": {"x": 0.0, "y": 0.0, "z": 0.0, "w": 0.0}}}]},
+                    T0 + k * 10 ** 8)
+        w.write_cloud("/points", synthetic_points(10, np.random.default_rng(0)), "velodyne",
+                      T0, T0)
+    with pytest.raises(DatasetError, match=r"frame 'map' does not appear in any transform; "
+                       r"known frames: none; ignored 16 transform\(s\) map -> velodyne with a "
+                       r"zero quaternion"):
+        McapScanReader(path)
+
+
+def test_an_error_caused_by_damage_says_what_was_lost(tmp_path):
+    """The mount (/tf_static) was in the first chunk; that chunk is lost: the error names
+    the loss, not only the missing frame."""
+    path = tmp_path / "log.mcap"
+    write_synthetic_log(path, n_scans=4, n_points=200, chunk_size=3_000)
+    data = bytearray(path.read_bytes())
+    first = 8 + 9 + struct.unpack_from("<Q", data, 9)[0]         # after the header record
+    data[first + 200] ^= 0x40
+    path.write_bytes(bytes(data))
+    with pytest.raises(DatasetError, match=r"frame 'velodyne' does not appear in any "
+                       r"transform.*; the file is damaged: chunk at byte \d+ .*chunk skipped"):
+        McapScanReader(path)
+
+
+@pytest.mark.parametrize("options,message", [
+    (dict(tf_tolerance_s=float("nan")), "tf_tolerance_s must be a finite number >= 0, got nan"),
+    (dict(tf_tolerance_s=float("inf")), "tf_tolerance_s must be a finite number >= 0, got inf"),
+    (dict(tf_tolerance_s=-1.0), "tf_tolerance_s must be a finite number >= 0, got -1.0"),
+    (dict(first=-1), "first must be a whole number >= 0, got -1"),
+    (dict(first=3, last=2), "last must be a whole number >= first (3) or None, got 2"),
+    (dict(num_classes=1), "num_classes must be a whole number >= 2, got 1"),
+    (dict(label_field=""), "label_field must be a non-empty string"),
+])
+def test_options_are_checked_with_the_value_and_what_is_allowed(options, message):
+    with pytest.raises(ValueError, match=re.escape(message)):
+        McapOptions(**options).validate()

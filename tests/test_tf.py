@@ -157,4 +157,33 @@ def test_bad_transforms_are_ignored_with_a_warning():
     tf.add("map", "a", 0, [np.nan, 0, 0], [0, 0, 0, 1])
     tf.add("map", "b", 0, [0, 0, 0], [0, 0, 0, 0])
     tf.add("map", "map", 0, [0, 0, 0], [0, 0, 0, 1])
-    assert len(tf.warnings) == 3 and tf.frames == set()
+    tf.add("map", "c", 2 ** 63, [0, 0, 0], [0, 0, 0, 1])
+    assert len(tf.warnings) == 4 and tf.frames == set()
+
+
+def test_ignored_transforms_are_counted_and_named_when_a_frame_is_missing():
+    """16 map -> base_link transforms with zero quaternions: the error says so, instead of
+    only 'frame map does not appear in any transform'."""
+    tf = TfBuffer()
+    for k in range(16):
+        tf.add("map", "base_link", k * NS, [0, 0, 0], [0, 0, 0, 0])
+    tf.add("base_link", "lidar", 0, [0, 0, 1], [0, 0, 0, 1], static=True)
+    assert tf.warnings == ["ignored 16 transform(s) map -> base_link with a zero quaternion"]
+    with pytest.raises(ConnectivityError, match=r"frame 'map' does not appear in any transform; "
+                       r"known frames: base_link, lidar; ignored 16 transform\(s\) map -> "
+                       r"base_link with a zero quaternion"):
+        tf.lookup("map", "lidar", 0)
+
+
+def test_an_interpolation_across_missing_samples_is_found(chain):
+    """What a lost /tf message looks like: two samples farther apart than the others."""
+    stamps = [int(k * NS / 20) for k in range(40) if k not in (10, 11, 12)]
+    tf = TfBuffer()
+    tf.add("odom", "base_link", 0, [0, 0, 0], [0, 0, 0, 1], static=True)
+    for t in stamps:
+        tf.add("map", "odom", t, [t / NS, 0, 0], [0, 0, 0, 1])
+    assert tf.interpolation_gap("map", "base_link", int(0.3 * NS)) is None
+    gap = tf.interpolation_gap("map", "base_link", int(0.55 * NS))
+    assert gap == ("edge map -> odom has no samples from 0.450000 s to 0.650000 s around the "
+                   "stamp (its median spacing is 50.0 ms)")
+    assert tf.interpolation_gap("base_link", "map", int(0.61 * NS)) == gap   # either direction

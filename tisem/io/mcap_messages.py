@@ -16,6 +16,9 @@ from tisem.errors import ScanError
 from tisem.io import pointcloud2 as pc2
 from tisem.io.stamps import stamp_to_ns
 from tisem.io.tf import make_transform
+from tisem.labels import raw_to_train
+
+PROBABILITY_SLACK = 1e-3       # rounding in a network's softmax may leave a value just above 1
 
 CLOUD_SCHEMAS = ("sensor_msgs/msg/PointCloud2", "foxglove.PointCloud")
 # point-cloud-like schemas we recognise but cannot map, to say so instead of "no cloud topic"
@@ -101,3 +104,34 @@ def pose_edges(schema_name: str, msg: Any, *, default_parent: str,
         return [(parent, child, stamp_to_ns(msg.header.stamp), _xyz(pose.position),
                  _xyzw(pose.orientation))]
     raise ValueError(f"{schema_name} is not a pose message tisem understands")
+
+
+def cloud_labels(arr: np.ndarray, field_name: str, label_space: str,
+                 num_classes: int) -> tuple[np.ndarray, int]:
+    """Train ids of a cloud's label field, and how many points had an unknown or invalid
+    label (those become 0, no evidence). `label_space`: raw SemanticKITTI ids or train ids."""
+    values, invalid = pc2.integer_labels(pc2.column(arr, field_name), field_name)
+    if label_space == "raw":
+        train, unknown = raw_to_train(values)      # invalid values are 0 there: no evidence
+        return train, unknown + int(np.count_nonzero(invalid))
+    bad = invalid | (values < 0) | (values >= num_classes)
+    return np.where(bad, 0, values).astype(np.int32), int(np.count_nonzero(bad))
+
+
+def cloud_probabilities(arr: np.ndarray, field_name: str,
+                        num_classes: int) -> tuple[np.ndarray, int]:
+    """(N, C) float32 probabilities of a count=C field; a point with a value that is no
+    probability (NaN, inf, negative, above 1) gets a zero row, no evidence, and is counted."""
+    probs = pc2.column(arr, field_name)
+    if probs.ndim != 2 or probs.shape[1] != num_classes:
+        per = 1 if probs.ndim == 1 else probs.shape[1]
+        raise pc2.CloudFormatError(f"probability field {field_name!r} has {per} value(s) per "
+                                   f"point; the map has {num_classes} classes")
+    if probs.dtype.kind != "f":
+        raise pc2.CloudFormatError(f"probability field {field_name!r} has type {probs.dtype}, "
+                                   f"not a floating-point type")
+    with np.errstate(invalid="ignore"):
+        bad = ~np.all((probs >= 0) & (probs <= 1 + PROBABILITY_SLACK), axis=1)     # NaN too
+    probs = probs.astype(np.float32)
+    probs[bad] = 0.0
+    return probs, int(np.count_nonzero(bad))

@@ -3,32 +3,37 @@
 `McapScanReader` reads the file twice, through its record layer (`tisem.io.mcap_records`,
 which survives damage and reports what was lost):
 - a survey pass decodes only pose messages (/tf, /tf_static, `--pose-topic`), counts messages,
-  picks the cloud topic and checks the first cloud's fields and frame, so every "this cannot
-  work" error comes before any mapping;
+  picks the cloud topic and checks that a cloud has the fields and frame the options need, so
+  every "this cannot work" error comes before any mapping (with the damage that may be why);
 - the second pass decodes clouds one at a time and yields `Scan`s with the pose looked up at
   the header stamp from the full transform buffer (exactly what tf2 gives offline). A scan
-  that cannot be used becomes a `SkippedScan` with the reason.
+  that cannot be used (a lost message, a layout that disagrees with its data, no points, no
+  pose) becomes a `SkippedScan` with the reason. A scan read from bytes that nothing vouches
+  for in a file known to be damaged, or posed across lost /tf messages, is marked in
+  `report.suspect`; labels that are no labels count as unknown (0, no evidence).
 """
 from __future__ import annotations
 
 import logging
+import math
 from collections import Counter
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Iterator
 
 import numpy as np
-from mcap.records import Channel, Message, Schema
+from mcap.records import Channel, Schema
 
 from tisem.errors import DatasetError, ScanError, SkippedScan
 from tisem.io import pointcloud2 as pc2
 from tisem.io.mcap_messages import (CLOUD_SCHEMAS, POSE_SCHEMAS, TF_SCHEMAS, UNSUPPORTED_CLOUDS,
-                                    MessageDecoders, cloud_parts, pose_edges)
-from tisem.io.mcap_records import Loss, LostMessages, McapRecords, ReadReport
+                                    MessageDecoders, cloud_labels, cloud_parts,
+                                    cloud_probabilities, pose_edges)
+from tisem.io.mcap_records import Loss, LostMessages, McapMessage, McapRecords, ReadReport
 from tisem.io.stamps import split_ns
 from tisem.io.tf import TfBuffer, TfError
-from tisem.labels import NUM_CLASSES, raw_to_train
-from tisem.scan import McapSource, Scan
+from tisem.labels import NUM_CLASSES
+from tisem.scan import McapSource, Scan, finite_rows
 
 log = logging.getLogger(__name__)
 
@@ -52,10 +57,28 @@ class McapOptions:
     num_classes: int = NUM_CLASSES
 
     def validate(self) -> None:
+        """ValueError naming the option, its value and what is allowed."""
         if self.label_space not in ("raw", "train"):
             raise ValueError(f"label_space must be 'raw' or 'train', got {self.label_space!r}")
-        if self.tf_tolerance_s < 0:
-            raise ValueError("tf_tolerance_s must be >= 0")
+        tolerance = self.tf_tolerance_s
+        if not (isinstance(tolerance, (int, float)) and 0 <= tolerance < math.inf):
+            raise ValueError(f"tf_tolerance_s must be a finite number >= 0, got {tolerance!r}")
+        for name in ("label_field", "map_frame"):
+            if not (isinstance(getattr(self, name), str) and getattr(self, name)):
+                raise ValueError(f"{name} must be a non-empty string, got "
+                                 f"{getattr(self, name)!r}")
+        if not (_is_int(self.first) and self.first >= 0):
+            raise ValueError(f"first must be a whole number >= 0, got {self.first!r}")
+        if self.last is not None and not (_is_int(self.last) and self.last >= self.first):
+            raise ValueError(f"last must be a whole number >= first ({self.first}) or None, "
+                             f"got {self.last!r}")
+        if not (_is_int(self.num_classes) and self.num_classes >= 2):
+            raise ValueError(f"num_classes must be a whole number >= 2, got "
+                             f"{self.num_classes!r}")
+
+
+def _is_int(value) -> bool:
+    return isinstance(value, (int, np.integer)) and not isinstance(value, bool)
 
 
 def _describe_topics(counts: Counter, kinds: dict) -> str:
@@ -79,6 +102,7 @@ class McapScanReader:
         self.report = ReadReport(path=self.path)
         self._records = McapRecords(path)
         self._decoders = MessageDecoders()
+        self._unknown: dict[int, tuple[int, int]] = {}    # scan index -> unknown labels, gt
         self._survey()
 
     # -- pass 1
@@ -88,8 +112,11 @@ class McapScanReader:
         channels: dict[int, Channel] = {}
         kinds: dict[str, str] = {}                    # topic -> schema name
         samples = []                                  # (static, foxglove, parent, child, t, xyz, q)
-        first_cloud: dict[str, object] = {}           # topic -> first decodable cloud
+        first_cloud: dict[str, object] = {}           # topic -> first usable cloud
+        misfits: dict[str, object] = {}               # topic -> first cloud lacking a field
+        self._cloud_errors: dict[str, str] = {}       # topic -> why its first bad cloud failed
         undecodable = Counter()
+        pose_errors: dict[str, str] = {}
         lost_clouds = Counter()                       # channel id -> messages in lost chunks
         for rec in self._records.records(self.report):
             if isinstance(rec, Schema):
@@ -98,10 +125,12 @@ class McapScanReader:
             if isinstance(rec, Channel):
                 channels[rec.id] = rec
                 schema = schemas.get(rec.schema_id)
-                kinds[rec.topic] = schema.name if schema else "?"
+                kinds[rec.topic] = (schema.name if schema else
+                                    "unknown schema" if rec.schema_id else "no schema")
                 continue
             if isinstance(rec, LostMessages):
-                lost_clouds[rec.channel_id] += rec.count
+                if rec.channel_id is not None:
+                    lost_clouds[rec.channel_id] += rec.count
                 continue
             ch = channels[rec.channel_id]
             name = kinds[ch.topic]
@@ -116,32 +145,52 @@ class McapScanReader:
             try:
                 msg = self._decoders.decode(ch, schemas.get(ch.schema_id), rec.data)
                 if wants_cloud:
-                    first_cloud[ch.topic] = cloud_parts(name, msg)
+                    parts = cloud_parts(name, msg)
+                    if self._cloud_problem(parts, ch.topic) is None:
+                        first_cloud[ch.topic] = parts
+                    else:                             # one odd cloud must not refuse the file
+                        misfits.setdefault(ch.topic, parts)
                     continue
                 edges = pose_edges(name, msg, default_parent=opts.map_frame, default_child=None)
-            # a damaged message (bad CRC-less chunk) or a schema we cannot parse: count it
+            # a damaged message (in a chunk without CRC) or a schema we cannot parse; a bad
+            # cloud is skipped with its reason when the scans are read, so only its reason is
+            # kept here
             except Exception as e:  # noqa: BLE001 - decoders raise anything on bad bytes
-                undecodable[ch.topic] += 1
-                log.debug("undecodable message on %s: %r", ch.topic, e)
+                why = f"{type(e).__name__}: {e}"
+                if wants_cloud:
+                    self._cloud_errors.setdefault(ch.topic, why)
+                else:
+                    undecodable[ch.topic] += 1
+                    pose_errors.setdefault(ch.topic, why)
                 continue
             fox = name.startswith("foxglove.")
             samples += [(static, fox, *e) for e in edges]
         for topic, n in undecodable.items():
-            self.report.losses.append(Loss(topic, "messages could not be decoded", messages=n,
+            self.report.losses.append(Loss(topic, f"messages could not be decoded (the first: "
+                                           f"{pose_errors[topic][:200]})", messages=n,
                                            topics=Counter({topic: n})))
+        pose_topics = {t for t, k in kinds.items() if k in TF_SCHEMAS or t == opts.pose_topic}
+        # a lost pose message changes the poses interpolated across where it was
+        self._poses_lost = bool(undecodable) or any(
+            loss.uncounted or pose_topics & set(loss.topics) for loss in self.report.losses)
         self._kinds = kinds
         self._schemas, self._channels = schemas, channels
-        self.topic = self._pick_topic(kinds, first_cloud)
-        self._check_first_cloud(first_cloud.get(self.topic))
-        self._build_tf(samples)
-        self._check_tf()
+        try:
+            self.topic = self._pick_topic(kinds, {*first_cloud, *misfits})
+            if self.topic not in first_cloud:         # no cloud has what the options need
+                raise DatasetError(self._cloud_problem(misfits[self.topic], self.topic))
+            self.frame_id = first_cloud[self.topic][1]
+            self._build_tf(samples)
+            self._check_tf()
+        except DatasetError as e:                     # what was lost may be why
+            raise DatasetError(f"{e}{self._damage()}") from None
         n = self.report.messages[self.topic] + sum(
             k for cid, k in lost_clouds.items()
             if cid in channels and channels[cid].topic == self.topic)
         last = n - 1 if opts.last is None else min(opts.last, n - 1)
         self.total = max(0, last - opts.first + 1)
 
-    def _pick_topic(self, kinds: dict, first_cloud: dict) -> str:
+    def _pick_topic(self, kinds: dict, decoded: set) -> str:
         counts = Counter({t: self.report.messages[t] for t in kinds})
         clouds = {t for t, k in kinds.items() if k in CLOUD_SCHEMAS and counts[t] > 0}
         where = f"{self.path}"
@@ -162,23 +211,30 @@ class McapScanReader:
             other = [t for t, k in kinds.items() if k in UNSUPPORTED_CLOUDS]
             hint = (f"; {', '.join(f'{t} ({kinds[t]})' for t in other)} cannot be read "
                     f"(supported: {', '.join(CLOUD_SCHEMAS)})" if other else "")
-            damage = ("; the file is damaged: " + "; ".join(self.report.lines())
-                      if self.report.losses else "")
             raise DatasetError(f"{where}: no point-cloud messages found{hint}; topics: "
-                               f"{_describe_topics(counts, kinds) or 'none'}{damage}")
+                               f"{_describe_topics(counts, kinds) or 'none'}")
         if len(clouds) > 1:
             raise DatasetError(f"{where}: several point-cloud topics, choose one with --topic: "
                                f"{listing(clouds)}")
         topic = clouds.pop()
-        if topic not in first_cloud:
+        if topic not in decoded:
+            why = self._cloud_errors.get(topic, "unknown")
             raise DatasetError(f"{where}: none of the {counts[topic]} messages on {topic} "
-                               f"could be decoded")
+                               f"could be decoded (the first: {why[:300]})")
         return topic
 
-    def _check_first_cloud(self, parts) -> None:
-        """Missing fields are a property of the recording: say so before mapping anything."""
+    def _damage(self) -> str:
+        """'; the file is damaged: ...' (the first few losses), or '' for a whole file."""
+        losses = [loss.line() for loss in self.report.losses]
+        if not losses:
+            return ""
+        more = f"; and {len(losses) - 3} more" if len(losses) > 3 else ""
+        return f"; the file is damaged: {'; '.join(losses[:3])}{more}"
+
+    def _cloud_problem(self, parts, topic: str) -> str | None:
+        """Why a decoded cloud lacks what the options need (fields, a frame), or None. Missing
+        fields are a property of the recording: said before mapping anything."""
         arr, frame_id, _, _ = parts
-        self.frame_id = frame_id
         opts = self.options
         needed = ["x", "y", "z", opts.prob_field or opts.label_field]
         if opts.gt_field:
@@ -188,12 +244,12 @@ class McapScanReader:
             what = {opts.label_field: "label field (--label-field)",
                     opts.prob_field: "probability field (--prob-field)",
                     opts.gt_field: "ground-truth field (--gt-field)"}
-            raise DatasetError(
-                f"{self.path}: the clouds on {self.topic} have no "
-                f"{' and no '.join(repr(f) + ' ' + what.get(f, 'field') for f in missing)}; "
-                f"their fields are: {pc2.describe_fields(arr)}")
+            return (f"{self.path}: the clouds on {topic} have no "
+                    f"{' and no '.join(repr(f) + ' ' + what.get(f, 'field') for f in missing)}; "
+                    f"their fields are: {pc2.describe_fields(arr)}")
         if not frame_id:
-            raise DatasetError(f"{self.path}: the clouds on {self.topic} have an empty frame_id")
+            return f"{self.path}: the clouds on {topic} have an empty frame_id"
+        return None
 
     def _build_tf(self, samples: list) -> None:
         opts = self.options
@@ -245,10 +301,14 @@ class McapScanReader:
         scratch = ReadReport()               # damage was reported by the survey already
         index = -1
         targets = set()                      # channel ids of the topic (usually one)
+        renumbered = None                    # what before may have changed the numbering
         for rec in self._records.records(scratch):
             if isinstance(rec, Channel):
                 if rec.topic == self.topic:
                     targets.add(rec.id)
+                continue
+            if isinstance(rec, LostMessages) and rec.channel_id is None:
+                renumbered = renumbered or f"{rec.where}, holding an unknown number of messages,"
                 continue
             if isinstance(rec, LostMessages) and rec.channel_id in targets:
                 # keep the intact file's numbering: a lost cloud is a skipped scan
@@ -258,11 +318,36 @@ class McapScanReader:
                         yield self._skip(SkippedScan(index, f"{self.topic}#{index}",
                                                      f"message lost in a damaged {rec.where}"))
                 continue
-            if not isinstance(rec, Message) or rec.channel_id not in targets:
+            if not isinstance(rec, McapMessage) or rec.channel_id not in targets:
                 continue
+            if not rec.crc_checked and self._records.excess[self.topic]:
+                renumbered = renumbered or (f"a message outside CRC-checked chunks (the data "
+                                            f"holds more on {self.topic} than the summary counts)")
             index += 1
             if self._selected(index):
-                yield self._skip(self._scan(index, rec))
+                item = self._skip(self._scan(index, rec))
+                if isinstance(item, Scan):
+                    self._mark_suspect(item, rec, renumbered)
+                yield item
+
+    def _mark_suspect(self, scan: Scan, rec: McapMessage, renumbered: str | None) -> None:
+        """Scans read from bytes nothing vouches for in a file known to be damaged, or posed
+        across where pose messages were lost."""
+        index = scan.index
+        gap = None
+        if self._poses_lost and scan.source.frame_id.lstrip("/") != \
+                self.options.map_frame.lstrip("/"):
+            gap = self.tf.interpolation_gap(self.options.map_frame, scan.source.frame_id,
+                                            scan.source.stamp_ns)
+        if gap is not None:
+            self.report.suspect[index] = (f"pose messages were lost and its pose is "
+                                          f"interpolated across the gap: {gap}")
+        elif renumbered is not None:
+            self.report.suspect[index] = (f"{renumbered} came before it, so its number may "
+                                          f"differ from the intact file's")
+        elif not rec.crc_checked and self._records.data_crc == "mismatch":
+            self.report.suspect[index] = ("the data section's CRC does not match and no CRC of "
+                                          "its own covers this cloud")
 
     def _selected(self, index: int) -> bool:
         return index >= self.options.first and (self.options.last is None
@@ -275,7 +360,7 @@ class McapScanReader:
             self.report.skipped.append(item)
         return item
 
-    def _scan(self, index: int, rec: Message) -> Scan | SkippedScan:
+    def _scan(self, index: int, rec: McapMessage) -> Scan | SkippedScan:
         opts = self.options
         ch = self._channels[rec.channel_id]
         name = f"{self.topic}#{index} (log time {rec.log_time / 1e9:.6f} s)"
@@ -284,41 +369,43 @@ class McapScanReader:
             arr, frame_id, stamp_ns, T_frame_cloud = cloud_parts(self._kinds[self.topic], msg)
             sec, nsec = split_ns(stamp_ns)
             name = f"{self.topic}@{sec}.{nsec:09d}"
+            used = ["x", "y", "z", opts.prob_field or opts.label_field] + (
+                [opts.gt_field] if opts.gt_field else [])
+            pc2.check_used_fields(arr, used)
+            if not frame_id:
+                raise pc2.CloudFormatError("the cloud has an empty frame_id")
+            points = pc2.xyz(arr)
+            if len(points) == 0:
+                raise pc2.CloudFormatError("the cloud has 0 points")
+            if not finite_rows(points).any():
+                raise pc2.CloudFormatError(f"all {len(points)} points are non-finite (NaN/inf)")
             T = np.eye(4) if frame_id.lstrip("/") == opts.map_frame.lstrip("/") else \
                 self.tf.lookup(opts.map_frame, frame_id, stamp_ns)
             if T_frame_cloud is not None:
                 T = T @ T_frame_cloud
-            points = pc2.xyz(arr)
             labels = probs = gt = None
+            unknown = unknown_gt = 0
             if opts.prob_field:
-                probs = self._probs(arr)
+                probs, unknown = cloud_probabilities(arr, opts.prob_field, opts.num_classes)
             else:
-                labels, unknown = self._train_ids(arr, opts.label_field)
-                self.report.unknown_labels += unknown
+                labels, unknown = cloud_labels(arr, opts.label_field, opts.label_space,
+                                               opts.num_classes)
             if opts.gt_field:
-                gt, unknown = self._train_ids(arr, opts.gt_field)
-                self.report.unknown_gt_labels += unknown
+                gt, unknown_gt = cloud_labels(arr, opts.gt_field, opts.label_space,
+                                              opts.num_classes)
+            self._count_unknown(index, unknown, unknown_gt)
             return Scan(points_sensor=points, T_world_sensor=T, stamp_s=stamp_ns / 1e9,
                         labels=labels, probs=probs, gt_labels=gt, index=index, name=name,
-                        source=McapSource(topic=self.topic, frame_id=frame_id,
+                        source=McapSource(unknown_raw_ids=unknown, unknown_gt_ids=unknown_gt,
+                                          topic=self.topic, frame_id=frame_id,
                                           stamp_ns=stamp_ns, log_time_ns=rec.log_time))
         except (TfError, pc2.CloudFormatError, ScanError) as e:
             return SkippedScan(index, name, str(e))
         except Exception as e:  # noqa: BLE001 - undecodable bytes raise anything
             return SkippedScan(index, name, f"cannot decode the message ({type(e).__name__}: {e})")
 
-    def _train_ids(self, arr: np.ndarray, field_name: str) -> tuple[np.ndarray, int]:
-        values = pc2.integer_labels(pc2.column(arr, field_name), field_name)
-        if self.options.label_space == "raw":
-            return raw_to_train(values)
-        bad = (values < 0) | (values >= self.options.num_classes)
-        return np.where(bad, 0, values).astype(np.int32), int(np.count_nonzero(bad))
-
-    def _probs(self, arr: np.ndarray) -> np.ndarray:
-        name = self.options.prob_field
-        probs = pc2.column(arr, name)
-        if probs.ndim != 2 or probs.shape[1] != self.options.num_classes:
-            per = 1 if probs.ndim == 1 else probs.shape[1]
-            raise pc2.CloudFormatError(f"probability field {name!r} has {per} value(s) per point; "
-                                       f"the map has {self.options.num_classes} classes")
-        return probs.astype(np.float32)
+    def _count_unknown(self, index: int, unknown: int, unknown_gt: int) -> None:
+        """Per scan, so that reading the log twice (the final pass) does not count twice."""
+        self._unknown[index] = (unknown, unknown_gt)
+        self.report.unknown_labels = sum(u for u, _ in self._unknown.values())
+        self.report.unknown_gt_labels = sum(g for _, g in self._unknown.values())

@@ -27,6 +27,9 @@ ROS_DATATYPES = {1: "i1", 2: "u1", 3: "i2", 4: "u2", 5: "i4", 6: "u4", 7: "f4", 
 FOXGLOVE_DATATYPES = {1: "u1", 2: "i1", 3: "u2", 4: "i2", 5: "u4", 6: "i4", 7: "f4", 8: "f8"}
 
 
+MAX_POINT_STEP = 1 << 16       # bytes per point: far more than any sensor's fields need
+
+
 class CloudFormatError(ValueError):
     """A cloud's layout is inconsistent (the message says what); the cloud cannot be used."""
 
@@ -56,32 +59,46 @@ def fields_dtype(fields: Iterable[tuple[str, int, int, int]], point_step: int, *
 
 
 def _view(data, dtype: np.dtype, height: int, width: int, row_step: int) -> np.ndarray:
-    """A 1-D view of `data` as height*width points; rows may be padded (row_step)."""
+    """A 1-D view of `data` as height*width points; rows may be padded (row_step).
+
+    The data must hold exactly the points the header declares: `height * row_step` bytes (or
+    that without the last row's padding). Anything else means a damaged header or damaged
+    data, and points would silently go missing or be invented.
+    """
     n = height * width
+    step = dtype.itemsize
     if n == 0:
+        if len(data):
+            raise CloudFormatError(f"height {height} x width {width} declares no points, but "
+                                   f"the cloud carries {len(data)} bytes of data")
         return np.empty(0, dtype)
-    row_step = row_step or width * dtype.itemsize
-    if row_step < width * dtype.itemsize:
-        raise CloudFormatError(f"row_step {row_step} < width {width} x point_step {dtype.itemsize}")
-    need = (height - 1) * row_step + width * dtype.itemsize
-    if len(data) < need:
-        raise CloudFormatError(f"data has {len(data)} bytes, {height}x{width} points of "
-                               f"{dtype.itemsize} bytes need {need}")
-    if height == 1 or row_step == width * dtype.itemsize:
+    row_step = row_step or width * step
+    if row_step < width * step:
+        raise CloudFormatError(f"row_step {row_step} < width {width} x point_step {step}")
+    need = (height - 1) * row_step + width * step
+    if len(data) not in (need, height * row_step):
+        raise CloudFormatError(f"data has {len(data)} bytes; height {height} x row_step "
+                               f"{row_step} (width {width} x point_step {step}) needs "
+                               f"{height * row_step}")
+    if height == 1 or row_step == width * step:
         return np.frombuffer(data, dtype=dtype, count=n)
-    rows = np.ndarray((height, width), dtype, buffer=data, strides=(row_step, dtype.itemsize))
+    rows = np.ndarray((height, width), dtype, buffer=data, strides=(row_step, step))
     return rows.reshape(-1)                  # copies: padded rows cannot be one flat view
 
 
 def ros_cloud_to_array(msg: Any) -> np.ndarray:
     """A decoded ROS PointCloud2 (attribute access, `data` as bytes) -> 1-D structured array."""
     fields = [(f.name, f.offset, f.datatype, f.count) for f in msg.fields]
+    if not 0 < msg.point_step <= MAX_POINT_STEP:
+        raise CloudFormatError(f"point_step {msg.point_step} is not in 1..{MAX_POINT_STEP}")
     dtype = fields_dtype(fields, msg.point_step, big_endian=bool(msg.is_bigendian))
     return _view(msg.data, dtype, int(msg.height), int(msg.width), int(msg.row_step))
 
 
 def foxglove_cloud_to_array(msg: Any) -> np.ndarray:
     """A decoded foxglove.PointCloud (protobuf) -> 1-D structured array (always little-endian)."""
+    if not 0 < msg.point_stride <= MAX_POINT_STEP:
+        raise CloudFormatError(f"point_stride {msg.point_stride} is not in 1..{MAX_POINT_STEP}")
     fields = [(f.name, f.offset, f.type, 1) for f in msg.fields]
     dtype = fields_dtype(fields, msg.point_stride, datatypes=FOXGLOVE_DATATYPES)
     if len(msg.data) % msg.point_stride:
@@ -132,19 +149,41 @@ def xyz(arr: np.ndarray) -> np.ndarray:
     return np.stack([arr["x"], arr["y"], arr["z"]], axis=1).astype(np.float32)
 
 
-def integer_labels(values: np.ndarray, name: str) -> np.ndarray:
-    """Label values as int64; float fields are accepted when every value is a whole number."""
+def check_used_fields(arr: np.ndarray, names: Iterable[str]) -> None:
+    """The fields a reader uses must be single numbers (x, y, z) and must not overlap each
+    other: overlapping fields mean a damaged layout, whose values would be garbage."""
+    spans = {}
+    for name in dict.fromkeys(names):
+        if not has_field(arr, name):
+            continue
+        sub, offset = arr.dtype.fields[name][:2]
+        if name in ("x", "y", "z") and sub.shape:
+            raise CloudFormatError(f"field {name!r} has {sub.shape[0]} values per point; a "
+                                   f"coordinate has one")
+        spans[name] = (offset, offset + sub.itemsize)
+    for a_name, (a0, a1) in spans.items():
+        for b_name, (b0, b1) in spans.items():
+            if a_name < b_name and a0 < b1 and b0 < a1:
+                raise CloudFormatError(f"fields {a_name!r} (bytes {a0}-{a1}) and {b_name!r} "
+                                       f"(bytes {b0}-{b1}) overlap")
+
+
+LABEL_LIMIT = 2 ** 32           # labels are uint32 (SemanticKITTI: semantic id + instance)
+
+
+def integer_labels(values: np.ndarray, name: str) -> tuple[np.ndarray, np.ndarray]:
+    """(labels as int64, invalid mask). Float fields are accepted; a value that is not a whole
+    number in [0, 2^32) (NaN, inf, 1e300, 0.5, -1) is invalid: 0 there, for the caller to count
+    as unknown."""
     if values.ndim != 1:
         raise CloudFormatError(f"label field {name!r} has {values.shape[1]} values per point; "
                                f"a label field has one (use a probability field for several)")
     if values.dtype.kind in "iu":
-        return values.astype(np.int64)
+        return values.astype(np.int64), np.zeros(len(values), bool)
     if values.dtype.kind == "f":
-        finite = np.isfinite(values)
-        if not np.all(finite) or np.any(values != np.round(values)) or np.any(values < 0):
-            raise CloudFormatError(f"label field {name!r} is {values.dtype} with values that are "
-                                   f"not whole non-negative numbers")
-        return values.astype(np.int64)
+        with np.errstate(invalid="ignore"):
+            invalid = ~((values >= 0) & (values < LABEL_LIMIT) & (values == np.floor(values)))
+        return np.where(invalid, 0, values).astype(np.int64), invalid
     raise CloudFormatError(f"label field {name!r} has unsupported type {values.dtype}")
 
 

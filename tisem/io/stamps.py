@@ -13,10 +13,17 @@ NS_PER_S = 1_000_000_000
 
 
 def stamp_to_ns(stamp: Any) -> int:
-    """A decoded ROS 2 Time or protobuf Timestamp -> integer nanoseconds."""
+    """A decoded ROS 2 Time or protobuf Timestamp -> integer nanoseconds.
+
+    ValueError when the stamp does not fit in 64-bit nanoseconds (a protobuf `seconds` is an
+    int64, so a damaged one can be anything): numpy keeps stamps as int64."""
     if hasattr(stamp, "nanosec"):
-        return int(stamp.sec) * NS_PER_S + int(stamp.nanosec)
-    return int(stamp.seconds) * NS_PER_S + int(stamp.nanos)
+        ns = int(stamp.sec) * NS_PER_S + int(stamp.nanosec)
+    else:
+        ns = int(stamp.seconds) * NS_PER_S + int(stamp.nanos)
+    if not -2 ** 63 <= ns < 2 ** 63:
+        raise ValueError(f"the stamp ({ns / NS_PER_S:.6g} s) does not fit in 64-bit nanoseconds")
+    return ns
 
 
 def split_ns(stamp_ns: int) -> tuple[int, int]:

@@ -15,11 +15,16 @@ turned into edges by `tisem.io.mcap_messages.pose_edges`.
 """
 from __future__ import annotations
 
+from collections import Counter
 from dataclasses import dataclass, field
 from typing import Collection
 
 import numpy as np
 from numpy.typing import ArrayLike
+
+
+_INT64_MIN, _INT64_MAX = -2 ** 63, 2 ** 63 - 1
+GAP_FACTOR = 1.5        # samples this many median spacings apart leave a gap between them
 
 
 class TfError(LookupError):
@@ -176,28 +181,34 @@ class TfBuffer:
     def __init__(self, max_extrapolation_s: float = 0.0) -> None:
         self.max_extrapolation_ns = int(round(max_extrapolation_s * 1e9))
         self._edges: dict[str, _Edge] = {}            # child -> edge to its parent
-        self.warnings: list[str] = []                 # conflicts, reported once each
+        self._ignored: Counter = Counter()            # why transforms were ignored -> how many
 
     # -- filling
     def add(self, parent: str, child: str, stamp_ns: int, translation: ArrayLike,
             rotation_xyzw: ArrayLike, static: bool = False) -> None:
         parent, child = _frame(parent), _frame(child)
         if not parent or not child or parent == child:
-            self._warn(f"ignored a transform with frames {parent!r} -> {child!r}")
+            self._ignore(f"with frames {parent!r} -> {child!r}")
             return
         q = np.asarray(rotation_xyzw, dtype=np.float64)
         xyz = np.asarray(translation, dtype=np.float64)
-        if not (np.all(np.isfinite(q)) and np.all(np.isfinite(xyz))) or np.linalg.norm(q) < 1e-9:
-            self._warn(f"ignored a non-finite or zero-quaternion transform {parent} -> {child}")
+        if not (np.all(np.isfinite(q)) and np.all(np.isfinite(xyz))):
+            self._ignore(f"{parent} -> {child} with non-finite values")
+            return
+        if q.shape != (4,) or xyz.shape != (3,) or np.linalg.norm(q) < 1e-9:
+            self._ignore(f"{parent} -> {child} with a zero quaternion")
+            return
+        if not _INT64_MIN <= int(stamp_ns) <= _INT64_MAX:
+            self._ignore(f"{parent} -> {child} stamped outside 64-bit nanoseconds")
             return
         edge = self._edges.get(child)
         if edge is None:
             edge = self._edges[child] = _Edge(parent, static)
         elif edge.parent != parent or edge.static != static:
             # tf2 would re-parent; a log that does so is ambiguous, so keep the first and say so
-            self._warn(f"frame {child!r} has parent {edge.parent!r} "
-                       f"({'static' if edge.static else 'dynamic'}); ignored transforms giving "
-                       f"it parent {parent!r} ({'static' if static else 'dynamic'})")
+            self._ignore(f"giving frame {child!r} the parent {parent!r} "
+                         f"({'static' if static else 'dynamic'}); its parent is "
+                         f"{edge.parent!r} ({'static' if edge.static else 'dynamic'})")
             return
         if static:
             edge.samples = [(int(stamp_ns), xyz, q)]  # /tf_static: the latest wins
@@ -205,9 +216,16 @@ class TfBuffer:
         else:
             edge.samples.append((int(stamp_ns), xyz, q))
 
-    def _warn(self, text: str) -> None:
-        if text not in self.warnings:
-            self.warnings.append(text)
+    def _ignore(self, what: str) -> None:
+        self._ignored[what] += 1
+
+    @property
+    def warnings(self) -> list[str]:
+        """One line per kind of ignored transform, with how many there were."""
+        return [f"ignored {n} transform(s) {what}" for what, n in self._ignored.items()]
+
+    def _ignored_line(self) -> str:
+        return f"; {'; '.join(self.warnings)}" if self._ignored else ""
 
     def promote_constant_edges(self, children: Collection[str] | None = None) -> list[str]:
         """Make dynamic edges whose samples never change static (returns their children);
@@ -258,13 +276,15 @@ class TfBuffer:
         for name in (target, source):
             if name not in known:
                 raise ConnectivityError(f"frame {name!r} does not appear in any transform; "
-                                        f"known frames: {', '.join(sorted(known)) or 'none'}")
+                                        f"known frames: {', '.join(sorted(known)) or 'none'}"
+                                        f"{self._ignored_line()}")
         up_s, up_t = self._ancestors(source), self._ancestors(target)
         common = next((f for f in up_s if f in set(up_t)), None)
         if common is None:
             raise ConnectivityError(
                 f"frames {target!r} and {source!r} are not connected: {source!r} leads up to "
-                f"{up_s[-1]!r}, {target!r} up to {up_t[-1]!r}; tree: {self.describe()}")
+                f"{up_s[-1]!r}, {target!r} up to {up_t[-1]!r}; tree: {self.describe()}"
+                f"{self._ignored_line()}")
         return up_s[:up_s.index(common)], up_t[:up_t.index(common)]
 
     def lookup_many(self, target: str, source: str, stamps_ns: ArrayLike) -> np.ndarray:
@@ -287,6 +307,28 @@ class TfBuffer:
     def lookup(self, target: str, source: str, stamp_ns: int) -> np.ndarray:
         """(4, 4) T_target_source at one stamp."""
         return self.lookup_many(target, source, [stamp_ns])[0]
+
+    def interpolation_gap(self, target: str, source: str, stamp_ns: int,
+                          factor: float = GAP_FACTOR) -> str | None:
+        """Where a lookup at `stamp_ns` interpolates over a gap in a dynamic edge's samples
+        (two samples more than `factor` times the edge's median spacing apart, or the stamp
+        outside the samples): what a lost /tf message looks like from here. None otherwise."""
+        target, source = _frame(target), _frame(source)
+        from_source, from_target = self._path(target, source)
+        for child in from_source + from_target:
+            edge = self._edges[child]
+            edge.finalize()
+            if edge.static or len(edge.stamps) < 2:
+                continue
+            spacing = float(np.median(np.diff(edge.stamps)))
+            i = int(np.searchsorted(edge.stamps, stamp_ns, side="right"))
+            lo = edge.stamps[max(i - 1, 0)]
+            hi = edge.stamps[min(i, len(edge.stamps) - 1)]
+            if i in (0, len(edge.stamps)) or hi - lo > factor * spacing:
+                return (f"edge {edge.parent} -> {child} has no samples from {lo / 1e9:.6f} s to "
+                        f"{hi / 1e9:.6f} s around the stamp (its median spacing is "
+                        f"{spacing / 1e6:.1f} ms)")
+        return None
 
     def describe(self) -> str:
         parts = []
