@@ -121,12 +121,13 @@ def plan_tasks(groups: dict[str, list[LogSpec]], options: FleetOptions,
 
 def group_anchors(groups: dict[str, list[LogSpec]], cfg: RunConfig) -> dict[str, dict]:
     """Per group, the origin and time zero of a serial run over its logs (that of its
-    earliest first scan), where the logs tell cheaply (SemanticKITTI): every task of the group
-    maps in those local coordinates, so their float rounding is the serial run's."""
+    earliest first scan, among the logs that tell it cheaply: SemanticKITTI): every task of
+    the group maps in those local coordinates, so they round floats alike (and as the serial
+    run does)."""
     anchors = {}
     for group, members in groups.items():
         firsts = [f for f in (first_pose(spec, cfg.input) for spec in members) if f is not None]
-        if len(firsts) == len(members):
+        if firsts:
             pose, stamp = min(firsts, key=lambda f: f[1])
             anchors[group] = anchor_of(pose, stamp, cfg.mapper.resolution_m)
     return anchors

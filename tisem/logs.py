@@ -106,11 +106,15 @@ def log_length(log: LogSpec, input: str = "predictions") -> int:
 
 def first_pose(log: LogSpec, input: str = "predictions") -> tuple[np.ndarray, float] | None:
     """(T_world_sensor, stamp) of the log's first scan when it is cheap to know (a
-    SemanticKITTI sequence: poses.txt and times.txt), else None."""
+    SemanticKITTI sequence: poses.txt and times.txt), else None (also for a log that cannot
+    be read: its task will say why)."""
     if log.kind != "kitti":
         return None
     from tisem.io.semantickitti import SemanticKittiSequence
-    seq = SemanticKittiSequence(log.path, input=input)
+    try:
+        seq = SemanticKittiSequence(log.path, input=input)
+    except (DatasetError, OSError, ValueError):
+        return None
     if not seq.has_pose[0] or not np.isfinite(seq.times[0]):
         return None
     return seq.poses_lidar[0], float(seq.times[0])
