@@ -2,9 +2,12 @@
 
     python apps/make_synthetic.py --out data/synth_street --scans 200
     python apps/make_synthetic.py --out data/synth_loop --scans 4000 --route loop
+    python apps/make_synthetic.py --out data/robots --scans 300 --robots 3   # one world
 
 The folder gets velodyne/, labels/ (ground truth), predictions/ (noisy "network" labels),
-poses.txt (left camera frame), calib.txt (KITTI 08's Tr) and times.txt.
+poses.txt (left camera frame), calib.txt (KITTI 08's Tr) and times.txt. With --robots N it is
+a dataset root: sequences/00 .. N-1, one per vehicle of one street world, in one world frame
+(tisem/synth/fleet_world.py).
 """
 from __future__ import annotations
 
@@ -36,6 +39,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
                    help="street: a straight-ish drive; loop: a long loop that ends past its "
                         "start (its length follows --scans)")
     p.add_argument("--points-per-ring", type=int, default=1024, help="azimuth steps per beam")
+    p.add_argument("--robots", type=int, default=1,
+                   help="vehicles in one world (street route), each its own sequence")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument("-v", "--verbose", action="store_true")
     args = p.parse_args(argv)
@@ -43,6 +48,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         p.error("--scans must be >= 1")
     if args.points_per_ring < 1:
         p.error("--points-per-ring must be >= 1")
+    if args.robots < 1 or (args.robots > 1 and args.route != "street"):
+        p.error("--robots must be >= 1, and several robots drive the street route")
     return args
 
 
@@ -64,6 +71,8 @@ def summarize(seq_dir: Path, num_scans: int) -> dict:
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     cli.setup_logging(args.verbose)
+    if args.robots > 1:
+        return write_robots(args)
     try:
         out = write_semantickitti(args.out, args.scans, seed=args.seed, route=args.route,
                                   points_per_ring=args.points_per_ring,
@@ -75,6 +84,21 @@ def main(argv: list[str] | None = None) -> int:
     log.info("%s: %d scans (%s, seed %d), %.0f points per scan (%d-%d), noisy-label accuracy "
              "%.4f vs ground truth", out, s["scans"], args.route, args.seed, s["points_mean"],
              s["points_min"], s["points_max"], s["accuracy"])
+    return 0
+
+
+def write_robots(args: argparse.Namespace) -> int:
+    from tisem.synth.fleet_world import write_fleet
+    try:
+        folders = write_fleet(args.out, args.robots, args.scans, seed=args.seed,
+                              points_per_ring=args.points_per_ring,
+                              progress=not args.no_progress)
+    except (ValueError, OSError) as exc:
+        log.error("%s", exc)
+        return 2
+    for folder in folders:
+        s = summarize(folder, args.scans)
+        log.info("%s: %d scans, noisy-label accuracy %.4f", folder, s["scans"], s["accuracy"])
     return 0
 
 

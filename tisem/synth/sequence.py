@@ -89,6 +89,7 @@ class SyntheticSequence:
         if points_per_ring < 16:
             raise ValueError(f"points_per_ring must be >= 16, got {points_per_ring}")
         self.num_scans, self.seed, self.route_kind = num_scans, seed, route
+        self.noise_seed = seed      # the label noise's streams (several robots: one each)
         self.world = World(seed, make_route(route, num_scans, seed))
         self.lidar = Lidar(points_per_ring=points_per_ring)
         self.noise = NoiseModel()
@@ -124,8 +125,8 @@ class SyntheticSequence:
         gt_train, _ = raw_to_train(ret.label)
         world_points = rotate(ret.points.astype(np.float64), T[:3, :3]) + T[:3, 3]
         pred_train = self.noise.apply(gt_train, ret.range_m, world_points,
-                                      mover_raw_ids(ret.label, ret.instance), self.seed, index,
-                                      make_rng(self.seed, "labels", index))
+                                      mover_raw_ids(ret.label, ret.instance), self.noise_seed,
+                                      index, make_rng(self.noise_seed, "labels", index))
         return SynthFrame(index=index, stamp_s=t, points=ret.points, remission=ret.remission,
                           gt_raw=ret.label, pred_raw=train_to_raw(pred_train), T_world_lidar=T,
                           instance=ret.instance)
@@ -180,6 +181,15 @@ def write_semantickitti(out_dir: str | Path, num_scans: int, seed: int = 0, rout
     a sequence already is refused (FileExistsError: its scans would mix with the new ones),
     unless `overwrite`, which removes that sequence first (`clear_sequence`).
     """
+    out = write_frames(out_dir, iter_synthetic(num_scans, seed, route, points_per_ring),
+                       num_scans, progress)
+    log.info("wrote %d synthetic scans (%s, seed %d) to %s", num_scans, route, seed, out)
+    return out
+
+
+def write_frames(out_dir: str | Path, frames: Iterator[SynthFrame], total: int | None = None,
+                 progress: bool = True) -> Path:
+    """Write synthetic frames as one SemanticKITTI sequence folder (`write_semantickitti`)."""
     out = Path(out_dir)
     if out.exists() and not out.is_dir():
         raise FileExistsError(f"{out}: is a file, not a folder")
@@ -196,9 +206,8 @@ def write_semantickitti(out_dir: str | Path, num_scans: int, seed: int = 0, rout
     Tr_inv = np.linalg.inv(Tr)
     (out / "calib.txt").write_text("".join(f"P{i}: {p}\n" for i, p in enumerate(KITTI08_P))
                                    + "Tr: " + " ".join(f"{v:.12e}" for v in KITTI08_TR) + "\n")
-    frames = iter_synthetic(num_scans, seed, route, points_per_ring)
     with open(out / "poses.txt", "w") as poses, open(out / "times.txt", "w") as times:
-        for f in tqdm(frames, total=num_scans, disable=not progress, unit="scan",
+        for f in tqdm(frames, total=total, disable=not progress, unit="scan",
                       desc="synthetic"):
             name = f"{f.index:06d}"
             np.column_stack([f.points, f.remission]).astype("<f4").tofile(
@@ -209,5 +218,4 @@ def write_semantickitti(out_dir: str | Path, num_scans: int, seed: int = 0, rout
             pose_cam = Tr @ f.T_world_lidar @ Tr_inv
             poses.write(" ".join(f"{v:.12e}" for v in pose_cam[:3].ravel()) + "\n")
             times.write(f"{f.stamp_s:.6e}\n")
-    log.info("wrote %d synthetic scans (%s, seed %d) to %s", num_scans, route, seed, out)
     return out
