@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from tisem.errors import SkippedScan
+from tisem.errors import ScanError, SkippedScan
 from tisem.pose_gate import MAX_HELD, Anchor, PoseGate
 from tisem.scan import Scan
 
@@ -64,9 +64,13 @@ def test_agreement_scales_with_the_time_between_scans():
 
 
 def test_skipped_scans_and_impossible_poses_keep_their_place():
+    # a pose that is no rotation cannot make a Scan: the reader passes on its ScanError as a
+    # skipped scan, which keeps its place in the stream like any other
+    with pytest.raises(ScanError) as bad:
+        scan_at(4, 4.0, scale=2.0)
     items = [SkippedScan(0, "scan 0", "truncated"), scan_at(1, FAR_M),
-             SkippedScan(2, "scan 2", "no labels"), scan_at(3, 3.0), scan_at(4, 4.0, scale=2.0),
-             scan_at(5, 5.0)]
+             SkippedScan(2, "scan 2", "no labels"), scan_at(3, 3.0),
+             SkippedScan(4, "scan 4", str(bad.value)), scan_at(5, 5.0)]
     reasons = refused(run_gate(items))
     assert list(reasons) == [0, 1, 2, 4]
     assert reasons[0] == "truncated" and reasons[2] == "no labels"

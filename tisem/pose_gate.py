@@ -32,7 +32,6 @@ from typing import Iterator, NamedTuple
 import numpy as np
 
 from tisem.errors import SkippedScan
-from tisem.poses import pose_problem
 from tisem.scan import Scan
 
 __all__ = ["PoseGate", "Verdict", "Anchor", "MAX_SPEED_M_S", "JUMP_SLACK_M", "MAX_HELD"]
@@ -107,10 +106,6 @@ class PoseGate:
 
     def offer(self, position: int, item: Scan | SkippedScan) -> Iterator[Verdict]:
         """Take the next item of the stream; yields the items it decides on, in order."""
-        if isinstance(item, Scan):
-            problem = pose_problem(item.T_world_sensor)
-            if problem is not None:
-                item = SkippedScan(item.index, item.name, problem)
         if not self._queue and isinstance(item, SkippedScan):
             yield Verdict(position, item, item.reason)
             return
