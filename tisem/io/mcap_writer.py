@@ -126,6 +126,8 @@ class Ros2McapWriter:
         self._writer.start(profile="ros2", library="tisem")
         self._schemas: dict[str, tuple[int, object]] = {}    # type -> (schema id, encoder)
         self._channels: dict[str, int] = {}
+        # topic -> the metadata of its Channel record (rosbag2: `offered_qos_profiles`)
+        self.channel_metadata: dict[str, dict[str, str]] = {}
 
     def write(self, topic: str, type_name: str, message: dict, log_time_ns: int,
               publish_time_ns: int | None = None, sequence: int = 0) -> None:
@@ -135,7 +137,8 @@ class Ros2McapWriter:
             self._schemas[type_name] = (schema_id, serialize_dynamic(type_name, text)[type_name])
         schema_id, encode = self._schemas[type_name]
         if topic not in self._channels:
-            self._channels[topic] = self._writer.register_channel(topic, "cdr", schema_id)
+            self._channels[topic] = self._writer.register_channel(
+                topic, "cdr", schema_id, self.channel_metadata.get(topic, {}))
         self._writer.add_message(self._channels[topic], log_time=int(log_time_ns),
                                  publish_time=int(log_time_ns if publish_time_ns is None
                                                   else publish_time_ns),
