@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import dataclasses
 import shutil
+import sqlite3
 import subprocess
 import sys
 from pathlib import Path
@@ -102,6 +103,17 @@ def split_bag(folder: Path, messages, tmp: Path) -> Path:
     return folder
 
 
+def humble_db3(path: Path) -> Path:
+    """A `.db3` as Humble writes it: storage schema 3, no message definitions stored (the
+    reader must know the types itself)."""
+    db = sqlite3.connect(path)
+    with db:                                     # commits
+        db.execute("DROP TABLE message_definitions")
+        db.execute("UPDATE schema SET schema_version = 3")
+    db.close()
+    return path
+
+
 def ros1_bag(path: Path, messages) -> Path:
     """The same messages as a ROS 1 bag (ROS 1 headers carry a `seq`; noetic has no tf2)."""
     noetic = get_typestore(Stores.ROS1_NOETIC)
@@ -138,8 +150,9 @@ def make_input(form: str, messages, tmp: Path) -> Path:
         return split_bag(tmp / form.replace(" ", "_"), messages, tmp / "work_split")
     if form == "db3 folder":
         return rosbags_bag(tmp / "db3_bag", messages, StoragePlugin.SQLITE3)
-    if form == "db3 file":
-        return next(rosbags_bag(tmp / "db3_only", messages, StoragePlugin.SQLITE3).glob("*.db3"))
+    if form == "humble db3 file":
+        return humble_db3(next(rosbags_bag(tmp / "db3_only", messages,
+                                           StoragePlugin.SQLITE3).glob("*.db3")))
     if form == "per-message zstd":
         return rosbags_bag(tmp / "msg_zstd", messages, StoragePlugin.MCAP, CompressionMode.MESSAGE)
     if form == "per-file zstd":
@@ -150,7 +163,7 @@ def make_input(form: str, messages, tmp: Path) -> Path:
     raise ValueError(form)
 
 
-FORMS = ["split mcap", "db3 folder", "db3 file", "per-message zstd", "per-file zstd", "ros1"]
+FORMS = ["split mcap", "db3 folder", "humble db3 file", "per-message zstd", "per-file zstd", "ros1"]
 
 
 @pytest.mark.parametrize("form", FORMS)

@@ -27,7 +27,7 @@ from mcap.writer import Writer as McapWriter
 from mcap_ros2._dynamic import serialize_dynamic
 
 from tisem.io.pointcloud2 import array_to_foxglove_cloud, array_to_ros_cloud
-from tisem.io.stamps import ros_time, seconds_to_ns
+from tisem.io.stamps import ros_time, scan_stamp_ns, seconds_to_ns
 from tisem.io.tf import matrix_to_quat
 from tisem.labels import CLASS_COLORS_RGB, class_table
 from tisem.scan import Scan
@@ -236,7 +236,7 @@ def write_map_mcap(path: str | Path, snapshot: MapSnapshot, frame_id: str = "map
     first = next(scans, None)
     if stamp_ns is None:
         if first is not None:
-            stamp_ns = seconds_to_ns(first[0].stamp_s)
+            stamp_ns = scan_stamp_ns(first[0])
         else:
             stamp_ns = seconds_to_ns(float(snapshot.t_last.max())) if len(snapshot) else 0
     stamp_ns = max(int(stamp_ns), 0)
@@ -254,7 +254,7 @@ def write_map_mcap(path: str | Path, snapshot: MapSnapshot, frame_id: str = "map
                                                                 stamp_ns),
                              log_time=stamp_ns, publish_time=stamp_ns)
         for scan, mapped in itertools.chain([first] if first is not None else [], scans):
-            t = max(seconds_to_ns(scan.stamp_s), 0)
+            t = max(scan_stamp_ns(scan), 0)
             cloud = array_to_foxglove_cloud(scan_points(scan, mapped), frame_id, t,
                                             T_frame_cloud=scan.T_world_sensor)
             writer.write_message(SCANS_TOPIC, cloud, log_time=t, publish_time=t,

@@ -22,7 +22,7 @@ import numpy as np
 from tisem.io.mcap_writer import MAP_TOPIC, SCANS_TOPIC
 from tisem.io.pointcloud2 import pack_rgb
 from tisem.io.rosbag_writer import Rosbag2Writer
-from tisem.io.stamps import seconds_to_ns
+from tisem.io.stamps import scan_stamp_ns, seconds_to_ns
 from tisem.labels import CLASS_COLORS_RGB
 from tisem.scan import Scan
 from tisem.snapshot import MapSnapshot
@@ -30,12 +30,6 @@ from tisem.snapshot import MapSnapshot
 MAP_DTYPE = np.dtype({"names": ["x", "y", "z", "rgb", "label", "probability"],
                       "formats": ["<f4", "<f4", "<f4", "<f4", "<u2", "<f4"],
                       "offsets": [0, 4, 8, 12, 16, 20], "itemsize": 24})
-
-
-def scan_stamp_ns(scan: Scan) -> int:
-    """A scan's header stamp in integer ns: exact when it was read from a recording."""
-    stamp_ns = getattr(scan.source, "stamp_ns", None)
-    return int(stamp_ns) if stamp_ns is not None else seconds_to_ns(scan.stamp_s)
 
 
 def ros_map_points(snapshot: MapSnapshot) -> np.ndarray:

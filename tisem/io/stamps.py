@@ -73,3 +73,10 @@ def parse_start_time_ns(text: str) -> int:
 def seconds_to_ns(stamp_s: float) -> int:
     """Float seconds (a `Scan.stamp_s`) -> the nearest integer nanosecond."""
     return int(round(stamp_s * 1e9))
+
+
+def scan_stamp_ns(scan: Any) -> int:
+    """A `Scan`'s stamp in integer nanoseconds: exactly the header stamp when it was read from
+    a recording (its `source.stamp_ns`), else the nearest nanosecond of `stamp_s`."""
+    stamp_ns = getattr(scan.source, "stamp_ns", None)
+    return int(stamp_ns) if stamp_ns is not None else seconds_to_ns(scan.stamp_s)
