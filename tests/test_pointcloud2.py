@@ -101,3 +101,34 @@ def test_map_bag_decodes_into_the_map_of_map_npz(tmp_path):
     assert np.array_equal(scan_cloud["input_label"], scan.labels)
     assert np.array_equal(scan_cloud["gt_label"], scan.gt_labels)
     assert np.array_equal(unpack_rgb(scan_cloud["rgb"]), CLASS_COLORS_RGB[mapped])
+
+
+def test_recording_maps_are_written_in_one_pass_and_cleared_by_overwrite(tmp_path):
+    """map.mcap (Foxglove) and map_ros2/ get the same map and the same scans from one pass
+    over them; --overwrite's clearing removes both and nothing else."""
+    from mcap.reader import make_reader
+
+    from tisem.outputs import clear_previous_run, write_recording_maps
+
+    snap = synthetic_snapshot(120)
+    rng = np.random.default_rng(2)
+    scans = (Scan(points_sensor=rng.uniform(-5, 5, (30, 3)).astype(np.float32),
+                  T_world_sensor=np.eye(4), stamp_s=1.0 + k, index=k,
+                  labels=rng.integers(0, 20, 30).astype(np.int32)) for k in range(3))
+    passed = []
+
+    def once():
+        for scan in scans:                       # a generator: it can be read only once
+            passed.append(scan.index)
+            yield scan, scan.labels
+
+    info = write_recording_maps(tmp_path, snap, "map", once())
+    assert passed == [0, 1, 2] and info["scans"] == 3 and info["voxels"] == len(snap)
+    clouds = decoded_clouds(info["bag"])
+    assert len(clouds["/semantic_scans"]) == 3 and len(clouds["/semantic_map"][0]) == len(snap)
+    with open(info["mcap"], "rb") as f:
+        topics = [ch.topic for _, ch, _ in make_reader(f).iter_messages()]
+    assert topics.count("/semantic_map") == 1 and topics.count("/semantic_scans") == 3
+    (tmp_path / "notes.txt").write_text("mine")
+    assert clear_previous_run(tmp_path) == 3           # map.mcap, metadata.yaml, the bag's mcap
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["notes.txt"]
