@@ -147,9 +147,9 @@ def map_recording(args: argparse.Namespace) -> int:
 
 def write_map(result: RunResult, reader: McapScanReader, path: Path, save_scans: bool,
               frame_id: str) -> Path:
-    """map.mcap from the final map; with `save_scans`, the log is read once more and every
-    mapped scan written with its labels looked up in the final map (the same as its
-    predictions file; a scan that was not mapped has neither)."""
+    """map.mcap and map_ros2/ from the final map; with `save_scans`, the log is read once
+    more and every mapped scan written with its labels looked up in the final map (the same
+    as its predictions file; a scan that was not mapped has neither)."""
     from tisem.outputs import write_recording_maps
     from tisem.scan import Scan
 

@@ -77,7 +77,8 @@ def write_recording_maps(out_dir: Path, snapshot: MapSnapshot, frame_id: str,
     scans (Scan, mapped train ids) on /semantic_scans; the scans are read once, both files
     are written as they come. Returns {"mcap": path, "bag": path, "voxels", "scans"}."""
     from tisem.io.mcap_writer import write_map_mcap
-    from tisem.io.rosbag_map import MapBag, map_stamp_ns
+    from tisem.io.rosbag_map import MapBag
+    from tisem.io.stamps import map_stamp_ns
 
     scans = iter(scans) if scans is not None else iter(())
     first = next(scans, None)

@@ -27,7 +27,7 @@ from mcap.writer import Writer as McapWriter
 from mcap_ros2._dynamic import serialize_dynamic
 
 from tisem.io.pointcloud2 import array_to_foxglove_cloud, array_to_ros_cloud
-from tisem.io.stamps import ros_time, scan_stamp_ns, seconds_to_ns
+from tisem.io.stamps import map_stamp_ns, ros_time, scan_stamp_ns
 from tisem.io.tf import matrix_to_quat
 from tisem.labels import CLASS_COLORS_RGB, class_table
 from tisem.scan import Scan
@@ -235,10 +235,7 @@ def write_map_mcap(path: str | Path, snapshot: MapSnapshot, frame_id: str = "map
     scans = iter(scans) if scans is not None else iter(())
     first = next(scans, None)
     if stamp_ns is None:
-        if first is not None:
-            stamp_ns = scan_stamp_ns(first[0])
-        else:
-            stamp_ns = seconds_to_ns(float(snapshot.t_last.max())) if len(snapshot) else 0
+        stamp_ns = map_stamp_ns(snapshot, first[0] if first is not None else None)
     stamp_ns = max(int(stamp_ns), 0)
     n_scans = 0
     with open(path, "wb") as f:

@@ -22,7 +22,7 @@ import numpy as np
 from tisem.io.mcap_writer import MAP_TOPIC, SCANS_TOPIC
 from tisem.io.pointcloud2 import pack_rgb
 from tisem.io.rosbag_writer import Rosbag2Writer
-from tisem.io.stamps import scan_stamp_ns, seconds_to_ns
+from tisem.io.stamps import map_stamp_ns, scan_stamp_ns
 from tisem.labels import CLASS_COLORS_RGB
 from tisem.scan import Scan
 from tisem.snapshot import MapSnapshot
@@ -68,14 +68,6 @@ def ros_scan_points(scan: Scan, mapped_labels: np.ndarray) -> np.ndarray:
     if scan.gt_labels is not None:
         out["gt_label"] = scan.gt_labels
     return out
-
-
-def map_stamp_ns(snapshot: MapSnapshot, first_scan: Scan | None) -> int:
-    """When the map is published: at the first scan's stamp (so playback shows it from the
-    start), else at the last voxel update."""
-    if first_scan is not None:
-        return max(scan_stamp_ns(first_scan), 0)
-    return max(seconds_to_ns(float(snapshot.t_last.max())), 0) if len(snapshot) else 0
 
 
 class MapBag:

@@ -80,3 +80,11 @@ def scan_stamp_ns(scan: Any) -> int:
     a recording (its `source.stamp_ns`), else the nearest nanosecond of `stamp_s`."""
     stamp_ns = getattr(scan.source, "stamp_ns", None)
     return int(stamp_ns) if stamp_ns is not None else seconds_to_ns(scan.stamp_s)
+
+
+def map_stamp_ns(snapshot: Any, first_scan: Any | None) -> int:
+    """When a map is published: at the first scan's stamp (so playback shows it from the
+    start), else at the last voxel update (`snapshot.t_last`, seconds); never before 0."""
+    if first_scan is not None:
+        return max(scan_stamp_ns(first_scan), 0)
+    return max(seconds_to_ns(float(snapshot.t_last.max())), 0) if len(snapshot) else 0
