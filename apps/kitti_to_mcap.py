@@ -26,7 +26,15 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("data", type=Path, help="a sequence folder, or a dataset root with --sequence")
-    p.add_argument("out", type=Path, help="the .mcap file to write")
+    p.add_argument("out", type=Path, help="the .mcap file to write (with --format rosbag2: "
+                                          "the bag folder)")
+    p.add_argument("--format", choices=("mcap", "rosbag2"), default="mcap",
+                   help="mcap: one .mcap file; rosbag2: a bag folder (metadata.yaml, QoS) "
+                        "for ros2 bag play")
+    p.add_argument("--start-time", default="0",
+                   help="added to times.txt: epoch seconds (1700000000.5) or, as a whole "
+                        "number from 10^12 on, nanoseconds (default 0)")
+    p.add_argument("--ros-distro", default="humble", help="the ROS distro the bag names")
     p.add_argument("--sequence", help="sequence name under a dataset root, e.g. 08")
     p.add_argument("--first", type=int, default=0, help="first scan id (inclusive)")
     p.add_argument("--last", type=int, help="last scan id (inclusive)")
@@ -45,11 +53,19 @@ def main(argv: list[str] | None = None) -> int:
                         format="%(levelname)s %(name)s: %(message)s")
     from tisem.errors import DatasetError
     from tisem.io.kitti_mcap import write_kitti_mcap
+    from tisem.io.stamps import parse_start_time_ns
+    try:
+        start_time_ns = parse_start_time_ns(args.start_time)
+    except ValueError as exc:
+        log.error("--start-time: %s", exc)
+        return 2
     try:
         result = write_kitti_mcap(args.data, args.out, sequence=args.sequence, first=args.first,
                                   last=args.last, compression=args.compression,
                                   label_type=args.label_type, topic=args.topic,
-                                  frame_id=args.frame_id)
+                                  frame_id=args.frame_id, output_format=args.format,
+                                  start_time_ns=start_time_ns,
+                                  ros_distro=args.ros_distro)
     except (DatasetError, OSError) as exc:      # a bad sequence, or an .mcap it cannot write
         log.error("%s", exc)
         return 2

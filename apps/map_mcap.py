@@ -46,7 +46,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("log", type=Path, nargs="?",
-                   help="the .mcap recording (with --resume: default the one it read)")
+                   help="the recording: .mcap, a rosbag2 folder, .db3 or ROS 1 .bag (with "
+                        "--resume: default the one it read)")
     g = p.add_argument_group("recording")
     g.add_argument("--topic", help="point-cloud topic (needed only when there are several)")
     g.add_argument("--label-field", default="label", help="per-point label field (default label)")
@@ -65,7 +66,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     g.add_argument("--sequence-name", default="00",
                    help="sequence folder name for the predictions (default 00)")
     g.add_argument("--save-scans", action="store_true",
-                   help="also write each scan with its mapped labels into map.mcap")
+                   help="also write each scan with its mapped labels into map.mcap and "
+                        "map_ros2/")
     cli.add_run_args(p)
     args = cli.parse_run_args(p, argv, kept_on_resume=RECORDING_OPTIONS)
     if args.log is None and args.resume is None:
@@ -102,14 +104,14 @@ def recording_options(args: argparse.Namespace, plan: cli.RunPlan) -> McapOption
 
 
 def map_recording(args: argparse.Namespace) -> int:
-    from tisem.io.mcap_reader import McapScanReader
+    from tisem.io.bag_open import open_scan_reader
     from tisem.report import results_table
 
     plan = cli.plan_run(args)
     options = recording_options(args, plan)
     path = plan.input_path(args.log, "mcap", "the .mcap recording")
     with cli.bad_input():
-        reader = McapScanReader(path, options)
+        reader = open_scan_reader(path, options)
     for line in reader.report.lines():
         log.warning("%s: %s", path.name, line)
     log.info("%s: %d scans on %s (frame %s), poses: %s", path, reader.total, reader.topic,
@@ -137,24 +139,27 @@ def map_recording(args: argparse.Namespace) -> int:
     if lines:
         print(f"\n{path.name}: not everything could be used:")
         print("\n".join(f"  - {line}" for line in lines))
-    print(f"\nmap: {map_path} (Foxglove: 3D panel, topic /semantic_map)\nresults in {out}")
+    print(f"\nmap: {map_path} (Foxglove: 3D panel, topic /semantic_map); ROS 2 bag: "
+          f"{out / 'map_ros2'} (ros2 bag play, RViz: fixed frame {options.map_frame})"
+          f"\nresults in {out}")
     return plan.finish(result)
 
 
 def write_map(result: RunResult, reader: McapScanReader, path: Path, save_scans: bool,
               frame_id: str) -> Path:
-    """map.mcap from the final map; with `save_scans`, the log is read once more and every
-    mapped scan written with its labels looked up in the final map (the same as its
-    predictions file; a scan that was not mapped has neither)."""
-    from tisem.io.mcap_writer import write_map_mcap
+    """map.mcap and map_ros2/ from the final map; with `save_scans`, the log is read once
+    more and every mapped scan written with its labels looked up in the final map (the same
+    as its predictions file; a scan that was not mapped has neither)."""
+    from tisem.outputs import write_recording_maps
     from tisem.scan import Scan
 
     scans = None
     if save_scans:
         scans = ((s, result.mapper.query(s.points_world(), with_probs=False)[0])
                  for s in reader if isinstance(s, Scan) and result.is_mapped(s.index))
-    info = write_map_mcap(path, result.mapper.snapshot(), frame_id=frame_id, scans=scans)
-    log.info("wrote %s: %d voxels, %d scans", path, info["voxels"], info["scans"])
+    info = write_recording_maps(path.parent, result.mapper.snapshot(), frame_id, scans)
+    log.info("wrote %s and %s: %d voxels, %d scans", info["mcap"], info["bag"], info["voxels"],
+             info["scans"])
     return path
 
 

@@ -1,14 +1,15 @@
 """The files of a results folder: config.yaml and run.json first, metrics.json at the end,
 then the map files (map.npz, map.ply, map_bev.png). Per-point predictions are written scan by
 scan (`tisem.io.semantickitti.write_predictions`), checkpoints to checkpoint/; map_mcap.py adds
-map.mcap and mcap_report.json, map_kitti.py's embedded default its synthetic/ sequence,
-render.py compare.png. `clear_previous_run` removes exactly these, for --overwrite."""
+map.mcap, the ROS 2 bag map_ros2/ (`write_recording_maps`) and mcap_report.json,
+map_kitti.py's embedded default its synthetic/ sequence, render.py compare.png.
+`clear_previous_run` removes exactly these, for --overwrite."""
 from __future__ import annotations
 
 import json
 import logging
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Iterable, Iterator
 
 import numpy as np
 
@@ -16,17 +17,21 @@ from tisem.config import MapperConfig, RunConfig, save_config, to_dict
 
 if TYPE_CHECKING:
     from tisem.mapper import Mapper
+    from tisem.scan import Scan
+    from tisem.snapshot import MapSnapshot
 
 log = logging.getLogger(__name__)
 
-__all__ = ["write_run_info", "write_metrics", "write_map_files", "is_results_folder",
-           "clear_previous_run", "RUN_FILES"]
+__all__ = ["write_run_info", "write_metrics", "write_map_files", "write_recording_maps",
+           "is_results_folder", "clear_previous_run", "RUN_FILES", "MAP_BAG"]
 
 # what a run writes at the top of its folder
 RUN_FILES = ("config.yaml", "run.json", "metrics.json", "map.npz", "map.ply", "map_bev.png",
              "map.mcap", "mcap_report.json", "compare.png")
 CHECKPOINT_FILES = ("checkpoint.npz", ".checkpoint.npz.*.tmp")
 PREDICTION_FILES = ("*.label", "*.label.tmp")
+MAP_BAG = "map_ros2"                  # the map as a rosbag2 folder, for `ros2 bag play` + RViz
+MAP_BAG_FILES = ("metadata.yaml", f"{MAP_BAG}_*.mcap")
 
 
 def write_run_info(out_dir: Path, cfg: RunConfig, info: dict) -> None:
@@ -65,6 +70,36 @@ def write_map_files(out_dir: Path, mapper: Mapper, config: MapperConfig,
     return paths
 
 
+def write_recording_maps(out_dir: Path, snapshot: MapSnapshot, frame_id: str,
+                         scans: Iterable[tuple[Scan, np.ndarray]] | None = None) -> dict:
+    """map.mcap (foxglove.PointCloud, for Foxglove) and map_ros2/ (a rosbag2 folder of
+    sensor_msgs/PointCloud2, for `ros2 bag play` and RViz), both on /semantic_map, with the
+    scans (Scan, mapped train ids) on /semantic_scans; the scans are read once, both files
+    are written as they come. Returns {"mcap": path, "bag": path, "voxels", "scans"}."""
+    from tisem.io.mcap_writer import write_map_mcap
+    from tisem.io.rosbag_map import MapBag
+    from tisem.io.stamps import map_stamp_ns
+
+    scans = iter(scans) if scans is not None else iter(())
+    first = next(scans, None)
+    stamp_ns = map_stamp_ns(snapshot, first[0] if first is not None else None)
+    paths = {"mcap": out_dir / "map.mcap", "bag": out_dir / MAP_BAG}
+    with MapBag(paths["bag"], frame_id) as bag:
+        bag.write_map(snapshot, stamp_ns)
+
+        def both() -> Iterator[tuple[Scan, np.ndarray]]:
+            for item in ([first] if first is not None else []):
+                bag.write_scan(*item)
+                yield item
+            for item in scans:
+                bag.write_scan(*item)
+                yield item
+
+        info = write_map_mcap(paths["mcap"], snapshot, frame_id=frame_id, scans=both(),
+                              stamp_ns=stamp_ns)
+    return {**paths, "voxels": info["voxels"], "scans": info["scans"]}
+
+
 def is_results_folder(folder: Path) -> bool:
     """Whether `folder` holds a tisem run's results (its run.json)."""
     return (Path(folder) / "run.json").is_file()
@@ -86,6 +121,8 @@ def clear_previous_run(folder: Path) -> int:
                 removed += 1
 
     remove(folder / name for name in RUN_FILES)
+    remove(p for pattern in MAP_BAG_FILES for p in (folder / MAP_BAG).glob(pattern))
+    _remove_empty(folder / MAP_BAG, up_to=folder)
     for predictions in folder.glob("sequences/*/predictions"):
         remove(p for pattern in PREDICTION_FILES for p in predictions.glob(pattern))
         _remove_empty(predictions, up_to=folder)

@@ -95,13 +95,17 @@ class McapScanReader:
     iterating).
     """
 
-    def __init__(self, path: str | Path, options: McapOptions | None = None) -> None:
+    def __init__(self, path: str | Path, options: McapOptions | None = None, *,
+                 records: McapRecords | None = None,
+                 decoders: MessageDecoders | None = None) -> None:
+        """`records` and `decoders` replace the MCAP file's (`tisem.io.bag_open`: split files,
+        bags that `rosbags` reads); they default to those of the file at `path`."""
         self.options = options or McapOptions()
         self.options.validate()
         self.path = str(path)
         self.report = ReadReport(path=self.path)
-        self._records = McapRecords(path)
-        self._decoders = MessageDecoders()
+        self._records = records if records is not None else McapRecords(path)
+        self._decoders = decoders if decoders is not None else MessageDecoders()
         self._unknown: dict[int, tuple[int, int]] = {}    # scan index -> unknown labels, gt
         self._survey()
 

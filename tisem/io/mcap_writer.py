@@ -27,7 +27,7 @@ from mcap.writer import Writer as McapWriter
 from mcap_ros2._dynamic import serialize_dynamic
 
 from tisem.io.pointcloud2 import array_to_foxglove_cloud, array_to_ros_cloud
-from tisem.io.stamps import ros_time, seconds_to_ns
+from tisem.io.stamps import map_stamp_ns, ros_time, scan_stamp_ns
 from tisem.io.tf import matrix_to_quat
 from tisem.labels import CLASS_COLORS_RGB, class_table
 from tisem.scan import Scan
@@ -126,6 +126,8 @@ class Ros2McapWriter:
         self._writer.start(profile="ros2", library="tisem")
         self._schemas: dict[str, tuple[int, object]] = {}    # type -> (schema id, encoder)
         self._channels: dict[str, int] = {}
+        # topic -> the metadata of its Channel record (rosbag2: `offered_qos_profiles`)
+        self.channel_metadata: dict[str, dict[str, str]] = {}
 
     def write(self, topic: str, type_name: str, message: dict, log_time_ns: int,
               publish_time_ns: int | None = None, sequence: int = 0) -> None:
@@ -135,7 +137,8 @@ class Ros2McapWriter:
             self._schemas[type_name] = (schema_id, serialize_dynamic(type_name, text)[type_name])
         schema_id, encode = self._schemas[type_name]
         if topic not in self._channels:
-            self._channels[topic] = self._writer.register_channel(topic, "cdr", schema_id)
+            self._channels[topic] = self._writer.register_channel(
+                topic, "cdr", schema_id, self.channel_metadata.get(topic, {}))
         self._writer.add_message(self._channels[topic], log_time=int(log_time_ns),
                                  publish_time=int(log_time_ns if publish_time_ns is None
                                                   else publish_time_ns),
@@ -232,10 +235,7 @@ def write_map_mcap(path: str | Path, snapshot: MapSnapshot, frame_id: str = "map
     scans = iter(scans) if scans is not None else iter(())
     first = next(scans, None)
     if stamp_ns is None:
-        if first is not None:
-            stamp_ns = seconds_to_ns(first[0].stamp_s)
-        else:
-            stamp_ns = seconds_to_ns(float(snapshot.t_last.max())) if len(snapshot) else 0
+        stamp_ns = map_stamp_ns(snapshot, first[0] if first is not None else None)
     stamp_ns = max(int(stamp_ns), 0)
     n_scans = 0
     with open(path, "wb") as f:
@@ -251,7 +251,7 @@ def write_map_mcap(path: str | Path, snapshot: MapSnapshot, frame_id: str = "map
                                                                 stamp_ns),
                              log_time=stamp_ns, publish_time=stamp_ns)
         for scan, mapped in itertools.chain([first] if first is not None else [], scans):
-            t = max(seconds_to_ns(scan.stamp_s), 0)
+            t = max(scan_stamp_ns(scan), 0)
             cloud = array_to_foxglove_cloud(scan_points(scan, mapped), frame_id, t,
                                             T_frame_cloud=scan.T_world_sensor)
             writer.write_message(SCANS_TOPIC, cloud, log_time=t, publish_time=t,

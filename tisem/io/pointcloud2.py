@@ -187,6 +187,20 @@ def integer_labels(values: np.ndarray, name: str) -> tuple[np.ndarray, np.ndarra
     raise CloudFormatError(f"label field {name!r} has unsupported type {values.dtype}")
 
 
+def pack_rgb(rgb: np.ndarray) -> np.ndarray:
+    """(N, 3) uint8 colours -> (N,) float32 `rgb` as PCL and RViz read it: the bits of the
+    uint32 0x00RRGGBB viewed as a float32 (RViz: Color Transformer "RGB8")."""
+    rgb = np.asarray(rgb, dtype=np.uint32)
+    packed = (rgb[:, 0] << 16) | (rgb[:, 1] << 8) | rgb[:, 2]
+    return packed.astype("<u4").view("<f4")
+
+
+def unpack_rgb(values: np.ndarray) -> np.ndarray:
+    """(N,) packed float32 `rgb` -> (N, 3) uint8 (the inverse of `pack_rgb`)."""
+    bits = np.ascontiguousarray(values, dtype="<f4").view("<u4")
+    return np.stack([(bits >> 16) & 0xFF, (bits >> 8) & 0xFF, bits & 0xFF], 1).astype(np.uint8)
+
+
 # ---- writing -------------------------------------------------------------------------------
 
 def _fields_of(dtype: np.dtype, datatypes: dict):

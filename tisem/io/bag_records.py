@@ -1,0 +1,175 @@
+"""Record streams for `McapScanReader` from inputs other than one MCAP file.
+
+`McapScanReader` walks a stream of Schema, Channel and message records (`records(report)`,
+`excess`, `data_crc`) and decodes messages through a `decode(channel, schema, data)` object.
+Two more sources give it that stream, so every bag yields the same `Scan`s through the same
+survey, topic choice, tf buffer and cloud decoding (`tisem.io.mcap_messages`):
+
+- `SplitMcapRecords`: the `.mcap` files of an uncompressed rosbag2 folder, in order, each read
+  by tisem's damage-tolerant `McapRecords`; schema and channel ids are renumbered across the
+  files (every split file numbers its own), and what was lost is reported per file;
+- `RosbagRecords`: a bag that the `rosbags` library reads (rosbag2 sqlite3 or MCAP storage,
+  per-message or per-file compression, ROS 1 `.bag`); it raises on damage rather than
+  recovering, so a damaged bag is refused with rosbags' reason.
+"""
+from __future__ import annotations
+
+import dataclasses
+from collections import Counter
+from pathlib import Path
+from typing import Any, Iterator
+
+from mcap.records import Channel, Schema
+
+from tisem.errors import DatasetError
+from tisem.io.mcap_records import LostMessages, McapMessage, McapRecords, ReadReport
+
+
+
+def repair_hint(what: str) -> str:
+    """How a user mends a bag that rosbags cannot read (a lost index, an old format)."""
+    if what.startswith("ROS 1"):
+        return ("reindex it (`rosbag reindex IN`) or convert it to ROS 2 (`rosbags-convert "
+                "--src IN --dst OUT`)")
+    return ("rebuild its metadata (`ros2 bag reindex DIR`) or convert it (`ros2 bag convert "
+            "-i IN -o out.yaml`)")
+
+
+class SplitMcapRecords:
+    """The records of several MCAP files read one after the other as one recording."""
+
+    def __init__(self, paths: list[Path]) -> None:
+        self.paths = [Path(p) for p in paths]
+        self.parts = [McapRecords(p) for p in self.paths]
+        self.excess: Counter = Counter()
+        self.data_crc: str | None = None
+
+    def records(self, report: ReadReport) -> Iterator[Schema | Channel | McapMessage |
+                                                      LostMessages]:
+        schema_ids: dict[tuple, int] = {}          # (name, encoding, text) -> recording id
+        channel_ids: dict[tuple, int] = {}         # (topic, encoding, schema id) -> recording id
+        for path, part in zip(self.paths, self.parts):
+            # each file is checked against its own summary: counts must not mix across files
+            own = ReadReport(path=str(path))
+            local_schemas: dict[int, int] = {}
+            local_channels: dict[int, int] = {}
+            for rec in part.records(own):
+                if isinstance(rec, Schema):
+                    key = (rec.name, rec.encoding, bytes(rec.data))
+                    new = key not in schema_ids
+                    local_schemas[rec.id] = schema_ids.setdefault(key, len(schema_ids) + 1)
+                    if new:
+                        yield dataclasses.replace(rec, id=local_schemas[rec.id])
+                elif isinstance(rec, Channel):
+                    schema_id = local_schemas.get(rec.schema_id, 0)
+                    key = (rec.topic, rec.message_encoding, schema_id)
+                    new = key not in channel_ids
+                    local_channels[rec.id] = channel_ids.setdefault(key, len(channel_ids) + 1)
+                    if new:
+                        yield dataclasses.replace(rec, id=local_channels[rec.id],
+                                                  schema_id=schema_id)
+                elif isinstance(rec, McapMessage):
+                    if rec.channel_id in local_channels:
+                        yield dataclasses.replace(rec, channel_id=local_channels[rec.channel_id])
+                else:
+                    channel = (None if rec.channel_id is None
+                               else local_channels.get(rec.channel_id))
+                    yield dataclasses.replace(rec, channel_id=channel,
+                                              where=f"{path.name}: {rec.where}")
+            _merge_report(report, own, path.name)
+        self.excess = sum((p.excess for p in self.parts), Counter())
+        crcs = {p.data_crc for p in self.parts}
+        self.data_crc = ("mismatch" if "mismatch" in crcs else
+                         "match" if crcs == {"match"} else None)
+
+
+def _merge_report(into: ReadReport, part: ReadReport, name: str) -> None:
+    into.messages.update(part.messages)
+    into.losses += [dataclasses.replace(loss, where=f"{name}: {loss.where}")
+                    for loss in part.losses]
+    into.notes += [f"{name}: {note}" for note in part.notes]
+    into.partial_chunk_messages += part.partial_chunk_messages
+
+
+class RosbagRecords:
+    """The messages of a bag read by `rosbags.highlevel.AnyReader`, as MCAP-like records.
+
+    Each pass opens the bag again (a per-file compressed bag is inflated to a temporary folder
+    each time). Message definitions come from the bag; a Humble `.db3` stores none, so the
+    Humble type store stands in. `decoders` decodes with the bag's own type store.
+    """
+
+    def __init__(self, path: str | Path, what: str) -> None:
+        self.path = Path(path)
+        self.what = what                         # e.g. "rosbag2 folder (sqlite3)"
+        self.excess: Counter = Counter()
+        self.data_crc: str | None = None
+        with self._open() as reader:
+            self._ros1 = not reader.is2
+            self.typestore = reader.typestore    # kept: closing the reader only drops its name
+            self.topics = {c.topic: c.msgtype for c in reader.connections}
+        self.decoders = RosbagDecoders(self.typestore, self._ros1, self.path)
+
+    def _open(self) -> Any:
+        from rosbags.highlevel import AnyReader
+        from rosbags.typesys import Stores, get_typestore
+
+        try:
+            reader = AnyReader([self.path], default_typestore=get_typestore(Stores.ROS2_HUMBLE))
+            reader.open()
+        except Exception as exc:  # noqa: BLE001 - rosbags raises many kinds on bad bags
+            raise DatasetError(f"{self.path}: cannot read this {self.what} "
+                               f"({_reason(exc)}); {repair_hint(self.what)}") from None
+        return _Closing(reader)
+
+    def records(self, report: ReadReport) -> Iterator[Schema | Channel | McapMessage]:
+        with self._open() as reader:
+            encoding = "ros1msg" if self._ros1 else "ros2msg"
+            schemas: dict[str, int] = {}
+            for conn in reader.connections:
+                if conn.msgtype not in schemas:
+                    schemas[conn.msgtype] = len(schemas) + 1
+                    yield Schema(id=schemas[conn.msgtype], name=conn.msgtype, encoding=encoding,
+                                 data=conn.msgdef.data.encode())
+                yield Channel(id=conn.id, topic=conn.topic, schema_id=schemas[conn.msgtype],
+                              message_encoding="ros1" if self._ros1 else "cdr", metadata={})
+            try:
+                for conn, stamp_ns, data in reader.messages():
+                    report.messages[conn.topic] += 1
+                    yield McapMessage(channel_id=conn.id, log_time=int(stamp_ns), data=data,
+                                      crc_checked=True)
+            except Exception as exc:  # noqa: BLE001 - a damaged storage file, mid-way
+                raise DatasetError(f"{self.path}: the {self.what} is damaged after "
+                                   f"{sum(report.messages.values())} messages "
+                                   f"({_reason(exc)}); {repair_hint(self.what)}") from None
+
+
+class _Closing:
+    """`with` for an already opened AnyReader (opening is where rosbags reports bad bags)."""
+
+    def __init__(self, reader: Any) -> None:
+        self.reader = reader
+
+    def __enter__(self) -> Any:
+        return self.reader
+
+    def __exit__(self, *exc: object) -> None:
+        self.reader.close()
+
+
+class RosbagDecoders:
+    """`decode(channel, schema, data)` with a bag's `rosbags` type store (CDR or ROS 1)."""
+
+    def __init__(self, typestore: Any, ros1: bool, path: Path) -> None:
+        self._deserialize = typestore.deserialize_ros1 if ros1 else typestore.deserialize_cdr
+        self.path = path
+
+    def decode(self, channel: Channel, schema: Schema | None, data: bytes) -> Any:
+        if schema is None:
+            raise DatasetError(f"{self.path}: topic {channel.topic} has no message type")
+        return self._deserialize(data, schema.name)
+
+
+def _reason(exc: Exception) -> str:
+    text = str(exc).strip().splitlines()[0] if str(exc).strip() else ""
+    return f"{type(exc).__name__}: {text[:200]}" if text else type(exc).__name__
