@@ -84,7 +84,7 @@ def write_serial(folder: Path, snap, cfg) -> Path:
 
 def serial_job(logs, run_config: dict, threads: int) -> dict:
     """The serial map in a process of its own (a Ray task): its map, time and memory."""
-    from tisem.fleet_task import run_config_from_dict
+    from tisem.config import run_config_from_dict
     from tisem.map_compare import serial_snapshot
     snap, mapping, scans = serial_snapshot(logs, run_config_from_dict(run_config), threads)
     return {"snapshot": snap, "mapping_seconds": mapping, "scans": scans,

@@ -17,6 +17,8 @@ import os
 from contextlib import contextmanager
 from typing import Any, Callable, Iterator
 
+from tisem.errors import RunError
+
 log = logging.getLogger(__name__)
 
 __all__ = ["ray_cluster", "submit", "gather", "cluster_cpus"]
@@ -34,10 +36,17 @@ def ray_cluster(address: str | None = None, num_cpus: int | None = None) -> Iter
     # worker processes import tisem the way this process does
     env = {"PYTHONPATH": os.environ["PYTHONPATH"]} if os.environ.get("PYTHONPATH") else {}
     kwargs: dict[str, Any] = {"log_to_driver": False, "runtime_env": {"env_vars": env}}
-    if address:
-        ray.init(address=address, **kwargs)
-    else:
-        ray.init(num_cpus=num_cpus, include_dashboard=False, **kwargs)
+    try:
+        if address:
+            ray.init(address=address, **kwargs)
+        else:
+            ray.init(num_cpus=num_cpus, include_dashboard=False, **kwargs)
+    except (ConnectionError, RuntimeError) as exc:
+        where = f"join the Ray cluster at {address}" if address else "start a local Ray cluster"
+        lines = str(exc).strip().splitlines()
+        raise RunError(f"cannot {where}: {lines[-1] if lines else type(exc).__name__}"
+                       + ("; a cluster with token authentication needs its token "
+                          "(RAY_AUTH_TOKEN)" if "auth" in str(exc).lower() else "")) from None
     try:
         yield
     finally:
