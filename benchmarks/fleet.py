@@ -20,7 +20,7 @@ import sys
 import time
 from pathlib import Path
 
-from benchmarks.common import benchmark_main, device_line, peak_rss_mb
+from benchmarks.common import benchmark_main, device_line, peak_rss_mb, write_json
 
 MODES = ("csm", "bki", "spatial", "adaptive", "st")
 
@@ -156,6 +156,8 @@ def run(args) -> dict:
             for refine in refines:
                 rows.append(fleet_row(mode, refine, data, logs, cfg, serial, args))
             logging.info("%s: %s", mode, rows[-1])
+            if args.json:       # what is measured so far survives a later mode's failure
+                write_json(args.json, {"partial": True, "rows": rows})
     return {"device": device_line("cpu"), "layout": args.layout, "data": str(data),
             "logs": len(logs), "scans": scans, "cluster_start_seconds": cluster_seconds,
             "num_cpus": args.num_cpus, "threads_per_task": args.threads,
