@@ -194,3 +194,11 @@ def test_merge_app_refuses_other_frames_in_one_line(tmp_path, capsys):
     assert module.main([*argv, "--transform", "1=1,2"]) == 2
     assert module.main([*argv, "--transform", "1=0.4,0,0"]) == 0
     assert TiledMap.open(tmp_path / "m").voxels > 0
+
+
+def test_merge_cost_benchmark_runs():
+    """benchmarks/merge_cost.py with a tiny map (so it never rots); no timing is checked."""
+    from benchmarks import merge_cost
+    result = merge_cost.run(merge_cost.parse_args(["--voxels", "3000"]))
+    assert result["rows"] > result["voxels"] > 0.9 * result["rows"]     # half the area shared
+    assert result["bytes_per_voxel"] > 0
