@@ -15,7 +15,7 @@ import sys
 from pathlib import Path
 
 from tisem import cli
-from tisem.ray_cli import add_cluster_args, add_config_args
+from tisem.ray_cli import add_cluster_args, add_config_args, results_folder
 
 log = logging.getLogger("batch")
 
@@ -41,7 +41,7 @@ def batch(args: argparse.Namespace) -> int:
         options = BatchOptions(threads=args.threads or 2, retries=args.retries,
                                address=args.address, num_cpus=args.num_cpus, arch=args.arch,
                                map_files=not args.no_map_files)
-        out = cli.results_dir(args.out)
+        out = results_folder(args.out)
         result = run_batch(logs, out, overrides=overrides, sweeps=args.sweep, options=options,
                            config_path=args.config)
     print(batch_table(result.rows))

@@ -20,7 +20,7 @@ import sys
 from pathlib import Path
 
 from tisem import cli
-from tisem.ray_cli import add_cluster_args, add_config_args
+from tisem.ray_cli import add_cluster_args, add_config_args, results_folder
 
 log = logging.getLogger("fleet")
 
@@ -59,7 +59,7 @@ def fleet(args: argparse.Namespace) -> int:
         options.validate()
     with cli.bad_input():
         logs = discover_logs([p.resolve() for p in args.logs], args.sequences)
-    out = cli.results_dir(args.out)
+    out = results_folder(args.out)
     result = run_fleet(logs, cfg, out, options)
     report = result.report
     for group, folder in result.maps.items():

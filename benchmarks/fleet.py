@@ -6,8 +6,9 @@
 
 Two synthetic robots of one world (tisem/synth/fleet_world.py), or one long drive cut into
 `--chunks` time chunks, mapped (a) by one Mapper over every scan in time order, with
-`--serial-threads` threads (a Ray task too, so that its memory is its own), and (b) by `tisem.fleet` on a local Ray cluster of `--num-cpus`
-CPUs, one task per robot or chunk with `--threads` threads each. Both maps are scored the
+`--serial-threads` threads (a Ray task too, so that its memory is its own), and (b) by
+`tisem.fleet` on a local Ray cluster of `--num-cpus` CPUs, one task per robot or chunk with
+`--threads` threads each. Both maps are scored the
 same way (the final-map protocol, by `tisem.reduce.score_log` on their tiled maps) and the
 merged map is compared voxel by voxel with the serial one. The cluster's start-up is timed
 apart: it is paid once per session, not per fleet.
@@ -20,7 +21,7 @@ import sys
 import time
 from pathlib import Path
 
-from benchmarks.common import benchmark_main, device_line, peak_rss_mb
+from benchmarks.common import benchmark_main, device_line, peak_rss_mb, write_json
 
 MODES = ("csm", "bki", "spatial", "adaptive", "st")
 
@@ -84,11 +85,11 @@ def write_serial(folder: Path, snap, cfg) -> Path:
 
 def serial_job(logs, run_config: dict, threads: int) -> dict:
     """The serial map in a process of its own (a Ray task): its map, time and memory."""
-    from tisem.fleet_task import run_config_from_dict
+    from tisem.config import run_config_from_dict
     from tisem.map_compare import serial_snapshot
     snap, mapping, scans = serial_snapshot(logs, run_config_from_dict(run_config), threads)
     return {"snapshot": snap, "mapping_seconds": mapping, "scans": scans,
-            "peak_mb": peak_rss_mb()}
+            "peak_mb": peak_rss_mb(), "device": device_line("cpu")}
 
 
 def fleet_row(mode, refine, data, logs, cfg, serial, args) -> dict:
@@ -143,7 +144,7 @@ def run(args) -> dict:
             job = ray.get(submit(serial_job, cpus=args.serial_threads,
                                  args=(logs, to_dict(cfg), args.serial_threads)))
             wall = time.perf_counter() - t0
-            serial, scans = job["snapshot"], job["scans"]
+            serial, scans, device = job["snapshot"], job["scans"], job["device"]
             folder = write_serial(args.out / f"serial_{args.layout}_{mode}", serial, cfg)
             rows.append({"row": "serial", "mode": mode, "wall_seconds": wall,
                          "mapping_seconds": job["mapping_seconds"],
@@ -156,7 +157,10 @@ def run(args) -> dict:
             for refine in refines:
                 rows.append(fleet_row(mode, refine, data, logs, cfg, serial, args))
             logging.info("%s: %s", mode, rows[-1])
-    return {"device": device_line("cpu"), "layout": args.layout, "data": str(data),
+            if args.json:       # what is measured so far survives a later mode's failure
+                write_json(args.json, {"partial": True, "rows": rows})
+    # (the device as the serial task's Taichi runtime saw it: this process starts none)
+    return {"device": device, "layout": args.layout, "data": str(data),
             "logs": len(logs), "scans": scans, "cluster_start_seconds": cluster_seconds,
             "num_cpus": args.num_cpus, "threads_per_task": args.threads,
             "serial_threads": args.serial_threads, "rows": rows}
@@ -169,7 +173,8 @@ def format_result(result: dict) -> str:
              f"{result['threads_per_task']} thread(s) per task, serial "
              f"{result['serial_threads']} threads\n",
              "| mode | run | wall s | mIoU | accuracy | labels = serial | voxels | "
-             "peak MB worker / reducer |", "| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: |"]
+             "peak MB worker / reducer |",
+             "| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: |"]
     for r in result["rows"]:
         reducer = f" / {r['peak_reducer_mb']:.0f}" if "peak_reducer_mb" in r else ""
         lines.append(f"| {r['mode']} | {r['row']} | {r['wall_seconds']:.1f} | {r['miou']:.4f} | "

@@ -27,9 +27,9 @@ SMALL = ["max_range_m=20", "window_xy_m=30", "window_z_m=12", "min_z_m=-4", "max
 
 @pytest.fixture(scope="module")
 def ray_cluster():
-    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
-    yield
-    ray.shutdown()
+    from tisem.cluster import ray_cluster as local_cluster
+    with local_cluster(num_cpus=2):
+        yield
 
 
 @pytest.fixture(scope="module")

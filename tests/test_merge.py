@@ -167,3 +167,38 @@ def test_merge_maps_refuses_other_resolutions(tmp_path):
     save_map(tmp_path / "b.npz", coarse, dict(CONFIG, resolution_m=0.4), {"world_frame": "w"})
     with pytest.raises(ValueError, match="resolution"):
         merge_maps([tmp_path / "a.npz", tmp_path / "b.npz"], tmp_path / "out")
+
+
+def test_load_map_gives_a_tiled_map_read_lazily(tmp_path):
+    import tisem
+    rng = np.random.default_rng(7)
+    snap = random_map(rng, 2000, spread=100)
+    write_tiled(tmp_path / "tiled", snap)
+    loaded = tisem.load_map(tmp_path / "tiled")
+    assert isinstance(loaded, TiledMap) and loaded.tiles_loaded == 0
+    points = (snap.keys[:20] + 0.5) * RES
+    labels, probs = loaded.query(points)
+    assert np.array_equal(labels, snap.labels()[:20])
+    np.testing.assert_allclose(probs, snap.probabilities()[:20], rtol=1e-6)
+    assert 0 < loaded.tiles_loaded < len(loaded.tile_keys)
+
+
+def test_merge_app_refuses_other_frames_in_one_line(tmp_path, capsys):
+    from test_pipeline import load_app
+    module = load_app("merge_maps")
+    rng = np.random.default_rng(8)
+    save_map(tmp_path / "a.npz", random_map(rng, 50), CONFIG, {"world_frame": "world-a"})
+    save_map(tmp_path / "b.npz", random_map(rng, 50), CONFIG, {"world_frame": "world-b"})
+    argv = [str(tmp_path / "a.npz"), str(tmp_path / "b.npz"), "--out", str(tmp_path / "m")]
+    assert module.main(argv) == 2
+    assert module.main([*argv, "--transform", "1=1,2"]) == 2
+    assert module.main([*argv, "--transform", "1=0.4,0,0"]) == 0
+    assert TiledMap.open(tmp_path / "m").voxels > 0
+
+
+def test_merge_cost_benchmark_runs():
+    """benchmarks/merge_cost.py with a tiny map (so it never rots); no timing is checked."""
+    from benchmarks import merge_cost
+    result = merge_cost.run(merge_cost.parse_args(["--voxels", "3000"]))
+    assert result["rows"] > result["voxels"] > 0.9 * result["rows"]     # half the area shared
+    assert result["bytes_per_voxel"] > 0

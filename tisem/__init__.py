@@ -20,6 +20,7 @@ _EXPORTS = {
     "Scan": "tisem.scan",
     "MapSnapshot": "tisem.snapshot",
     "load_map": "tisem.checkpoint",
+    "merge_maps": "tisem.merge_files",
     "init_taichi": "tisem.backend",
 }
 

@@ -21,6 +21,7 @@ The mapper config itself is the file's `mapper_config_yaml`, the map its snapsho
 
     mapper = tisem.load_map("results/run/map.npz") # any map file or checkpoint, ready to query
     labels, probs = mapper.query(points_world)
+    tiled = tisem.load_map("results/fleet/maps/x")  # a tiled map: a TiledMap, read lazily
 """
 from __future__ import annotations
 
@@ -41,6 +42,7 @@ from tisem.snapshot import MapSnapshot
 
 if TYPE_CHECKING:                      # (importing the mapper starts Taichi)
     from tisem.mapper import Mapper
+    from tisem.tiles import TiledMap
 
 log = logging.getLogger(__name__)
 
@@ -315,12 +317,19 @@ def mapper_from_file(path: str | os.PathLike) -> tuple[Mapper, Checkpoint]:
     return ckpt.build_mapper(), ckpt
 
 
-def load_map(path: str | os.PathLike) -> Mapper:
-    """A ready `Mapper` from a `map.npz` (or a checkpoint, or a results folder): query it with
-    `load_map(path).query(points) -> labels, probs` without running the sequence again.
+def load_map(path: str | os.PathLike) -> Mapper | TiledMap:
+    """A map ready to query without running the sequence again:
+    `load_map(path).query(points) -> labels, probs`.
 
-    Initialises Taichi on the CPU when nothing has initialised it yet. tisem holds one map per
-    Taichi runtime: in a process that already has a map, call `tisem.init_taichi()` first
-    (the old map becomes unusable), or `Mapper()` refuses with a RuntimeError.
+    A tiled map (a folder with tiles.json: what `fleet` and `merge_maps` write) comes back as
+    a `tisem.tiles.TiledMap`, read lazily: only the index now, each tile when a query first
+    needs it (`snapshot()` gives the whole map when it fits). A `map.npz`, a checkpoint or a
+    results folder comes back as a ready `Mapper`; that initialises Taichi on the CPU when
+    nothing has initialised it yet. tisem holds one map per Taichi runtime: in a process that
+    already has a map, call `tisem.init_taichi()` first (the old map becomes unusable), or
+    `Mapper()` refuses with a RuntimeError.
     """
+    from tisem.tiles import TiledMap, is_tiled_map
+    if is_tiled_map(path):
+        return TiledMap.open(path)
     return mapper_from_file(path)[0]

@@ -17,6 +17,8 @@ import os
 from contextlib import contextmanager
 from typing import Any, Callable, Iterator
 
+from tisem.errors import RunError
+
 log = logging.getLogger(__name__)
 
 __all__ = ["ray_cluster", "submit", "gather", "cluster_cpus"]
@@ -34,14 +36,38 @@ def ray_cluster(address: str | None = None, num_cpus: int | None = None) -> Iter
     # worker processes import tisem the way this process does
     env = {"PYTHONPATH": os.environ["PYTHONPATH"]} if os.environ.get("PYTHONPATH") else {}
     kwargs: dict[str, Any] = {"log_to_driver": False, "runtime_env": {"env_vars": env}}
-    if address:
-        ray.init(address=address, **kwargs)
-    else:
-        ray.init(num_cpus=num_cpus, include_dashboard=False, **kwargs)
+    try:
+        if address:
+            ray.init(address=address, **kwargs)
+        else:
+            _start_local(num_cpus, kwargs)
+    except (ConnectionError, RuntimeError) as exc:
+        where = f"join the Ray cluster at {address}" if address else "start a local Ray cluster"
+        lines = str(exc).strip().splitlines()
+        raise RunError(f"cannot {where}: {lines[-1] if lines else type(exc).__name__}"
+                       + ("; a cluster with token authentication needs its token "
+                          "(RAY_AUTH_TOKEN)" if "auth" in str(exc).lower() else "")) from None
     try:
         yield
     finally:
         ray.shutdown()
+
+
+def _start_local(num_cpus: int | None, kwargs: dict) -> None:
+    """ray.init of a local cluster. Ray gives its node 30 s to come up, which a loaded
+    machine can miss: then once more, and a RuntimeError after that."""
+    import ray
+    for attempt in range(2):
+        try:
+            ray.init(num_cpus=num_cpus, include_dashboard=False, **kwargs)
+            return
+        except Exception as exc:        # noqa: BLE001 (Ray raises a bare Exception here)
+            if "timed out during startup" not in str(exc):
+                raise
+            ray.shutdown()
+            log.warning("the local Ray cluster did not start in time (attempt %d)", attempt + 1)
+    raise RuntimeError("the local Ray node did not start in 30 s, twice (is the machine "
+                       "overloaded?)")
 
 
 def cluster_cpus() -> int:

@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from tisem.config import run_config_from_dict
-from tisem.errors import SkippedScan
+from tisem.errors import NothingMapped, SkippedScan
 from tisem.logs import LogSpec, open_log
 from tisem.merge import contribution, merge_snapshots
 from tisem.snapshot import MapSnapshot
@@ -144,11 +144,17 @@ def map_task(task: MapTask, run_config: dict, out_dir: str | Path, *, threads: i
             first_stamp = item.stamp_s if first_stamp is None else first_stamp
             last_stamp = item.stamp_s
             trajectory.append(item.T_world_sensor[:3, 3].tolist())
+    if not mapped and skipped:
+        # a log that cannot be read at all (every scan refused) is a failed task, reported
+        # with the first reason, not an empty map that looks like a success
+        raise NothingMapped(f"{task.task_id}: none of its {len(skipped)} scans could be "
+                            f"mapped; first: {skipped[0]['reason']}")
     final = mapper.snapshot()
     if state_before is None:       # no scan of the task's own was mapped
         state_before = final
     own = contribution(final, state_before, tau)
     out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)      # the index is written even with no tile
     entries = [write_tile(out_dir, tile, part, run_config["mapper"])
                for tile, part in split_by_tile(own, tile_vox)]
     summary = {"task": task.to_dict(), "scans": mapped, "skipped": skipped,

@@ -63,7 +63,7 @@ def time_ordered_scans(logs: list[LogSpec], input: str = "predictions"):
 def serial_snapshot(logs: list[LogSpec], cfg: RunConfig, threads: int = 2,
                     arch: str = "cpu") -> tuple[MapSnapshot, float, int]:
     """The map of one Mapper over every scan of `logs` in time order, in a fresh Taichi
-    runtime of this process: (snapshot, mapping seconds, scans)."""
+    runtime of this process: (snapshot, mapping seconds, scans mapped)."""
     import time
 
     import taichi as ti
@@ -75,7 +75,10 @@ def serial_snapshot(logs: list[LogSpec], cfg: RunConfig, threads: int = 2,
     seconds, count = 0.0, 0
     for scan in time_ordered_scans(logs, cfg.input):
         start = time.perf_counter()
-        mapper.integrate(scan)
+        try:
+            mapper.integrate(scan)
+        except ValueError:      # a scan the mapper refuses is skipped, as a run skips it
+            continue
         ti.sync()
         seconds += time.perf_counter() - start
         count += 1

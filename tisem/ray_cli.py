@@ -6,7 +6,7 @@ from pathlib import Path
 
 from tisem.config import MODES
 
-__all__ = ["add_cluster_args", "add_config_args"]
+__all__ = ["add_cluster_args", "add_config_args", "results_folder"]
 
 
 def add_cluster_args(p: argparse.ArgumentParser) -> None:
@@ -29,3 +29,10 @@ def add_config_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--sequences", nargs="+", help="sequences of a dataset root (default all)")
     p.add_argument("--out", type=Path, help="output folder (default results/<timestamp>/)")
     p.add_argument("-v", "--verbose", action="store_true")
+
+
+def results_folder(out: Path | None) -> Path:
+    """--out as given (a fleet or batch folder is reused on purpose: finished work in it is
+    kept), else a new results/<timestamp>/."""
+    from tisem.cli import RESULTS_ROOT, new_timestamped_dir
+    return Path(out) if out is not None else new_timestamped_dir(Path(RESULTS_ROOT))
