@@ -39,7 +39,7 @@ from tisem.errors import DatasetError, ScanError, SkippedScan
 from tisem.io.kitti_files import (MAX_TIME_S, camera_poses_to_lidar, out_of_order,
                                   read_calib_tr, read_pose_lines, read_poses, read_time_lines,
                                   read_times)
-from tisem.labels import raw_to_train, train_to_raw
+from tisem.labels import moving_raw, raw_to_train, train_to_raw
 from tisem.scan import KittiSource, Scan, finite_rows
 
 __all__ = ["SemanticKittiSequence", "write_predictions", "read_calib_tr", "read_poses",
@@ -309,6 +309,10 @@ class SemanticKittiSequence:
                 name=name,
                 source=KittiSource(unknown_raw_ids=unknown, unknown_gt_ids=unknown_gt,
                                    sequence=self.sequence_name, input=self.input),
+                # the moving ids (252-259) map to their static class's train id, and the
+                # motion they say travels beside it
+                moving=moving_raw(raw_in),
+                gt_moving=None if raw_gt is None else moving_raw(raw_gt),
             )
         except ScanError:
             raise
