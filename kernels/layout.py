@@ -122,7 +122,7 @@ class MapFields:
 
     def __init__(self, num_classes: int, extent: tuple[int, int, int],
                  table_half: tuple[int, int, int], free_space: bool = False,
-                 empty_evidence: float = 2.0):
+                 empty_evidence: float = 2.0, occupancy_cap: float = 4.0):
         for n in extent:
             if n % TOP or n & (n - 1):
                 raise ValueError(f"storage extent {extent} must be powers of two >= {TOP}")
@@ -152,7 +152,8 @@ class MapFields:
         # the counters to t_last_rel and clamped (kernels/raycast.py), and the last scan whose
         # rays or hits changed it (one change per voxel and scan, whatever the rays crossing it)
         self.free_space = bool(free_space)
-        self.empty_evidence = float(empty_evidence)
+        self.empty_evidence = float(empty_evidence)   # (constants the kernels compile in)
+        self.occupancy_cap = float(occupancy_cap)
         if self.free_space:
             self.occupancy = ti.field(ti.f32)
             self.free_stamp = ti.field(ti.i32)

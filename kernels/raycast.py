@@ -39,8 +39,8 @@ def free_fraction(length_m, margin_m, margin_fraction):
 
 
 @ti.func
-def traverse(o, e, t_stop, visit: ti.template(), ctx: ti.template(), r):
-    """Call visit(ctx, r, v) for every voxel v the segment o + t (e - o), 0 <= t < t_stop
+def traverse(o, e, t_stop, visit: ti.template(), a0: ti.template(), a1: ti.template(), r):
+    """Call visit(a0, a1, r, v) for every voxel v the segment o + t (e - o), 0 <= t < t_stop
     crosses, in order (o, e in voxel units: metres * 1/resolution). Nothing when t_stop <= 0."""
     d = e - o
     v = ti.floor(o, ti.i32)
@@ -58,7 +58,7 @@ def traverse(o, e, t_stop, visit: ti.template(), ctx: ti.template(), r):
         if d[a] != 0:
             t_max[a] = (v[a] + ahead[a] - o[a]) / d[a]
     if t_stop > 0:
-        visit(ctx, r, v)
+        visit(a0, a1, r, v)
         # a bound on the steps, should rounding ever keep t_max below t_stop
         last = ti.floor(e, ti.i32)
         steps = ti.abs(last[0] - v[0]) + ti.abs(last[1] - v[1]) + ti.abs(last[2] - v[2]) + 3
@@ -73,17 +73,17 @@ def traverse(o, e, t_stop, visit: ti.template(), ctx: ti.template(), r):
                     # the face's parameter anew, not by adding 1/d per step: a sum of hundreds
                     # of float32 steps drifts past the tie tolerance
                     t_max[a] = (v[a] + ahead[a] - o[a]) / d[a]
-            visit(ctx, r, v)
+            visit(a0, a1, r, v)
             k += 1
 
 
 @ti.func
-def _record(out: ti.template(), r, v):
-    n = out[1][r]
-    if n < out[0].shape[1]:
+def _record(out_voxels: ti.template(), out_count: ti.template(), r, v):
+    n = out_count[r]
+    if n < out_voxels.shape[1]:
         for a in ti.static(range(3)):
-            out[0][r, n, a] = v[a]
-    out[1][r] = n + 1
+            out_voxels[r, n, a] = v[a]
+    out_count[r] = n + 1
 
 
 @ti.kernel
@@ -99,7 +99,7 @@ def trace_rays(origins: ti.types.ndarray(dtype=ti.f32, ndim=2),   # (R, 3) metre
         e = ti.Vector([ends[r, 0], ends[r, 1], ends[r, 2]])
         out_count[r] = 0
         t_stop = free_fraction((e - o).norm(), margin_m, margin_fraction)
-        traverse(o * inv_res, e * inv_res, t_stop, _record, (out_voxels, out_count), r)
+        traverse(o * inv_res, e * inv_res, t_stop, _record, out_voxels, out_count, r)
 
 
 @functools.cache
@@ -107,20 +107,19 @@ def free_space_kernels(decay: str):
     """The map's free-space kernels for one decay rule (kernels/params.py)."""
 
     @ti.func
-    def make_free(ctx: ti.template(), r, v):
-        m, s, cap = ctx[0], ctx[1], ctx[2]
+    def make_free(m: ti.template(), s: ti.template(), r, v):
         u = m.wrap(v)
         if ti.is_active(m.vox, u):
             # the first ray of the scan through u changes it, the others find its stamp
             if ti.atomic_max(m.free_stamp[u], s.stamp) < s.stamp:
                 decay_voxel_to(m, u, s.time_rel_s, s.inv_tau, decay)
-                m.occupancy[u] = ti.max(m.occupancy[u] - 1.0, -cap)
+                m.occupancy[u] = ti.max(m.occupancy[u] - 1.0, -m.occupancy_cap)
                 ti.atomic_add(m.counter[None], 1)
 
     @ti.kernel
     def mark_hits(m: ti.template(), s: ScanParams,
                   xyz: ti.types.ndarray(dtype=ti.f32, ndim=2),   # (K, 3) training points, local
-                  n_rows: ti.i32, cap: ti.f32):
+                  n_rows: ti.i32):
         """Every voxel holding a training point of the scan gains a hit (and is not made free
         by the scan's rays)."""
         for r in range(n_rows):
@@ -128,22 +127,20 @@ def free_space_kernels(decay: str):
                                 * s.inv_resolution, ti.i32))
             if ti.is_active(m.vox, u):
                 decay_voxel_to(m, u, s.time_rel_s, s.inv_tau, decay)
-                m.occupancy[u] = ti.min(m.occupancy[u] + 1.0, cap)
+                m.occupancy[u] = ti.min(m.occupancy[u] + 1.0, m.occupancy_cap)
                 m.free_stamp[u] = s.stamp
 
     @ti.kernel
     def cast_free(m: ti.template(), s: ScanParams,
                   xyz: ti.types.ndarray(dtype=ti.f32, ndim=2),   # (K, 3) ray ends, local
-                  n_rows: ti.i32, margin_m: ti.f32, margin_fraction: ti.f32,
-                  cap: ti.f32) -> ti.i32:
+                  n_rows: ti.i32, margin_m: ti.f32, margin_fraction: ti.f32) -> ti.i32:
         """One ray per training point; returns how many voxels lost occupancy evidence."""
         m.counter[None] = 0
         o = s.translation_m
         for r in range(n_rows):
             e = ti.Vector([xyz[r, 0], xyz[r, 1], xyz[r, 2]])
             t_stop = free_fraction((e - o).norm(), margin_m, margin_fraction)
-            traverse(o * s.inv_resolution, e * s.inv_resolution, t_stop, make_free,
-                     (m, s, cap), r)
+            traverse(o * s.inv_resolution, e * s.inv_resolution, t_stop, make_free, m, s, r)
         return m.counter[None]
 
     return mark_hits, cast_free

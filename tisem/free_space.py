@@ -68,7 +68,6 @@ class FreeSpace:
         self._fields = fields
         self._margin_m = float(cfg.free_margin_m)
         self._margin_fraction = float(cfg.free_margin_fraction)
-        self._cap = float(cfg.occupancy_cap)
         self._mark_hits, self._cast_free = raycast.free_space_kernels(decay)
 
     def flag_points(self, params: ArgPack, checked: CheckedScan, half_vox: np.ndarray,
@@ -86,6 +85,6 @@ class FreeSpace:
         lost occupancy evidence."""
         if n_rows == 0:
             return 0
-        self._mark_hits(self._fields, params, rows.xyz, n_rows, self._cap)
+        self._mark_hits(self._fields, params, rows.xyz, n_rows)
         return int(self._cast_free(self._fields, params, rows.xyz, n_rows, self._margin_m,
-                                   self._margin_fraction, self._cap))
+                                   self._margin_fraction))

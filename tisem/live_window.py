@@ -105,8 +105,10 @@ class VoxelArrays:
 def from_store(arrays: tuple, num_classes: int) -> VoxelArrays:
     """VoxelArrays of what the store gave back (`VoxelArrays.arrays` in reverse)."""
     keys, counts, t_last_rel, length_m = arrays
-    occupancy = counts[:, num_classes] if counts.shape[1] > num_classes else None
-    return VoxelArrays(keys, counts[:, :num_classes], t_last_rel, length_m, occupancy)
+    if counts.shape[1] == num_classes:
+        return VoxelArrays(keys, counts, t_last_rel, length_m)
+    return VoxelArrays(keys, np.ascontiguousarray(counts[:, :num_classes]), t_last_rel, length_m,
+                       np.ascontiguousarray(counts[:, num_classes]))
 
 
 class LiveWindow:

@@ -109,7 +109,8 @@ class Mapper:
             parallel_loop = "voxel" if ti.lang.impl.current_cfg().arch == ti.cuda else "block"
         self._settings = kernel_settings(cfg, per_voxel=parallel_loop == "voxel")
         self._fields = MapFields(self.C, self.geometry.storage_extent,
-                                 self.geometry.table_half_blk, cfg.free_space, cfg.empty_evidence)
+                                 self.geometry.table_half_blk, cfg.free_space, cfg.empty_evidence,
+                                 cfg.occupancy_cap)
         bki.fill_kernel_table(self._fields)
         self._fields.class_inv_tau.from_numpy(class_inv_tau(cfg))
         self._free = FreeSpace(self._fields, cfg, self._settings.decay) if cfg.free_space else None
