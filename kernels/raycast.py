@@ -1,7 +1,7 @@
 """Free space: rays from the sensor to a scan's hits, and the occupancy evidence they leave.
 
-A ray runs from the sensor's position to one training point (one ray per hit voxel: the
-voxel's centroid) and stops a margin before it, `max(margin_m, margin_fraction * range)`: the
+A ray runs from the sensor's position to a training point (the centroid of a hit voxel; one
+ray per `free_ray_stride` of them) and stops a margin before it, `max(margin_m, margin_fraction * range)`: the
 last stretch of a ray grazing the ground runs within a voxel of the surface it hits, and
 counting it as free would erase the road. One thread per ray walks the voxels the ray crosses
 (a 3-D DDA, Amanatides & Woo 1987): from the sensor's voxel, step along the axis whose next
@@ -133,11 +133,14 @@ def free_space_kernels(decay: str):
     @ti.kernel
     def cast_free(m: ti.template(), s: ScanParams,
                   xyz: ti.types.ndarray(dtype=ti.f32, ndim=2),   # (K, 3) ray ends, local
-                  n_rows: ti.i32, margin_m: ti.f32, margin_fraction: ti.f32) -> ti.i32:
-        """One ray per training point; returns how many voxels lost occupancy evidence."""
+                  n_rows: ti.i32, stride: ti.i32, margin_m: ti.f32,
+                  margin_fraction: ti.f32) -> ti.i32:
+        """One ray per `stride` training points (their rows are sorted by leaf block, so every
+        stride-th is spread over the scan); returns how many voxels lost occupancy evidence."""
         m.counter[None] = 0
         o = s.translation_m
-        for r in range(n_rows):
+        for q in range((n_rows + stride - 1) // stride):
+            r = q * stride
             e = ti.Vector([xyz[r, 0], xyz[r, 1], xyz[r, 2]])
             t_stop = free_fraction((e - o).norm(), margin_m, margin_fraction)
             traverse(o * s.inv_resolution, e * s.inv_resolution, t_stop, make_free, m, s, r)

@@ -14,6 +14,8 @@ from helpers import (BUILDING, C, away_from_faces, fresh_runtime, pose, scan_fro
                      small_config)
 from tisem.mapper import Mapper
 
+pytestmark = pytest.mark.slow   # (each test builds and drives its own maps: 10-40 s)
+
 CAR = 1
 RES = 0.2
 DT = 0.1                       # 10 Hz
@@ -53,7 +55,8 @@ def integrate(mapper, k, car_y=None):
 
 
 def free_config(**kw):
-    return small_config(free_space=True, **kw)
+    """Free space with a ray to every hit voxel (so every car voxel is crossed every scan)."""
+    return small_config(free_space=True, free_ray_stride=1, **kw)
 
 
 def scans_to_clear(hit_scans, cfg):

@@ -59,6 +59,7 @@ class MapperConfig:
     free_space: bool = False
     free_margin_m: float = 0.5       # a ray stops this far before its hit, or
     free_margin_fraction: float = 0.15  # this part of its range, whichever is more
+    free_ray_stride: int = 4         # one ray per this many hit voxels (rays cost per voxel)
     empty_evidence: float = 2.0      # a voxel seen through this much more than hit is empty
     occupancy_cap: float = 4.0       # occupancy evidence is clamped to +-this
     # live window (toroidal storage; blocks outside the box leave the field)
@@ -161,6 +162,7 @@ MAPPER_RULES = {
     "tau_movable_s": Number(float, 1.0e-6, 1.0e12, unit="s", optional=True),
     "free_space": Flag(),
     "free_margin_m": Number(float, 0.0, 100.0, unit="m"),
+    "free_ray_stride": Number(int, 1, 1_000_000),
     "free_margin_fraction": Number(float, 0.0, 1.0),
     "empty_evidence": Number(float, 0.0, 1.0e6, low_open=True),
     "occupancy_cap": Number(float, 0.0, 1.0e6, low_open=True),

@@ -7,8 +7,8 @@ Per scan, with `free_space: true`:
   time dynamic), and so are the points the input's motion labels call moving (`Scan.moving`):
   those add no evidence to the map, so a car the labels say is driving leaves no trail;
 * after the kernel update, every voxel holding a training point gains a hit, and one ray per
-  training point, from the sensor to a margin before it, takes occupancy evidence from every
-  live voxel it crosses (kernels/raycast.py). A voxel at or below -empty_evidence is empty:
+  `free_ray_stride` training points, from the sensor to a margin before it, takes occupancy
+  evidence from every live voxel it crosses (kernels/raycast.py). A voxel at or below -empty_evidence is empty:
   queries answer it as no voxel, exports leave it out of the static map.
 
 Free space never makes a voxel live, so the map's memory is what it is without it; the
@@ -68,6 +68,7 @@ class FreeSpace:
         self._fields = fields
         self._margin_m = float(cfg.free_margin_m)
         self._margin_fraction = float(cfg.free_margin_fraction)
+        self._stride = int(cfg.free_ray_stride)
         self._mark_hits, self._cast_free = raycast.free_space_kernels(decay)
 
     def flag_points(self, params: ArgPack, checked: CheckedScan, half_vox: np.ndarray,
@@ -86,5 +87,5 @@ class FreeSpace:
         if n_rows == 0:
             return 0
         self._mark_hits(self._fields, params, rows.xyz, n_rows)
-        return int(self._cast_free(self._fields, params, rows.xyz, n_rows, self._margin_m,
-                                   self._margin_fraction))
+        return int(self._cast_free(self._fields, params, rows.xyz, n_rows, self._stride,
+                                   self._margin_m, self._margin_fraction))
