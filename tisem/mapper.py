@@ -411,20 +411,23 @@ class Mapper:
     def _snapshot_of(self, parts: list[VoxelArrays]) -> MapSnapshot:
         res = self.geometry.resolution_m
         if not parts:
-            empty = MapSnapshot(np.zeros((0, 3), np.int64), np.zeros((0, self.C), np.float32),
-                                np.zeros(0), np.zeros(0, np.float32), res)
-            if self._free is not None:
-                empty.occupancy = np.zeros(0, np.float32)
-                empty.empty_evidence = self.config.empty_evidence
-            return empty
+            return self._with_occupancy(
+                MapSnapshot(np.zeros((0, 3), np.int64), np.zeros((0, self.C), np.float32),
+                            np.zeros(0), np.zeros(0, np.float32), res), np.zeros(0, np.float32))
         keys = np.concatenate([p.keys for p in parts]).astype(np.int64) + self.origin_vox
         counts = np.concatenate([p.counts for p in parts])
         t_last = np.concatenate([p.t_last_rel for p in parts]).astype(np.float64) + self.t0
         length_m = np.concatenate([p.length_m for p in parts])
         order = MapSnapshot.sort_order(keys)
         snap = MapSnapshot(keys[order], counts[order], t_last[order], length_m[order], res)
+        if self._free is None:
+            return snap
+        return self._with_occupancy(snap, np.concatenate([p.occupancy for p in parts])[order])
+
+    def _with_occupancy(self, snap: MapSnapshot, occupancy: np.ndarray) -> MapSnapshot:
+        """The snapshot with its voxels' occupancy evidence (free space only)."""
         if self._free is not None:
-            snap.occupancy = np.concatenate([p.occupancy for p in parts])[order]
+            snap.occupancy = occupancy
             snap.empty_evidence = self.config.empty_evidence
         return snap
 

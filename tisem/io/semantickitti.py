@@ -71,6 +71,21 @@ def write_predictions(out_root: str | os.PathLike, sequence_name: str | int, sca
     return path
 
 
+def write_dynamic_flags(out_root: str | os.PathLike, sequence_name: str | int, scan_id: int,
+                        dynamic: np.ndarray) -> Path:
+    """Write `out_root/sequences/NN/predictions/NNNNNN.dynamic`: one uint8 per point of the
+    scan, 1 where free space found it dynamic (its own file beside the .label, so the
+    SemanticKITTI layout stays valid); written like `write_predictions`."""
+    flags = np.asarray(dynamic, dtype=bool).ravel().astype(np.uint8)
+    folder = Path(out_root) / "sequences" / _normalise_sequence(sequence_name) / "predictions"
+    folder.mkdir(parents=True, exist_ok=True)
+    path = folder / f"{int(scan_id):06d}.dynamic"
+    tmp = path.with_name(path.name + ".tmp")
+    flags.tofile(tmp)
+    os.replace(tmp, path)
+    return path
+
+
 # --------------------------------------------------------------------------- reader
 
 def _normalise_sequence(sequence: str | int) -> str:
