@@ -1,9 +1,9 @@
 """Free space: rays from the sensor to a scan's hits, and the occupancy evidence they leave.
 
 A ray runs from the sensor's position to a training point (the centroid of a hit voxel; one
-ray per `free_ray_stride` of them) and stops a margin before it, `max(margin_m, margin_fraction * range)`: the
-last stretch of a ray grazing the ground runs within a voxel of the surface it hits, and
-counting it as free would erase the road. One thread per ray walks the voxels the ray crosses
+ray per `free_ray_stride` of them) and stops a margin before it,
+`max(margin_m, margin_fraction * range)`: the last stretch of a ray grazing the ground runs
+within a voxel of the surface it hits, and counting it as free would erase the road. One thread per ray walks the voxels the ray crosses
 (a 3-D DDA, Amanatides & Woo 1987): from the sensor's voxel, step along the axis whose next
 voxel face the ray reaches first; axes that reach a face at the same parameter (a ray through
 an edge or a corner) step together, so no voxel the ray only touches is visited.

@@ -8,8 +8,9 @@ Per scan, with `free_space: true`:
   those add no evidence to the map, so a car the labels say is driving leaves no trail;
 * after the kernel update, every voxel holding a training point gains a hit, and one ray per
   `free_ray_stride` training points, from the sensor to a margin before it, takes occupancy
-  evidence from every live voxel it crosses (kernels/raycast.py). A voxel at or below -empty_evidence is empty:
-  queries answer it as no voxel, exports leave it out of the static map.
+  evidence from every live voxel it crosses (kernels/raycast.py). A voxel at or below
+  -empty_evidence is empty: queries answer it as no voxel, exports leave it out of the static
+  map.
 
 Free space never makes a voxel live, so the map's memory is what it is without it; the
 occupancy evidence travels with the voxel to the store, checkpoints and map files.
