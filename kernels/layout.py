@@ -4,11 +4,11 @@ The map is one sparse tree indexed by *storage* voxel index u in [0, N):
 
     root.pointer(top cells) -> pointer(8^3 leaf blocks) -> bitmasked(4^3 voxels) -> dense(l, C)
 
-holding the semantic counters sigma[u, c], the time of the last update t_last_rel[u] and the
-kernel length length[u]. A scan never touches a sparse node until its training points are
-known: its points are sorted by leaf block in a dense table of the blocks around the sensor
-(kernels/rasterize.py, kernels/training.py), which costs plain integer atomics instead of sparse
-activations.
+holding the semantic counters sigma[u, c], the time of the last update t_last_rel[u], the
+kernel length length[u] and, with free space only, the occupancy evidence (kernels/raycast.py).
+A scan never touches a sparse node until its training points are known: its points are sorted
+by leaf block in a dense table of the blocks around the sensor (kernels/rasterize.py,
+kernels/training.py), which costs plain integer atomics instead of sparse activations.
 
 Why this shape (measured on a 2-thread CPU): a small two-level pointer top keeps struct-fors
 cheap (a one-level pointer over the whole window costs a dense root of 16 B per cell and seconds
