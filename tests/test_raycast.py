@@ -67,6 +67,7 @@ def check_rays(origins, ends, inv_res, margin_m=0.0, margin_fraction=0.0):
     return got
 
 
+@pytest.mark.slow   # (400 long rays, each checked against the reference in Python)
 def test_random_rays_cross_exactly_the_reference_voxels(taichi_cpu):
     rng = np.random.default_rng(16)
     origins = rng.uniform(-3, 3, (400, 3))
