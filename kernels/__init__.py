@@ -20,6 +20,8 @@ Every step of `tisem.mapper.Mapper.integrate`, where its kernels live:
 |    csm: the voxel's own histogram         | fusion.py    | fuse_histograms                 |
 | 8. temporal fusion (lazy decay)           | fusion.py    | fuse_voxel, decay_factor        |
 | 9. query                                  | query.py     | query, lookup                   |
+| free space (optional): dynamic points,    | raycast.py   | flag_dynamic, mark_hits,        |
+|    hits, rays that clear what they cross  |              | cast_free, traverse (3-D DDA)   |
 | the live window (eviction, reload)        | window.py    | find_leaving_blocks, ...        |
 | the SNode tree and the scan's table       | layout.py    | MapFields, table limits         |
 | a scan's constants, the kernels' settings | params.py    | ScanParams, KernelSettings      |

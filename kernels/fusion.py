@@ -11,7 +11,7 @@ import taichi as ti
 from taichi.lang.argpack import ArgPack
 
 from kernels.layout import MapFields
-from kernels.params import EXPONENTIAL, FORGET
+from kernels.params import EXPONENTIAL, FORGET, PER_CLASS
 from kernels.training import visit_training_voxels
 
 
@@ -26,12 +26,33 @@ def decay_factor(dt, inv_tau, decay: ti.template()):
 
 
 @ti.func
+def class_decay(m: ti.template(), alpha, dt, c: ti.template(), decay: ti.template()):
+    """The decay of class c's counter: the common alpha, or with PER_CLASS its own
+    exp(-dt / tau_c) (m.class_inv_tau)."""
+    a = alpha
+    if ti.static(decay == PER_CLASS):
+        a = ti.exp(-ti.max(dt, 0.0) * m.class_inv_tau[c])
+    return a
+
+
+@ti.func
 def fuse_voxel(m: ti.template(), u, delta, t_rel, inv_tau, decay: ti.template()):
     """Fold one voxel's new evidence into its counters (only the voxel's own thread calls this)."""
-    alpha = decay_factor(t_rel - m.t_last_rel[u], inv_tau, decay)
+    dt = t_rel - m.t_last_rel[u]
+    alpha = decay_factor(dt, inv_tau, decay)
     for c in ti.static(range(m.C)):
-        m.counts[u, c] = alpha * m.counts[u, c] + delta[c]
+        m.counts[u, c] = class_decay(m, alpha, dt, c, decay) * m.counts[u, c] + delta[c]
+    if ti.static(m.free_space):
+        m.occupancy[u] *= alpha      # the occupancy evidence fades with the static tau
     m.t_last_rel[u] = t_rel
+
+
+@ti.func
+def decay_voxel_to(m: ti.template(), u, t_rel, inv_tau, decay: ti.template()):
+    """Decay voxel u's counters and occupancy to t_rel without new evidence (a voxel a ray
+    crosses): the lazy decay's invariant, everything as of t_last_rel, holds on."""
+    if m.t_last_rel[u] < t_rel:
+        fuse_voxel(m, u, ti.Vector([0.0] * m.C), t_rel, inv_tau, decay)
 
 
 @ti.func

@@ -4,11 +4,11 @@ The map is one sparse tree indexed by *storage* voxel index u in [0, N):
 
     root.pointer(top cells) -> pointer(8^3 leaf blocks) -> bitmasked(4^3 voxels) -> dense(l, C)
 
-holding the semantic counters sigma[u, c], the time of the last update t_last_rel[u] and the
-kernel length length[u]. A scan never touches a sparse node until its training points are
-known: its points are sorted by leaf block in a dense table of the blocks around the sensor
-(kernels/rasterize.py, kernels/training.py), which costs plain integer atomics instead of sparse
-activations.
+holding the semantic counters sigma[u, c], the time of the last update t_last_rel[u], the
+kernel length length[u] and, with free space only, the occupancy evidence (kernels/raycast.py).
+A scan never touches a sparse node until its training points are known: its points are sorted
+by leaf block in a dense table of the blocks around the sensor (kernels/rasterize.py,
+kernels/training.py), which costs plain integer atomics instead of sparse activations.
 
 Why this shape (measured on a 2-thread CPU): a small two-level pointer top keeps struct-fors
 cheap (a one-level pointer over the whole window costs a dense root of 16 B per cell and seconds
@@ -121,7 +121,8 @@ class MapFields:
     """The Taichi fields of one map. Create after `ti.init`; never share across inits."""
 
     def __init__(self, num_classes: int, extent: tuple[int, int, int],
-                 table_half: tuple[int, int, int]):
+                 table_half: tuple[int, int, int], free_space: bool = False,
+                 empty_evidence: float = 2.0, occupancy_cap: float = 4.0):
         for n in extent:
             if n % TOP or n & (n - 1):
                 raise ValueError(f"storage extent {extent} must be powers of two >= {TOP}")
@@ -146,6 +147,20 @@ class MapFields:
         self.vox = self.blk.bitmasked(ti.ijk, LEAF)
         self.vox.dense(ti.l, self.C).place(self.counts)
         self.vox.place(self.t_last_rel)
+        # free space (placed only when it is on, so that a map without it keeps its layout and
+        # memory): the voxel's occupancy evidence, hits minus crossings by rays, decayed with
+        # the counters to t_last_rel and clamped (kernels/raycast.py), and the last scan whose
+        # rays or hits changed it (one change per voxel and scan, whatever the rays crossing it)
+        self.free_space = bool(free_space)
+        self.empty_evidence = float(empty_evidence)   # (constants the kernels compile in)
+        self.occupancy_cap = float(occupancy_cap)
+        if self.free_space:
+            self.occupancy = ti.field(ti.f32)
+            self.free_stamp = ti.field(ti.i32)
+            self.vox.place(self.occupancy, self.free_stamp)
+        # 1 / tau per class (the per-class decay of movable classes, kernels/fusion.py)
+        self.class_inv_tau = ti.field(ti.f32)
+        fb.dense(ti.i, self.C).place(self.class_inv_tau)
         # a block's 64 lengths apart from the voxels' counters, in 4 cache lines instead of one
         # per voxel: the kernel update reads all 64 of every block near the scan to find its
         # live voxels (~7 of 64), and only then their counters
@@ -187,6 +202,15 @@ class MapFields:
         self._tree = fb.finalize()
         self.col_lo.fill(EMPTY_LO)
         self.col_hi.fill(-1)
+
+    @ti.func
+    def is_empty(self, u):
+        """Whether live voxel u has been seen through often enough to be empty space: its
+        occupancy evidence at or below -empty_evidence (never, without free space)."""
+        empty = False
+        if ti.static(self.free_space):
+            empty = self.occupancy[u] <= -self.empty_evidence
+        return empty
 
     @ti.func
     def in_table(self, i):

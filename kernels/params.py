@@ -50,6 +50,7 @@ ADAPTIVE_LENGTH = "adaptive"  # the length from the entropy of the voxel's class
 # KernelSettings.decay
 EXPONENTIAL = "exponential"  # alpha = exp(-dt / tau); tau = inf (1 / tau = 0) gives alpha = 1
 FORGET = "forget"            # tau = 0: every update replaces the voxel's history (alpha = 0)
+PER_CLASS = "per_class"      # alpha_c = exp(-dt / tau_c): movable classes fade faster
 
 
 @dataclass(frozen=True)
@@ -64,7 +65,7 @@ class KernelSettings:
     def __post_init__(self):
         if self.kernel_length not in (NO_KERNEL, FIXED_LENGTH, ADAPTIVE_LENGTH):
             raise ValueError(f"unknown kernel_length {self.kernel_length!r}")
-        if self.decay not in (EXPONENTIAL, FORGET):
+        if self.decay not in (EXPONENTIAL, FORGET, PER_CLASS):
             raise ValueError(f"unknown decay {self.decay!r}")
 
     @property

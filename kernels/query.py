@@ -20,6 +20,9 @@ def lookup(m: ti.template(), w, center, half, p, out_label: ti.template(),
             if v > best_v:
                 best_v = v
                 best = c
+        if m.is_empty(u):   # seen through (free space): it answers as no voxel does
+            best = 0
+            total = 0.0
         if with_prob:
             for c in ti.static(range(m.C)):
                 out_prob[p, c] = m.counts[u, c] / total if total > 0 else 0.0

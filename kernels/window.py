@@ -53,10 +53,12 @@ def export_leaving(m: ti.template(), old_center: ti.types.vector(3, ti.i32),
                    counts: ti.types.ndarray(dtype=ti.f32, ndim=2),      # (M, C) out
                    t_last_rel: ti.types.ndarray(dtype=ti.f32, ndim=1),  # (M,) out
                    length_m: ti.types.ndarray(dtype=ti.f32, ndim=1),    # (M,) out
+                   occupancy: ti.types.ndarray(dtype=ti.f32, ndim=1),   # (M,) out (free space)
                    left: ti.types.ndarray(dtype=ti.i32, ndim=1)) -> ti.i32:   # (n_blocks,) out
     """Move the live voxels of the listed blocks that lie outside the box out of the field.
 
-    Each leaving voxel is written to the outputs (world keys unwrapped at `old_center`), then
+    Each leaving voxel is written to the outputs (world keys unwrapped at `old_center`; its
+    occupancy evidence only in a map with free space, else `occupancy` may be empty), then
     zeroed and its bit cleared (a bitmasked cell keeps its data when deactivated, and the next
     voxel there must start from zero). `left[b]` counts block b's voxels that stay.
     """
@@ -69,6 +71,11 @@ def export_leaving(m: ti.template(), old_center: ti.types.vector(3, ti.i32),
                 idx = ti.atomic_add(m.counter[None], 1)
                 if idx < keys.shape[0]:
                     copy_voxel_out(m, u, w, idx, keys, counts, t_last_rel, length_m)
+                if ti.static(m.free_space):
+                    if idx < keys.shape[0]:
+                        occupancy[idx] = m.occupancy[u]
+                    m.occupancy[u] = 0.0
+                    m.free_stamp[u] = 0
                 for c in ti.static(range(m.C)):
                     m.counts[u, c] = 0.0
                 m.t_last_rel[u] = 0.0

@@ -52,6 +52,16 @@ class MapperConfig:
     point_weight: str = "count"      # count: a training voxel weighs by its points; unit: once
     # 8. temporal fusion
     tau_s: float = 5.0               # decay time constant (st mode)
+    tau_movable_s: float | None = None   # tau of the movable classes (car ... motorcycle,
+                                     # tisem.labels.MOVABLE_CLASSES) in st mode; None: tau_s
+    # free space and moving objects (docs/dynamic.md): rays from the sensor to the hits make
+    # the voxels they cross lose occupancy evidence; off, the map is exactly the map without it
+    free_space: bool = False
+    free_margin_m: float = 0.5       # a ray stops this far before its hit, or
+    free_margin_fraction: float = 0.15  # this part of its range, whichever is more
+    free_ray_stride: int = 4         # one ray per this many hit voxels (rays cost per voxel)
+    empty_evidence: float = 2.0      # a voxel seen through this much more than hit is empty
+    occupancy_cap: float = 4.0       # occupancy evidence is clamped to +-this
     # live window (toroidal storage; blocks outside the box leave the field)
     window_xy_m: float = 100.0       # half-size of the live window around the sensor; must
                                      # hold max_range + kernel reach + 0.8 m. 100 m keeps even
@@ -81,6 +91,9 @@ class MapperConfig:
         if self.ell_min_m > self.ell_max_m:
             raise ConfigError(f"ell_min_m = {self.ell_min_m:g}: must not exceed ell_max_m = "
                               f"{self.ell_max_m:g}")
+        if self.empty_evidence > self.occupancy_cap:
+            raise ConfigError(f"empty_evidence = {self.empty_evidence:g}: must not exceed "
+                              f"occupancy_cap = {self.occupancy_cap:g}")
         check_geometry(self)
 
     # the kernel length bounds that the chosen mode actually uses
@@ -98,6 +111,13 @@ class MapperConfig:
         if not self.uses_kernel:
             return 0.0
         return self.ell_max_m if self.adaptive else self.ell_fixed_vox * self.resolution_m
+
+    @property
+    def movable_tau_s(self) -> float:
+        """tau of the movable classes (the per-class decay; decay_tau_s outside st mode)."""
+        if self.mode != "st" or self.tau_movable_s is None:
+            return self.decay_tau_s
+        return self.tau_movable_s
 
     @property
     def decay_tau_s(self) -> float:
@@ -139,6 +159,13 @@ MAPPER_RULES = {
     # 1/tau is a float32 in the kernels; below 1 us every decay is exp(-1e5) = 0 anyway (mode
     # spatial), and tau = inf is mode adaptive
     "tau_s": Number(float, 1.0e-6, 1.0e12, unit="s"),
+    "tau_movable_s": Number(float, 1.0e-6, 1.0e12, unit="s", optional=True),
+    "free_space": Flag(),
+    "free_margin_m": Number(float, 0.0, 100.0, unit="m"),
+    "free_ray_stride": Number(int, 1, 1_000_000),
+    "free_margin_fraction": Number(float, 0.0, 1.0),
+    "empty_evidence": Number(float, 0.0, 1.0e6, low_open=True),
+    "occupancy_cap": Number(float, 0.0, 1.0e6, low_open=True),
     "window_xy_m": Number(float, 0.0, 1.0e5, low_open=True, unit="m"),
     "window_z_m": Number(float, 0.0, 1.0e5, low_open=True, unit="m"),
     "max_live_blocks": Number(int, 1, 2 ** 31 - 1),

@@ -27,6 +27,19 @@ CLASS_NAMES: tuple[str, ...] = (
     "fence", "vegetation", "trunk", "terrain", "pole", "traffic-sign",
 )
 
+# the classes that move (train ids): car, bicycle, motorcycle, truck, other-vehicle, person,
+# bicyclist, motorcyclist; they may take a shorter tau (MapperConfig.tau_movable_s)
+MOVABLE_CLASSES: tuple[int, ...] = (1, 2, 3, 4, 5, 6, 7, 8)
+# SemanticKITTI's raw ids of moving objects (moving-car ... moving-other-vehicle)
+MOVING_RAW_IDS = (252, 259)   # inclusive range
+
+
+def moving_raw(raw: np.ndarray) -> np.ndarray:
+    """(N,) bool: which raw SemanticKITTI labels (lower 16 bits) mark a moving object."""
+    sem = np.asarray(raw) & 0xFFFF
+    return (sem >= MOVING_RAW_IDS[0]) & (sem <= MOVING_RAW_IDS[1])
+
+
 # semantic-kitti.yaml `color_map` is BGR; these are the same colours as RGB, per train id.
 CLASS_COLORS_RGB = np.array([
     [0, 0, 0], [100, 150, 245], [100, 230, 245], [30, 60, 150], [80, 30, 180],

@@ -24,7 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 import taichi as ti
 
-from kernels import query as kquery, window
+from kernels import query as kquery, raycast, window
 from kernels.layout import LEAF, TOP, MapFields
 from tisem.geometry import MapGeometry
 from tisem.scan import finite_rows
@@ -83,12 +83,32 @@ class VoxelArrays:
     counts: np.ndarray       # (M, C) float32
     t_last_rel: np.ndarray   # (M,) float32 seconds since t0
     length_m: np.ndarray     # (M,) float32 kernel length
+    occupancy: np.ndarray | None = None   # (M,) float32 occupancy evidence (free space)
 
     def __len__(self) -> int:
         return len(self.keys)
 
     def arrays(self) -> tuple:
-        return self.keys, self.counts, self.t_last_rel, self.length_m
+        """(keys, counts, t_last_rel, length_m) as the store takes them: with free space the
+        occupancy evidence travels as one more counter column (the store keeps any column
+        count, and its non-zero encoding costs nothing for a voxel never seen through)."""
+        counts = self.counts
+        if self.occupancy is not None:
+            counts = np.concatenate([counts, self.occupancy[:, None]], axis=1)
+        return self.keys, counts, self.t_last_rel, self.length_m
+
+    def rows(self, keep: np.ndarray) -> VoxelArrays:
+        return VoxelArrays(*(None if a is None else a[keep] for a in (
+            self.keys, self.counts, self.t_last_rel, self.length_m, self.occupancy)))
+
+
+def from_store(arrays: tuple, num_classes: int) -> VoxelArrays:
+    """VoxelArrays of what the store gave back (`VoxelArrays.arrays` in reverse)."""
+    keys, counts, t_last_rel, length_m = arrays
+    if counts.shape[1] == num_classes:
+        return VoxelArrays(keys, counts, t_last_rel, length_m)
+    return VoxelArrays(keys, np.ascontiguousarray(counts[:, :num_classes]), t_last_rel, length_m,
+                       np.ascontiguousarray(counts[:, num_classes]))
 
 
 class LiveWindow:
@@ -158,10 +178,8 @@ class LiveWindow:
         if left is not None:
             st.top_range = left.top_range
         if back is not None:
-            keys, counts, t_last_rel, length_m = back
-            kquery.import_voxels(self._fields, np.ascontiguousarray(keys, np.int32), counts,
-                                 t_last_rel, length_m)
-            move.reloaded_voxels = len(keys)
+            self._import(from_store(back, self._fields.C))
+            move.reloaded_voxels = len(back[0])
             st.blocks_after_move = self.live_blocks
         else:
             st.blocks_after_move = live - (left.freed_blocks if left is not None else 0)
@@ -182,12 +200,13 @@ class LiveWindow:
         if n > len(blocks):   # (live_blocks is exact; this is a guard)
             blocks = np.zeros((n, 3), np.int32)
             n = window.find_leaving_blocks(m, old_blk, *box, blocks)
-        leaving = _voxel_arrays(n * LEAF ** 3, m.C)
+        leaving = _voxel_arrays(n * LEAF ** 3, m.C, m.free_space)
         left = np.zeros(n, np.int32)
+        occupancy = leaving.occupancy if m.free_space else np.zeros(0, np.float32)
         nv = window.export_leaving(m, ivec(st.center_vox), *box, blocks, n, leaving.keys,
-                                   leaving.counts, leaving.t_last_rel, leaving.length_m, left)
-        done.voxels = leaving = VoxelArrays(*(a[:nv] for a in (
-            leaving.keys, leaving.counts, leaving.t_last_rel, leaving.length_m)))
+                                   leaving.counts, leaving.t_last_rel, leaving.length_m,
+                                   occupancy, left)
+        done.voxels = leaving = leaving.rows(slice(0, nv))
         try:
             done.segments = self.store.put(*leaving.arrays(), box=(center, half))
         except BaseException:
@@ -209,8 +228,12 @@ class LiveWindow:
 
     def _import(self, v: VoxelArrays) -> None:
         if len(v):
-            kquery.import_voxels(self._fields, np.ascontiguousarray(v.keys, np.int32), v.counts,
-                                 v.t_last_rel, v.length_m)
+            keys = np.ascontiguousarray(v.keys, np.int32)
+            kquery.import_voxels(self._fields, keys, v.counts, v.t_last_rel, v.length_m)
+            if self._fields.free_space:
+                occupancy = v.occupancy if v.occupancy is not None else np.zeros(len(keys))
+                raycast.scatter_occupancy(self._fields, keys,
+                                          np.ascontiguousarray(occupancy, np.float32))
 
     def _fit_cap(self, center: np.ndarray, live: int) -> np.ndarray:
         """Half-size of the window for a scan at `center` under the block cap.
@@ -296,7 +319,10 @@ class LiveWindow:
             vox = np.floor(local[rest] * np.float32(inv_res)).astype(np.int64)
             ok = np.all(np.abs(vox) <= KEY_LIMIT, axis=1)
             counts = np.zeros((len(vox), m.C), np.float32)
-            counts[ok], _ = self.store.lookup(vox[ok])
+            stored, _ = self.store.lookup(vox[ok])
+            if m.free_space:     # (an empty voxel answers as no voxel does, as in the field)
+                stored[stored[:, m.C] <= -m.empty_evidence] = 0.0
+            counts[ok] = stored[:, :m.C]
             snap = MapSnapshot(np.zeros((len(counts), 3), np.int64), counts,
                                np.zeros(len(counts)), np.zeros(len(counts), np.float32),
                                self._geometry.resolution_m)
@@ -306,19 +332,23 @@ class LiveWindow:
 
     def live_arrays(self) -> VoxelArrays:
         """Every live voxel, in no particular order."""
+        m = self._fields
         n = self.live_voxels
-        out = _voxel_arrays(n, self._fields.C)
+        out = _voxel_arrays(n, m.C, m.free_space)
         if n:
-            got = kquery.export_voxels(self._fields, ivec(self.state.center_vox), out.keys,
+            got = kquery.export_voxels(m, ivec(self.state.center_vox), out.keys,
                                        out.counts, out.t_last_rel, out.length_m)
             assert got == n, f"export found {got} voxels, count found {n}"
+            if m.free_space:
+                raycast.gather_occupancy(m, out.keys, out.occupancy)
         return out
 
     def stored_arrays(self) -> VoxelArrays:
         """Every stored voxel, in no particular order."""
-        return VoxelArrays(*self.store.arrays())
+        return from_store(self.store.arrays(), self._fields.C)
 
 
-def _voxel_arrays(n: int, num_classes: int) -> VoxelArrays:
+def _voxel_arrays(n: int, num_classes: int, free_space: bool = False) -> VoxelArrays:
     return VoxelArrays(np.zeros((n, 3), np.int32), np.zeros((n, num_classes), np.float32),
-                      np.zeros(n, np.float32), np.zeros(n, np.float32))
+                      np.zeros(n, np.float32), np.zeros(n, np.float32),
+                      np.zeros(n, np.float32) if free_space else None)

@@ -27,12 +27,13 @@ from taichi.lang.argpack import ArgPack
 
 from kernels import bki, entropy, fusion, rasterize, table, training
 from kernels.layout import MapFields
-from kernels.params import (ADAPTIVE_LENGTH, EXPONENTIAL, FIXED_LENGTH, FORGET, NO_KERNEL,
-                            KernelSettings, ScanParams)
+from kernels.params import (ADAPTIVE_LENGTH, FIXED_LENGTH, NO_KERNEL, KernelSettings,
+                            ScanParams)
 from tisem import backend
 from tisem.block_cap import cut_to_nearest, new_blocks_beyond
 from tisem.config import MapperConfig
 from tisem.errors import ScanError
+from tisem.free_space import FreeSpace, class_inv_tau, decay_rule, without_moving
 from tisem.geometry import MapGeometry, block_aligned_origin
 from tisem.live_window import VoxelArrays, LiveWindow
 from tisem.map_clock import MapClock
@@ -49,8 +50,10 @@ log = logging.getLogger(__name__)
 # the timed stages of `integrate` (profile=True), one per step of its recipe: the checks and the
 # pose; the live window; locating the points and sorting them by leaf block; sorting them by
 # voxel, the filter and the training points; the kernel lengths; the kernel update and fusion
-# (with the adaptive lengths' entropy, fused in its pass over the map); resetting the table
-STAGES = ("preprocess", "window", "voxelize", "filter", "length", "update", "clear")
+# (with the adaptive lengths' entropy, fused in its pass over the map); free space (the dynamic
+# points' flags, the hits and the rays; 0 when off); resetting the table
+STAGES = ("preprocess", "window", "voxelize", "filter", "length", "update", "free_space",
+          "clear")
 
 
 @dataclass
@@ -67,13 +70,16 @@ class IntegrationReport:
     training_voxels: int = 0
     evicted_voxels: int = 0
     reloaded_voxels: int = 0
+    dynamic_points: int = 0         # free space: points flagged dynamic
+    freed_voxels: int = 0           # free space: voxels the scan's rays took evidence from
+    dynamic: np.ndarray | None = None   # free space: (points,) bool, which points are dynamic
 
 
 def kernel_settings(cfg: MapperConfig, per_voxel: bool) -> KernelSettings:
     """The compile-time settings of a map's kernels for its config."""
     length = ADAPTIVE_LENGTH if cfg.adaptive else FIXED_LENGTH if cfg.uses_kernel else NO_KERNEL
     return KernelSettings(kernel_length=length,
-                          decay=FORGET if cfg.decay_tau_s == 0 else EXPONENTIAL,
+                          decay=decay_rule(cfg),
                           unit_weight=cfg.point_weight == "unit", per_voxel=per_voxel)
 
 
@@ -95,15 +101,19 @@ class Mapper:
         self.geometry = MapGeometry.from_config(cfg)
         # before the runtime's one map slot is taken: a bad config or a missing store_dir is
         # refused with the runtime still free for another map
-        self.store = BlockStore(cfg.num_classes, spill_dir=cfg.store_dir)
+        # (with free space the occupancy evidence is the store's last counter column)
+        self.store = BlockStore(cfg.num_classes + int(cfg.free_space), spill_dir=cfg.store_dir)
         self._generation = backend.claim_map_slot()
         self.C = cfg.num_classes
         if parallel_loop is None:
             parallel_loop = "voxel" if ti.lang.impl.current_cfg().arch == ti.cuda else "block"
         self._settings = kernel_settings(cfg, per_voxel=parallel_loop == "voxel")
         self._fields = MapFields(self.C, self.geometry.storage_extent,
-                                 self.geometry.table_half_blk)
+                                 self.geometry.table_half_blk, cfg.free_space, cfg.empty_evidence,
+                                 cfg.occupancy_cap)
         bki.fill_kernel_table(self._fields)
+        self._fields.class_inv_tau.from_numpy(class_inv_tau(cfg))
+        self._free = FreeSpace(self._fields, cfg, self._settings.decay) if cfg.free_space else None
         self.window = LiveWindow(self._fields, self.store, self.geometry, cfg.max_live_blocks)
         self._params = self._scan_params()
         self.origin_vox: np.ndarray | None = None   # global voxel index of local voxel 0
@@ -157,6 +167,10 @@ class Mapper:
             report.evicted_voxels = moved.evicted_voxels
             report.reloaded_voxels = moved.reloaded_voxels
             timer("window")
+            if self._free is not None:
+                # what lands in space seen empty is dynamic; moving points add no evidence
+                checked = self._flag_dynamic(scan, checked, report)
+                timer("free_space")
             # 2. downsample / voxelize: range and window checks, the points sorted by leaf block
             points = self._voxelize(checked, report, trace)
             timer("voxelize")
@@ -174,6 +188,10 @@ class Mapper:
             # voxel within reach of a training point
             self._update(points, rows, report.training_voxels)
             timer("update")
+            if self._free is not None:
+                # hits, then rays from the sensor to the training points clear what they cross
+                report.freed_voxels = self._free.integrate(p, rows, report.training_voxels)
+                timer("free_space")
             table.clear_table(m)              # the scan's table, empty again for the next scan
             timer("clear")
         self.clock.advance(scan.stamp_s, map_time)
@@ -233,6 +251,15 @@ class Mapper:
         p.time_rel_s = map_time
         p.stamp = self.scans + 1
         return checked, center_vox, map_time
+
+    def _flag_dynamic(self, scan: Scan, checked: CheckedScan,
+                      report: IntegrationReport) -> CheckedScan:
+        """The free-space flags of the scan's points (before it changes the map), and the scan
+        without its moving points' evidence."""
+        report.dynamic = self._free.flag_points(self._params, checked, self.window.half_vox,
+                                                scan.moving)
+        report.dynamic_points = int(report.dynamic.sum())
+        return checked if scan.moving is None else without_moving(checked, scan.moving)
 
     def _hold_block_cap(self, scan: Scan, checked: CheckedScan, pts: ScanPoints,
                         rows: TrainingRows, report: IntegrationReport,
@@ -384,14 +411,25 @@ class Mapper:
     def _snapshot_of(self, parts: list[VoxelArrays]) -> MapSnapshot:
         res = self.geometry.resolution_m
         if not parts:
-            return MapSnapshot(np.zeros((0, 3), np.int64), np.zeros((0, self.C), np.float32),
-                               np.zeros(0), np.zeros(0, np.float32), res)
+            return self._with_occupancy(
+                MapSnapshot(np.zeros((0, 3), np.int64), np.zeros((0, self.C), np.float32),
+                            np.zeros(0), np.zeros(0, np.float32), res), np.zeros(0, np.float32))
         keys = np.concatenate([p.keys for p in parts]).astype(np.int64) + self.origin_vox
         counts = np.concatenate([p.counts for p in parts])
         t_last = np.concatenate([p.t_last_rel for p in parts]).astype(np.float64) + self.t0
         length_m = np.concatenate([p.length_m for p in parts])
         order = MapSnapshot.sort_order(keys)
-        return MapSnapshot(keys[order], counts[order], t_last[order], length_m[order], res)
+        snap = MapSnapshot(keys[order], counts[order], t_last[order], length_m[order], res)
+        if self._free is None:
+            return snap
+        return self._with_occupancy(snap, np.concatenate([p.occupancy for p in parts])[order])
+
+    def _with_occupancy(self, snap: MapSnapshot, occupancy: np.ndarray) -> MapSnapshot:
+        """The snapshot with its voxels' occupancy evidence (free space only)."""
+        if self._free is not None:
+            snap.occupancy = occupancy
+            snap.empty_evidence = self.config.empty_evidence
+        return snap
 
     def state(self) -> dict:
         """Scalars that, with `snapshot()`, rebuild this mapper exactly (for checkpoints)."""
@@ -412,7 +450,12 @@ class Mapper:
         if saved.origin_vox is None:
             return
         # everything goes to the store first; the window then pulls in what it covers
-        segments = self.store.put(*relative_arrays(snapshot, saved))
+        occupancy = None
+        if self._free is not None:   # (a map saved without free space starts with none)
+            occupancy = (np.zeros(len(snapshot), np.float32) if snapshot.occupancy is None
+                         else np.asarray(snapshot.occupancy, np.float32))
+        segments = self.store.put(*VoxelArrays(*relative_arrays(snapshot, saved),
+                                               occupancy).arrays())
         try:
             self.window.follow(saved.center_vox)
         except BaseException:       # (the map does not fit the cap): the mapper stays empty

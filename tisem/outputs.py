@@ -27,9 +27,9 @@ __all__ = ["write_run_info", "write_metrics", "write_map_files", "write_recordin
 
 # what a run writes at the top of its folder
 RUN_FILES = ("config.yaml", "run.json", "metrics.json", "map.npz", "map.ply", "map_bev.png",
-             "map.mcap", "mcap_report.json", "compare.png")
+             "map.mcap", "mcap_report.json", "compare.png", "map_dynamic.ply")
 CHECKPOINT_FILES = ("checkpoint.npz", ".checkpoint.npz.*.tmp")
-PREDICTION_FILES = ("*.label", "*.label.tmp")
+PREDICTION_FILES = ("*.label", "*.label.tmp", "*.dynamic", "*.dynamic.tmp")
 MAP_BAG = "map_ros2"                  # the map as a rosbag2 folder, for `ros2 bag play` + RViz
 MAP_BAG_FILES = ("metadata.yaml", f"{MAP_BAG}_*.mcap")
 
@@ -60,7 +60,15 @@ def write_map_files(out_dir: Path, mapper: Mapper, config: MapperConfig,
     paths = {"npz": out_dir / "map.npz", "ply": out_dir / "map.ply",
              "bev": out_dir / "map_bev.png"}
     save_map(paths["npz"], snap, to_dict(config), dict(mapper.state()))
-    write_ply(paths["ply"], snap)
+    if snap.occupancy is not None:
+        # free space: map.ply is the static map, map_dynamic.ply the voxels seen through
+        # (trails of what moved, with the class they held); map.npz keeps both, and the top
+        # view draws the removed voxels in the colour of label 0 (black)
+        paths["dynamic_ply"] = out_dir / "map_dynamic.ply"
+        write_ply(paths["dynamic_ply"], snap.dynamic_layer())
+        write_ply(paths["ply"], snap.static_map())
+    else:
+        write_ply(paths["ply"], snap)
     if len(snap):
         render_bev(snap, paths["bev"], trajectory_xy=trajectory[:, :2],
                    title=f"tisem map ({config.mode}), {len(snap):,} voxels")

@@ -37,7 +37,7 @@ from tisem.errors import NothingMapped, RunError, RunInterrupted, SkippedScan, o
 from tisem.evaluate import Confusion, network_labels, score_scan
 from tisem.interrupt import StopRequest
 from tisem.io.mapfile import remove_stale_temp_files
-from tisem.io.semantickitti import write_predictions
+from tisem.io.semantickitti import write_dynamic_flags, write_predictions
 from tisem.mapper import Mapper
 from tisem.pose_gate import Anchor, PoseGate, Verdict
 from tisem.progress import RunProgress
@@ -243,6 +243,10 @@ class MappingRun:
             self.stopped = f"at scan {scan.index}: {os_error_text(exc)}"
             return False
         self.progress.add_mapped(scan, seconds, report)
+        if report.dynamic is not None:      # free space: the scan's dynamic points
+            with self._writing("the dynamic flags"):
+                write_dynamic_flags(self.out_dir, self.sequence_name, scan.index,
+                                    report.dynamic)
         if scan.gt_labels is not None:
             score_scan(self.progress.input, scan, network_labels(scan))
             if self.cfg.online_eval:

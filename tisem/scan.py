@@ -140,6 +140,9 @@ class Scan:
         a plausible position (`tisem.poses.pose_problem`).
     stamp_s: acquisition time in seconds, finite, within +-MAX_STAMP_S.
     gt_labels: (N,) int32 ground-truth train ids, when known (evaluation only).
+    moving: (N,) bool, the input's motion labels when it has them (SemanticKITTI's moving ids
+        252-259): a moving point is dynamic whatever the map says (tisem.free_space).
+    gt_moving: (N,) bool, the ground truth's motion labels, when known (evaluation only).
     index: position in the sequence (scan number); name: a human-readable source (file, topic).
     source: the reader's provenance record (None for scans built by hand).
 
@@ -156,6 +159,8 @@ class Scan:
     index: int = 0
     name: str = ""
     source: ScanSource | None = None
+    moving: np.ndarray | None = None
+    gt_moving: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         try:
@@ -191,6 +196,14 @@ class Scan:
             if gt.shape != (n,):
                 raise ValueError(f"{where}: {gt.shape} ground-truth labels for {n} points")
             self.gt_labels = checked_ids(gt, "ground-truth train ids", where)
+        for name in ("moving", "gt_moving"):
+            flags = getattr(self, name)
+            if flags is not None:
+                flags = np.asarray(flags)
+                if flags.shape != (n,) or flags.dtype.kind not in "biu":
+                    raise ValueError(f"{where}: {name} flags must be (N,) booleans with N={n}, "
+                                     f"got {flags.dtype} {flags.shape}")
+                setattr(self, name, flags.astype(bool, copy=False))
 
     @property
     def num_points(self) -> int:

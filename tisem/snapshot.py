@@ -14,6 +14,9 @@ class MapSnapshot:
     counts: (M, C) float32 semantic counters sigma (decayed up to t_last, not to now).
     t_last: (M,) float64 time of each voxel's last update, seconds.
     ell_m: (M,) float32 each voxel's current kernel length.
+    occupancy: (M,) float32 occupancy evidence (hits minus crossings by rays, decayed like
+        sigma), only in a map with free space; a voxel at or below -empty_evidence is empty
+        space: no label, no probabilities, and not in the static map.
     """
 
     keys: np.ndarray
@@ -21,6 +24,8 @@ class MapSnapshot:
     t_last: np.ndarray
     ell_m: np.ndarray
     resolution_m: float
+    occupancy: np.ndarray | None = None
+    empty_evidence: float = float("inf")
 
     def __len__(self) -> int:
         return int(self.keys.shape[0])
@@ -29,16 +34,41 @@ class MapSnapshot:
         """(M, 3) float64 voxel centres in the world frame."""
         return (self.keys.astype(np.float64) + 0.5) * self.resolution_m
 
+    def empty(self) -> np.ndarray:
+        """(M,) bool: voxels seen through often enough to be empty space (free space)."""
+        if self.occupancy is None:
+            return np.zeros(len(self), bool)
+        return self.occupancy <= -self.empty_evidence
+
     def labels(self) -> np.ndarray:
-        """(M,) int32 train id per voxel: argmax of sigma, 0 where there is no evidence."""
+        """(M,) int32 train id per voxel: argmax of sigma, 0 where there is no evidence or the
+        voxel is empty space."""
         lab = np.argmax(self.counts, axis=1).astype(np.int32)
-        lab[self.counts.sum(axis=1) <= 0] = 0
+        lab[(self.counts.sum(axis=1) <= 0) | self.empty()] = 0
         return lab
 
     def probabilities(self) -> np.ndarray:
-        """(M, C) normalised sigma (zeros where there is no evidence)."""
+        """(M, C) normalised sigma (zeros where there is no evidence or empty space)."""
         total = self.counts.sum(axis=1, keepdims=True)
+        total[self.empty()] = 0.0
         return np.divide(self.counts, total, out=np.zeros_like(self.counts), where=total > 0)
+
+    def subset(self, keep: np.ndarray) -> MapSnapshot:
+        """The voxels `keep` selects (a mask or indices), in order."""
+        occ = None if self.occupancy is None else self.occupancy[keep]
+        return MapSnapshot(self.keys[keep], self.counts[keep], self.t_last[keep],
+                           self.ell_m[keep], self.resolution_m, occ, self.empty_evidence)
+
+    def static_map(self) -> MapSnapshot:
+        """The map without its empty voxels: what stays once what moved is gone."""
+        return self.subset(~self.empty()) if self.occupancy is not None else self
+
+    def dynamic_layer(self) -> MapSnapshot:
+        """The empty voxels, labelled with the class they held before they were seen through
+        (trails of what moved); no occupancy, so that `labels` gives that class."""
+        gone = self.subset(self.empty())
+        gone.occupancy = None
+        return gone
 
     def confidence(self) -> np.ndarray:
         """(M,) probability of each voxel's label."""

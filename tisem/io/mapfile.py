@@ -137,6 +137,9 @@ def save_map(path: str | os.PathLike, snapshot: MapSnapshot, mapper_config: Mapp
                                                       sort_keys=False)),
         "meta_json": np.array(json.dumps(meta or {}, default=_json_default, sort_keys=True)),
     }
+    if snapshot.occupancy is not None:       # free space: the occupancy evidence, optional
+        arrays["occupancy"] = np.asarray(snapshot.occupancy, dtype=np.float32)
+        arrays["empty_evidence"] = np.array(snapshot.empty_evidence, dtype=np.float64)
     savez = np.savez_compressed if compress else np.savez
     atomic_write(path, lambda f: savez(f, **arrays))
     return path
@@ -169,6 +172,9 @@ def load_map_file(path: str | os.PathLike) -> tuple[MapSnapshot, dict, dict]:
                                    f"{', '.join(missing)}")
             version = int(npz["format_version"])
             data = {k: npz[k] for k in _REQUIRED}
+            for k in ("occupancy", "empty_evidence"):     # free space, when the map had it
+                if k in npz.files:
+                    data[k] = npz[k]
             class_names = npz["class_names"] if "class_names" in npz.files else None
     except MapFileError:
         raise
@@ -205,6 +211,13 @@ def load_map_file(path: str | os.PathLike) -> tuple[MapSnapshot, dict, dict]:
                            t_last=t_last.astype(np.float64, copy=False),
                            ell_m=ell_m.astype(np.float32, copy=False),
                            resolution_m=float(data["resolution_m"]))
+    if "occupancy" in data:
+        occupancy = np.asarray(data["occupancy"], np.float32)
+        if occupancy.shape != (m,) or not np.isfinite(occupancy).all():
+            raise MapFileError(f"{path}: damaged tisem map file, occupancy must be {m} finite "
+                               f"values, got {occupancy.shape}")
+        snapshot.occupancy = occupancy
+        snapshot.empty_evidence = float(data["empty_evidence"])
     return snapshot, config, meta
 
 

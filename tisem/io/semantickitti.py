@@ -39,7 +39,7 @@ from tisem.errors import DatasetError, ScanError, SkippedScan
 from tisem.io.kitti_files import (MAX_TIME_S, camera_poses_to_lidar, out_of_order,
                                   read_calib_tr, read_pose_lines, read_poses, read_time_lines,
                                   read_times)
-from tisem.labels import raw_to_train, train_to_raw
+from tisem.labels import moving_raw, raw_to_train, train_to_raw
 from tisem.scan import KittiSource, Scan, finite_rows
 
 __all__ = ["SemanticKittiSequence", "write_predictions", "read_calib_tr", "read_poses",
@@ -67,6 +67,21 @@ def write_predictions(out_root: str | os.PathLike, sequence_name: str | int, sca
     path = folder / f"{int(scan_id):06d}.label"
     tmp = path.with_name(path.name + ".tmp")
     raw.tofile(tmp)
+    os.replace(tmp, path)
+    return path
+
+
+def write_dynamic_flags(out_root: str | os.PathLike, sequence_name: str | int, scan_id: int,
+                        dynamic: np.ndarray) -> Path:
+    """Write `out_root/sequences/NN/predictions/NNNNNN.dynamic`: one uint8 per point of the
+    scan, 1 where free space found it dynamic (its own file beside the .label, so the
+    SemanticKITTI layout stays valid); written like `write_predictions`."""
+    flags = np.asarray(dynamic, dtype=bool).ravel().astype(np.uint8)
+    folder = Path(out_root) / "sequences" / _normalise_sequence(sequence_name) / "predictions"
+    folder.mkdir(parents=True, exist_ok=True)
+    path = folder / f"{int(scan_id):06d}.dynamic"
+    tmp = path.with_name(path.name + ".tmp")
+    flags.tofile(tmp)
     os.replace(tmp, path)
     return path
 
@@ -309,6 +324,10 @@ class SemanticKittiSequence:
                 name=name,
                 source=KittiSource(unknown_raw_ids=unknown, unknown_gt_ids=unknown_gt,
                                    sequence=self.sequence_name, input=self.input),
+                # the moving ids (252-259) map to their static class's train id, and the
+                # motion they say travels beside it
+                moving=moving_raw(raw_in),
+                gt_moving=None if raw_gt is None else moving_raw(raw_gt),
             )
         except ScanError:
             raise

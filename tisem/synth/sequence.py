@@ -23,6 +23,7 @@ from tqdm import tqdm
 from tisem.labels import raw_to_train, train_to_raw
 from tisem.scan import Scan
 from tisem.synth.lidar import Lidar, rotate
+from tisem.synth.movers import StreetMovers
 from tisem.synth.noise import NoiseModel, mover_raw_ids
 from tisem.synth.scene import World, make_rng, make_route
 from tisem.synth.shapes import ShapeSet
@@ -74,6 +75,7 @@ class SynthFrame:
     pred_raw: np.ndarray        # (N,) uint32 noisy "network" labels, never 0
     T_world_lidar: np.ndarray   # (4, 4) float64
     instance: np.ndarray        # (N,) uint32 ground-truth instance ids (cars, the person)
+    dynamic: np.ndarray | None = None   # (N,) bool: on something that moves (movers=True)
 
 
 class SyntheticSequence:
@@ -81,7 +83,7 @@ class SyntheticSequence:
     iteration in order (tiles are cached, so this is the fast way through)."""
 
     def __init__(self, num_scans: int, seed: int = 0, route: str = "street",
-                 points_per_ring: int = 1024) -> None:
+                 points_per_ring: int = 1024, movers: bool = False) -> None:
         if num_scans < 0:
             raise ValueError(f"num_scans must be >= 0, got {num_scans}")
         if route not in ROUTES:
@@ -95,6 +97,8 @@ class SyntheticSequence:
         self.noise = NoiseModel()
         self._T_vehicle_lidar = np.eye(4)
         self._T_vehicle_lidar[2, 3] = self.lidar.mount_height_m
+        # more movers (tisem/synth/movers.py), off by default so the street stays as it was
+        self.movers = StreetMovers(self.world) if movers else None
 
     def __len__(self) -> int:
         return self.num_scans
@@ -119,17 +123,23 @@ class SyntheticSequence:
         s = self.world.ego_s(t)
         shapes = self.world.static_shapes(s, self.lidar.max_range_m + 30.0)
         if dynamic:
-            shapes = ShapeSet.concat([shapes, self.world.actors(t)])
+            extra = [self.movers.shapes(t)] if self.movers is not None else []
+            shapes = ShapeSet.concat([shapes, self.world.actors(t)] + extra)
         ret = self.lidar.cast(shapes, lambda xy: self.world.ground_label(xy, s), T,
                               make_rng(self.seed, "lidar", index))
         gt_train, _ = raw_to_train(ret.label)
         world_points = rotate(ret.points.astype(np.float64), T[:3, :3]) + T[:3, 3]
-        pred_train = self.noise.apply(gt_train, ret.range_m, world_points,
-                                      mover_raw_ids(ret.label, ret.instance), self.noise_seed,
-                                      index, make_rng(self.noise_seed, "labels", index))
+        mover_raw = mover_raw_ids(ret.label, ret.instance)
+        pred_train = self.noise.apply(gt_train, ret.range_m, world_points, mover_raw,
+                                      self.noise_seed, index,
+                                      make_rng(self.noise_seed, "labels", index))
+        moving = None
+        if self.movers is not None:
+            t_end = (self.num_scans - 1) * SCAN_PERIOD_S
+            moving = (mover_raw > 0) | self.movers.dynamic(ret.instance, t, t_end)
         return SynthFrame(index=index, stamp_s=t, points=ret.points, remission=ret.remission,
                           gt_raw=ret.label, pred_raw=train_to_raw(pred_train), T_world_lidar=T,
-                          instance=ret.instance)
+                          instance=ret.instance, dynamic=moving)
 
 
 def iter_synthetic(num_scans: int, seed: int = 0, route: str = "street",
@@ -144,7 +154,7 @@ def to_scan(frame: SynthFrame) -> Scan:
     gt, _ = raw_to_train(frame.gt_raw)
     return Scan(points_sensor=frame.points, T_world_sensor=frame.T_world_lidar,
                 stamp_s=frame.stamp_s, labels=pred, gt_labels=gt, index=frame.index,
-                name=f"synthetic/{frame.index:06d}")
+                name=f"synthetic/{frame.index:06d}", gt_moving=frame.dynamic)
 
 
 # the files of a sequence folder: {folder: pattern} and the text files beside them

@@ -1,0 +1,192 @@
+"""Free space: rays from the sensor to a scan's hits, and the occupancy evidence they leave.
+
+A ray runs from the sensor's position to a training point (the centroid of a hit voxel; one
+ray per `free_ray_stride` of them) and stops a margin before it,
+`max(margin_m, margin_fraction * range)`: the last stretch of a ray grazing the ground runs
+within a voxel of the surface it hits, and counting it as free would erase the road. One thread per ray walks the voxels the ray crosses
+(a 3-D DDA, Amanatides & Woo 1987): from the sensor's voxel, step along the axis whose next
+voxel face the ray reaches first; axes that reach a face at the same parameter (a ray through
+an edge or a corner) step together, so no voxel the ray only touches is visited.
+
+Crossed voxels that exist lose occupancy evidence; a voxel the scan hits gains it. Both decay
+with the voxel's counters (kernels/fusion.py) and are clamped to +-cap, so a long-parked car
+clears after a bounded number of scans once it is gone. Free space never allocates: a ray
+through space the map holds no voxel in changes nothing. Each voxel changes at most once per
+scan (`free_stamp`), whatever the number of rays through it, and a voxel hit by the scan is not
+made free by it (a ray grazing a surface it also hits).
+"""
+import functools
+
+import taichi as ti
+
+from kernels.fusion import decay_voxel_to
+from kernels.params import ScanParams
+from kernels.rasterize import to_local
+
+# parameters of one ray's faces closer than this (fractions of the ray) count as one: a ray
+# through a voxel edge or corner steps every axis at once
+TIE_T = 1.0e-6
+NEVER = 1.0e30   # the parameter at which a ray parallel to an axis reaches its next face
+
+
+@ti.func
+def free_fraction(length_m, margin_m, margin_fraction):
+    """The part of a ray of length_m, from the sensor, that is free: all but the margin."""
+    free = 0.0
+    if length_m > 0:
+        free = (length_m - ti.max(margin_m, margin_fraction * length_m)) / length_m
+    return free
+
+
+@ti.func
+def traverse(o, e, t_stop, visit: ti.template(), a0: ti.template(), a1: ti.template(), r):
+    """Call visit(a0, a1, r, v) for every voxel v the segment o + t (e - o), 0 <= t < t_stop
+    crosses, in order (o, e in voxel units: metres * 1/resolution). Nothing when t_stop <= 0."""
+    d = e - o
+    v = ti.floor(o, ti.i32)
+    step = ti.Vector([0, 0, 0])
+    ahead = ti.Vector([0, 0, 0])     # 1: the next face along the axis is the voxel's upper one
+    t_max = ti.Vector([NEVER, NEVER, NEVER])
+    for a in ti.static(range(3)):
+        if d[a] > 0:
+            step[a] = 1
+            ahead[a] = 1
+        elif d[a] < 0:
+            step[a] = -1
+            if v[a] == o[a]:    # (starting on a face, going down: the voxel below it)
+                v[a] -= 1
+        if d[a] != 0:
+            t_max[a] = (v[a] + ahead[a] - o[a]) / d[a]
+    if t_stop > 0:
+        visit(a0, a1, r, v)
+        # a bound on the steps, should rounding ever keep t_max below t_stop
+        last = ti.floor(e, ti.i32)
+        steps = ti.abs(last[0] - v[0]) + ti.abs(last[1] - v[1]) + ti.abs(last[2] - v[2]) + 3
+        k = 0
+        while k < steps:
+            t_next = ti.min(t_max[0], t_max[1], t_max[2])
+            if t_next >= t_stop:
+                break
+            for a in ti.static(range(3)):
+                if t_max[a] <= t_next + TIE_T:
+                    v[a] += step[a]
+                    # the face's parameter anew, not by adding 1/d per step: a sum of hundreds
+                    # of float32 steps drifts past the tie tolerance
+                    t_max[a] = (v[a] + ahead[a] - o[a]) / d[a]
+            visit(a0, a1, r, v)
+            k += 1
+
+
+@ti.func
+def _record(out_voxels: ti.template(), out_count: ti.template(), r, v):
+    n = out_count[r]
+    if n < out_voxels.shape[1]:
+        for a in ti.static(range(3)):
+            out_voxels[r, n, a] = v[a]
+    out_count[r] = n + 1
+
+
+@ti.kernel
+def trace_rays(origins: ti.types.ndarray(dtype=ti.f32, ndim=2),   # (R, 3) metres
+               ends: ti.types.ndarray(dtype=ti.f32, ndim=2),      # (R, 3) metres
+               inv_res: ti.f32, margin_m: ti.f32, margin_fraction: ti.f32,
+               out_voxels: ti.types.ndarray(dtype=ti.i32, ndim=3),  # (R, K, 3) out: in order
+               out_count: ti.types.ndarray(dtype=ti.i32, ndim=1)):  # (R,) out: voxels crossed
+    """The voxels each ray crosses (the first K of them), as the map's free-space pass walks
+    them: what tests compare with an exact reference."""
+    for r in range(origins.shape[0]):
+        o = ti.Vector([origins[r, 0], origins[r, 1], origins[r, 2]])
+        e = ti.Vector([ends[r, 0], ends[r, 1], ends[r, 2]])
+        out_count[r] = 0
+        t_stop = free_fraction((e - o).norm(), margin_m, margin_fraction)
+        traverse(o * inv_res, e * inv_res, t_stop, _record, out_voxels, out_count, r)
+
+
+@functools.cache
+def free_space_kernels(decay: str):
+    """The map's free-space kernels for one decay rule (kernels/params.py)."""
+
+    @ti.func
+    def make_free(m: ti.template(), s: ti.template(), r, v):
+        u = m.wrap(v)
+        if ti.is_active(m.vox, u):
+            # the first ray of the scan through u changes it, the others find its stamp
+            if ti.atomic_max(m.free_stamp[u], s.stamp) < s.stamp:
+                decay_voxel_to(m, u, s.time_rel_s, s.inv_tau, decay)
+                m.occupancy[u] = ti.max(m.occupancy[u] - 1.0, -m.occupancy_cap)
+                ti.atomic_add(m.counter[None], 1)
+
+    @ti.kernel
+    def mark_hits(m: ti.template(), s: ScanParams,
+                  xyz: ti.types.ndarray(dtype=ti.f32, ndim=2),   # (K, 3) training points, local
+                  n_rows: ti.i32):
+        """Every voxel holding a training point of the scan gains a hit (and is not made free
+        by the scan's rays)."""
+        for r in range(n_rows):
+            u = m.wrap(ti.floor(ti.Vector([xyz[r, 0], xyz[r, 1], xyz[r, 2]])
+                                * s.inv_resolution, ti.i32))
+            if ti.is_active(m.vox, u):
+                decay_voxel_to(m, u, s.time_rel_s, s.inv_tau, decay)
+                m.occupancy[u] = ti.min(m.occupancy[u] + 1.0, m.occupancy_cap)
+                m.free_stamp[u] = s.stamp
+
+    @ti.kernel
+    def cast_free(m: ti.template(), s: ScanParams,
+                  xyz: ti.types.ndarray(dtype=ti.f32, ndim=2),   # (K, 3) ray ends, local
+                  n_rows: ti.i32, stride: ti.i32, margin_m: ti.f32,
+                  margin_fraction: ti.f32) -> ti.i32:
+        """One ray per `stride` training points (their rows are sorted by leaf block, so every
+        stride-th is spread over the scan); returns how many voxels lost occupancy evidence."""
+        m.counter[None] = 0
+        o = s.translation_m
+        for q in range((n_rows + stride - 1) // stride):
+            r = q * stride
+            e = ti.Vector([xyz[r, 0], xyz[r, 1], xyz[r, 2]])
+            t_stop = free_fraction((e - o).norm(), margin_m, margin_fraction)
+            traverse(o * s.inv_resolution, e * s.inv_resolution, t_stop, make_free, m, s, r)
+        return m.counter[None]
+
+    return mark_hits, cast_free
+
+
+@ti.kernel
+def flag_dynamic(m: ti.template(), s: ScanParams,
+                 pts: ti.types.ndarray(dtype=ti.f32, ndim=2),   # (N, 3) sensor frame
+                 half: ti.types.vector(3, ti.i32),              # the live window's half-size
+                 out: ti.types.ndarray(dtype=ti.i8, ndim=1)) -> ti.i32:   # (N,) out: 1 dynamic
+    """Flag the points that land in a live voxel observed empty (before this scan's evidence);
+    returns how many."""
+    n = 0
+    R = s.rotation
+    for p in range(pts.shape[0]):
+        x = to_local(R, ti.Vector([pts[p, 0], pts[p, 1], pts[p, 2]]), s.translation_m)
+        rel = x * s.inv_resolution - s.center_vox
+        flag = 0
+        # (compared as floats first: a far point's voxel index would not fit an int32)
+        if ti.abs(rel[0]) <= half[0] and ti.abs(rel[1]) <= half[1] and ti.abs(rel[2]) <= half[2]:
+            u = m.wrap(ti.floor(x * s.inv_resolution, ti.i32))
+            if ti.is_active(m.vox, u):
+                if m.is_empty(u):
+                    flag = 1
+        out[p] = ti.cast(flag, ti.i8)
+        n += flag
+    return n
+
+
+@ti.kernel
+def gather_occupancy(m: ti.template(),
+                     keys: ti.types.ndarray(dtype=ti.i32, ndim=2),    # (M, 3) live voxels
+                     out: ti.types.ndarray(dtype=ti.f32, ndim=1)):    # (M,) out
+    """The occupancy evidence of the given live voxels."""
+    for i in range(keys.shape[0]):
+        out[i] = m.occupancy[m.wrap(ti.Vector([keys[i, 0], keys[i, 1], keys[i, 2]]))]
+
+
+@ti.kernel
+def scatter_occupancy(m: ti.template(),
+                      keys: ti.types.ndarray(dtype=ti.i32, ndim=2),   # (M, 3) live voxels
+                      occupancy: ti.types.ndarray(dtype=ti.f32, ndim=1)):
+    """Write the occupancy evidence of voxels just imported into the window."""
+    for i in range(keys.shape[0]):
+        u = m.wrap(ti.Vector([keys[i, 0], keys[i, 1], keys[i, 2]]))
+        m.occupancy[u] = occupancy[i]

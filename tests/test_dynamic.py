@@ -1,0 +1,209 @@
+"""Free space and moving objects in analytic scenes: a wall at 10 m and a car in front of it.
+
+The occupancy evidence of a voxel follows a closed form: +1 per scan that hits it, -1 per scan
+whose rays cross it, both after the decay exp(-dt / tau) since its last change, clamped to
++-occupancy_cap; the voxel is empty at or below -empty_evidence. `scans_to_clear` computes
+from it how many scans an object that has left takes to clear, and the map must agree exactly.
+"""
+import math
+
+import numpy as np
+import pytest
+
+from helpers import (BUILDING, C, away_from_faces, fresh_runtime, pose, scan_from_world,
+                     small_config)
+from tisem.mapper import Mapper
+
+pytestmark = pytest.mark.slow   # (each test builds and drives its own maps: 10-40 s)
+
+CAR = 1
+RES = 0.2
+DT = 0.1                       # 10 Hz
+WALL_X, CAR_X = 10.1, 5.1      # (not on a voxel face)
+SPACING = 0.05
+
+
+def plane_x(x, y_range, z_range):
+    ys = np.arange(y_range[0] + SPACING / 2, y_range[1], SPACING)
+    zs = np.arange(z_range[0] + SPACING / 2, z_range[1], SPACING)
+    Y, Z = np.meshgrid(ys, zs, indexing="ij")
+    return away_from_faces(np.column_stack([np.full(Y.size, x), Y.ravel(), Z.ravel()]), RES)
+
+
+WALL = plane_x(WALL_X, (-6.0, 6.0), (-1.0, 1.0))   # rays to it cross |y| < 3 at CAR_X
+
+
+def car_at(y):
+    return plane_x(CAR_X, (y - 0.5, y + 0.5), (-0.5, 0.5))
+
+
+def scene(car_y=None):
+    """(points, labels) seen from the origin: the wall, and the car in front of it at car_y
+    (the wall behind the car is hidden)."""
+    if car_y is None:
+        return WALL, np.full(len(WALL), BUILDING)
+    s = CAR_X / WALL_X
+    hidden = (np.abs(WALL[:, 1] * s - car_y) < 0.5) & (np.abs(WALL[:, 2] * s) < 0.5)
+    car = car_at(car_y)
+    return (np.vstack([WALL[~hidden], car]),
+            np.r_[np.full(int((~hidden).sum()), BUILDING), np.full(len(car), CAR)])
+
+
+def integrate(mapper, k, car_y=None):
+    pts, labels = scene(car_y)
+    return mapper.integrate(scan_from_world(pts, pose(), DT * k, labels=labels, index=k))
+
+
+def free_config(**kw):
+    """Free space with a ray to every hit voxel (so every car voxel is crossed every scan)."""
+    return small_config(free_space=True, free_ray_stride=1, **kw)
+
+
+def scans_to_clear(hit_scans, cfg):
+    """Scans of rays (one per scan after the object left) until a voxel hit `hit_scans`
+    times in a row is empty, by the closed form of its occupancy evidence."""
+    alpha = math.exp(-DT / cfg.tau_s)
+    occ = 0.0
+    for _ in range(hit_scans):
+        occ = min(alpha * occ + 1.0, cfg.occupancy_cap)
+    n = 0
+    while occ > -cfg.empty_evidence:
+        occ = max(alpha * occ - 1.0, -cfg.occupancy_cap)
+        n += 1
+    return n
+
+
+def car_labels(mapper, y=0.0):
+    labels, _ = mapper.query(car_at(y))
+    return np.bincount(labels, minlength=C)
+
+
+@pytest.mark.parametrize("hit_scans", [3, 40])   # moved away soon; parked, then gone
+def test_a_car_that_leaves_clears_after_the_predicted_scans(taichi_cpu, hit_scans):
+    cfg = free_config()
+    mapper = Mapper(cfg)
+    for k in range(hit_scans):
+        integrate(mapper, k, car_y=0.0)
+    assert car_labels(mapper)[CAR] == len(car_at(0.0))
+    n = scans_to_clear(hit_scans, cfg)
+    assert n <= cfg.occupancy_cap + cfg.empty_evidence + 1   # bounded, however long it stood
+    for j in range(n):
+        report = integrate(mapper, hit_scans + j)
+        assert report.freed_voxels > 0
+        labels = car_labels(mapper)
+        if j < n - 1:
+            assert labels[CAR] == len(car_at(0.0)), f"cleared {n - 1 - j} scans early"
+    assert labels[0] == len(car_at(0.0)), "not cleared when the evidence says so"
+    snap = mapper.snapshot()
+    gone = snap.dynamic_layer()
+    assert len(gone) > 0 and set(gone.labels()) == {CAR}
+    assert not np.isin(snap.static_map().labels(), [CAR]).any()
+
+
+def test_a_wall_behind_a_passing_car_is_kept(taichi_cpu):
+    mapper = Mapper(free_config())
+    ys = np.linspace(-2.0, 2.0, 25)
+    for k, y in enumerate(ys):
+        integrate(mapper, k, car_y=float(y))
+    for k in range(len(ys), len(ys) + 8):
+        integrate(mapper, k)
+    labels, _ = mapper.query(WALL)
+    assert (labels == BUILDING).all()                  # every wall voxel, never seen through
+    snap = mapper.snapshot()
+    assert not snap.empty()[snap.labels() == BUILDING].any()
+    trail = snap.dynamic_layer()
+    assert len(trail) and (trail.labels() == CAR).all()
+    assert not (snap.static_map().labels() == CAR).any()   # no ghost trail left
+
+
+def test_points_in_space_seen_empty_are_dynamic(taichi_cpu):
+    cfg = free_config()
+    mapper = Mapper(cfg)
+    for k in range(3):
+        integrate(mapper, k, car_y=0.0)
+    k = 3
+    for _ in range(scans_to_clear(3, cfg)):
+        integrate(mapper, k)
+        k += 1
+    report = integrate(mapper, k, car_y=0.0)          # something comes back where it was empty
+    pts, labels = scene(0.0)
+    assert report.dynamic.shape == (len(pts),)
+    assert report.dynamic[labels == CAR].all()
+    assert not report.dynamic[labels == BUILDING].any()
+    assert report.dynamic_points == int((labels == CAR).sum())
+
+
+def test_input_motion_labels_flag_points_and_add_no_evidence(taichi_cpu):
+    mapper = Mapper(free_config())
+    pts, labels = scene(0.0)
+    moving = labels == CAR
+    scan = scan_from_world(pts, pose(), 0.0, labels=labels)
+    scan.moving = moving
+    report = mapper.integrate(scan)
+    assert (report.dynamic == moving).all()
+    assert car_labels(mapper)[CAR] == 0
+
+
+def test_without_rays_through_the_map_free_space_changes_nothing(taichi_cpu):
+    """The wall alone, seen from the front: the rays stop before it and cross no voxel, so the
+    map with free space is bitwise the map without it."""
+    snaps = []
+    for on in (False, True):
+        fresh_runtime()
+        mapper = Mapper(small_config(free_space=on))
+        for k in range(4):
+            report = integrate(mapper, k)
+            assert report.freed_voxels == 0
+        snaps.append(mapper.snapshot())
+    off, on = snaps
+    assert off.occupancy is None and on.occupancy is not None
+    for name in ("keys", "counts", "t_last", "ell_m"):
+        assert np.array_equal(getattr(off, name), getattr(on, name)), name
+    alpha = math.exp(-DT / small_config().tau_s)
+    assert np.allclose(on.occupancy, 1 + alpha + alpha ** 2 + alpha ** 3)   # hit every scan
+
+
+def test_occupancy_travels_through_the_store_and_a_restore(taichi_cpu):
+    cfg = free_config()
+    mapper = Mapper(cfg)
+    for k in range(3):
+        integrate(mapper, k, car_y=0.0)
+    for k in range(3, 3 + scans_to_clear(3, cfg)):
+        integrate(mapper, k)
+    before = mapper.snapshot()
+    assert before.empty().any()
+    # drive away (the window leaves the car and the wall behind), then come back
+    far = pose(x=-80.0)
+    mapper.integrate(scan_from_world(np.array([[-75.1, 0.1, 0.1]]), far, 10.0,
+                                     labels=np.array([BUILDING])))
+    assert mapper.stored_voxels >= len(before)
+    labels, _ = mapper.query(car_at(0.0))
+    assert (labels == 0).all()                           # empty, from the store too
+    mapper.integrate(scan_from_world(np.array([[4.1, 2.9, 0.1]]), pose(), 10.1,
+                                     labels=np.array([BUILDING])))
+    after = mapper.snapshot()
+    keep = np.isin(after.keys.view("i8,i8,i8"), before.keys.view("i8,i8,i8")).ravel()
+    assert np.array_equal(after.subset(keep).empty(), before.empty())
+    state = mapper.state()
+    fresh_runtime()
+    restored = Mapper(cfg)
+    restored.restore(after, state)
+    again = restored.snapshot()
+    assert np.array_equal(again.occupancy, after.occupancy)
+    assert (restored.query(car_at(0.0))[0] == 0).all()
+
+
+def test_movable_classes_fade_with_their_own_tau(taichi_cpu):
+    """A voxel seen as car (many points), then as building (few), 2 s later: with one tau the
+    car's evidence still wins; with a short tau for movable classes the building does."""
+    winners = []
+    for tau_movable in (None, 0.2):
+        fresh_runtime()
+        mapper = Mapper(small_config(tau_movable_s=tau_movable))
+        voxel = away_from_faces(np.array([[5.1, 0.1, 0.1]]), RES)
+        many = np.repeat(voxel, 20, axis=0)
+        mapper.integrate(scan_from_world(many, pose(), 0.0, labels=np.full(20, CAR)))
+        mapper.integrate(scan_from_world(many[:4], pose(), 2.0, labels=np.full(4, BUILDING),
+                                         index=1))
+        winners.append(int(mapper.query(voxel)[0][0]))
+    assert winners == [CAR, BUILDING]

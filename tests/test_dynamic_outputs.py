@@ -1,0 +1,82 @@
+"""What free space writes and what the synthetic movers know: the static map and the dynamic
+layer of a snapshot, the occupancy in map files, the per-point flag files, the movers' ground
+truth, and the benchmark end to end."""
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from tisem.io.mapfile import load_map_file, save_map
+from tisem.io.semantickitti import write_dynamic_flags
+from tisem.snapshot import MapSnapshot
+from tisem.synth.movers import STILL_M, Mover, street_movers
+
+ROOT = Path(__file__).resolve().parents[1]
+CAR, ROAD = 1, 9
+
+
+def snapshot_with_a_trail() -> MapSnapshot:
+    """Three voxels: road (hit), a car seen through (empty) and a car still there."""
+    counts = np.zeros((3, 20), np.float32)
+    counts[0, ROAD] = 5.0
+    counts[1, CAR] = 3.0
+    counts[2, CAR] = 4.0
+    return MapSnapshot(np.array([[0, 0, 0], [0, 0, 1], [5, 0, 1]]), counts, np.zeros(3),
+                       np.full(3, 0.4, np.float32), 0.2,
+                       occupancy=np.array([4.0, -2.5, 1.0], np.float32), empty_evidence=2.0)
+
+
+def test_empty_voxels_leave_labels_probabilities_and_the_static_map():
+    snap = snapshot_with_a_trail()
+    assert snap.empty().tolist() == [False, True, False]
+    assert snap.labels().tolist() == [ROAD, 0, CAR]
+    assert not snap.probabilities()[1].any()
+    assert snap.static_map().keys.tolist() == [[0, 0, 0], [5, 0, 1]]
+    trail = snap.dynamic_layer()
+    assert trail.keys.tolist() == [[0, 0, 1]] and trail.labels().tolist() == [CAR]
+
+
+def test_map_files_keep_the_occupancy(tmp_path):
+    snap = snapshot_with_a_trail()
+    save_map(tmp_path / "map.npz", snap, {"free_space": True})
+    back, _, _ = load_map_file(tmp_path / "map.npz")
+    assert np.array_equal(back.occupancy, snap.occupancy)
+    assert back.empty_evidence == 2.0 and back.labels().tolist() == [ROAD, 0, CAR]
+    plain = MapSnapshot(snap.keys, snap.counts, snap.t_last, snap.ell_m, 0.2)
+    save_map(tmp_path / "plain.npz", plain, {})
+    assert load_map_file(tmp_path / "plain.npz")[0].occupancy is None
+
+
+def test_dynamic_flags_are_their_own_file_beside_the_labels(tmp_path):
+    flags = np.array([0, 1, 1, 0, 0], bool)
+    path = write_dynamic_flags(tmp_path, 8, 3, flags)
+    assert path == tmp_path / "sequences" / "08" / "predictions" / "000003.dynamic"
+    assert np.array_equal(np.fromfile(path, np.uint8), flags.astype(np.uint8))
+
+
+def test_movers_ground_truth_knows_who_is_where_at_the_end():
+    parks = Mover("car", -5.25, 5.0, 7.0, t_start=0.0, t_stop=5.0)
+    leaves = Mover("car", -5.25, 28.0, 6.0, t_start=3.0)
+    t_end = 12.0
+    assert abs(parks.s(6.0) - parks.s(t_end)) <= STILL_M      # parked: static from then on
+    assert abs(parks.s(1.0) - parks.s(t_end)) > STILL_M       # still driving in
+    assert abs(leaves.s(0.0) - leaves.s(t_end)) > STILL_M     # parked, but gone by the end
+    kinds = {m.kind for m in street_movers()}
+    speeds = [m.speed for m in street_movers() if m.kind == "car"]
+    assert kinds == {"car", "cyclist", "person"} and min(speeds) < 0 < max(speeds)
+
+
+@pytest.mark.slow
+def test_the_benchmark_scores_free_space_on_the_synthetic_street(tmp_path):
+    out = tmp_path / "dynamic.json"
+    subprocess.run([sys.executable, str(ROOT / "benchmarks" / "dynamic.py"), "--synthetic",
+                    "--scans", "12", "--methods", "tisem,tisem+free_space", "--json", str(out)],
+                   check=True, cwd=ROOT, capture_output=True)
+    rows = {r["method"]: r for r in json.loads(out.read_text())["rows"]}
+    plain, free = rows["tisem"], rows["tisem+free_space"]
+    assert plain["da"] < free["da"] and free["trail_voxels"] < plain["trail_voxels"]
+    assert free["sa"] > 0.98 and free["stages_ms"]["free_space"] > 0
+    assert plain["stages_ms"]["free_space"] == 0

@@ -1,0 +1,92 @@
+"""The free-space step of the mapper: what moved is found, flagged and cleared.
+
+Per scan, with `free_space: true`:
+
+* before the scan changes the map, its points that land in a live voxel observed empty are
+  flagged dynamic (DUFOMap's rule: space seen empty at one time makes anything in it at another
+  time dynamic), and so are the points the input's motion labels call moving (`Scan.moving`):
+  those add no evidence to the map, so a car the labels say is driving leaves no trail;
+* after the kernel update, every voxel holding a training point gains a hit, and one ray per
+  `free_ray_stride` training points, from the sensor to a margin before it, takes occupancy
+  evidence from every live voxel it crosses (kernels/raycast.py). A voxel at or below
+  -empty_evidence is empty: queries answer it as no voxel, exports leave it out of the static
+  map.
+
+Free space never makes a voxel live, so the map's memory is what it is without it; the
+occupancy evidence travels with the voxel to the store, checkpoints and map files.
+
+Per-class decay (`tau_movable_s`, st mode) is independent of free space: the movable classes'
+counters fade with their own tau, so a parked car's evidence yields to what is seen there next.
+"""
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+from taichi.lang.argpack import ArgPack
+
+from kernels import raycast
+from kernels.layout import MapFields
+from kernels.params import EXPONENTIAL, FORGET, PER_CLASS
+from tisem.config import MapperConfig
+from tisem.labels import MOVABLE_CLASSES
+from tisem.live_window import ivec
+from tisem.preprocess import CheckedScan
+from tisem.scan_buffers import TrainingRows
+
+
+def decay_rule(cfg: MapperConfig) -> str:
+    """The map's decay rule (kernels/params.py): per class when the movable classes have a
+    tau of their own."""
+    if cfg.decay_tau_s == 0:
+        return FORGET
+    return PER_CLASS if cfg.movable_tau_s != cfg.decay_tau_s else EXPONENTIAL
+
+
+def class_inv_tau(cfg: MapperConfig) -> np.ndarray:
+    """(C,) float32 1 / tau of every class (0 for tau = inf)."""
+    def inv(tau: float) -> float:
+        return 0.0 if tau in (0.0, float("inf")) else 1.0 / tau
+    out = np.full(cfg.num_classes, inv(cfg.decay_tau_s), np.float32)
+    movable = [c for c in MOVABLE_CLASSES if c < cfg.num_classes]
+    out[movable] = inv(cfg.movable_tau_s)
+    return out
+
+
+def without_moving(checked: CheckedScan, moving: np.ndarray) -> CheckedScan:
+    """The scan with its moving points' evidence taken away (they still count as points)."""
+    if not moving.any():
+        return checked
+    evidence = checked.evidence.copy()
+    evidence[moving] = 0
+    return dataclasses.replace(checked, evidence=evidence)
+
+
+class FreeSpace:
+    """The free-space step of one map (its fields and config)."""
+
+    def __init__(self, fields: MapFields, cfg: MapperConfig, decay: str):
+        self._fields = fields
+        self._margin_m = float(cfg.free_margin_m)
+        self._margin_fraction = float(cfg.free_margin_fraction)
+        self._stride = int(cfg.free_ray_stride)
+        self._mark_hits, self._cast_free = raycast.free_space_kernels(decay)
+
+    def flag_points(self, params: ArgPack, checked: CheckedScan, half_vox: np.ndarray,
+                    moving: np.ndarray | None) -> np.ndarray:
+        """(N,) bool: which points of the scan are dynamic, before the scan changes the map."""
+        flags = np.zeros(len(checked.points_sensor), np.int8)
+        raycast.flag_dynamic(self._fields, params, checked.points_sensor, ivec(half_vox), flags)
+        dynamic = flags.astype(bool)
+        if moving is not None:
+            dynamic |= moving
+        return dynamic
+
+    def integrate(self, params: ArgPack, rows: TrainingRows, n_rows: int) -> int:
+        """Hits, then rays, of the scan's n_rows training points; returns how many voxels
+        lost occupancy evidence."""
+        if n_rows == 0:
+            return 0
+        self._mark_hits(self._fields, params, rows.xyz, n_rows)
+        return int(self._cast_free(self._fields, params, rows.xyz, n_rows, self._stride,
+                                   self._margin_m, self._margin_fraction))
