@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from tisem.config import RUN_RULES, RunConfig, _apply
+from tisem.config import RunConfig, _apply
 from tisem.errors import SkippedScan
 from tisem.logs import LogSpec, open_log
 from tisem.merge import contribution, merge_snapshots
@@ -58,7 +58,7 @@ class MapTask:
 
 def run_config_from_dict(data: dict) -> RunConfig:
     cfg = RunConfig()
-    _apply(cfg, data, "run config", RUN_RULES)
+    _apply(cfg, data, "run config")
     cfg.mapper.validate()
     return cfg
 
