@@ -79,28 +79,6 @@ def test_two_files_for_one_scan_number_refuse_the_sequence(tmp_path):
         SemanticKittiSequence(d)
 
 
-@pytest.mark.parametrize("name", ["poses.txt", "times.txt"])
-@pytest.mark.parametrize("where", [0, 2])
-def test_a_blank_line_inside_poses_or_times_refuses_the_sequence(tmp_path, name, where):
-    """Inserted or emptied, a blank line leaves every later line beside another scan than its
-    place says; the file cannot tell which, so it is refused with its line (trailing blank
-    lines are fine)."""
-    d = make_sequence(tmp_path / "seq", n_scans=4)
-    path = d / name
-    if name == "times.txt":
-        path.write_text("".join(f"{0.1 * k:.6f}\n" for k in range(4)))
-    lines = path.read_text().splitlines(keepends=True)
-    path.write_text("".join(lines) + "\n\n")
-    assert len(SemanticKittiSequence(d)) == 4
-    lines.insert(where, "  \n")
-    path.write_text("".join(lines))
-    with pytest.raises(DatasetError) as err:
-        SemanticKittiSequence(d)
-    message = str(err.value)
-    assert message.startswith(f"{path}:{where + 1}: a blank line inside the "), message
-    assert "\n" not in message
-
-
 @pytest.mark.parametrize("times,bad,words", [
     (["0.0", "0.1", "1e300", "0.3", "0.4"], 2, "time 1e+300 s is not a plausible time"),
     (["0.0", "0.1", "nan", "0.3", "0.4"], 2, "time nan s is not a plausible time"),

@@ -55,20 +55,6 @@ def _read_text(path: Path, what: str) -> str:
         raise DatasetError(f"{path}: cannot read {what}: {exc}") from exc
 
 
-def _scan_lines(path: Path, what: str) -> list[str]:
-    """The lines of a file that holds one line per scan (line k + 1 is scan k), trailing blank
-    lines dropped. A blank line before the last one refuses the file: every later line would
-    belong to another scan than its place says, silently (a blank line inserted) or not (a
-    line emptied), and nothing in the file tells the two apart."""
-    lines = _read_text(path, what).rstrip().splitlines()
-    for i, line in enumerate(lines):
-        if not line.strip():
-            raise DatasetError(f"{path}:{i + 1}: a blank line inside the {what} (line k + 1 "
-                               f"belongs to scan k, so every later line would belong to "
-                               f"another scan); remove it or put the missing line back")
-    return lines
-
-
 def read_calib_tr(path: str | os.PathLike) -> np.ndarray:
     """The `Tr:` line of a SemanticKITTI calib.txt as a (4, 4) float64 velodyne -> camera matrix.
 
@@ -103,8 +89,7 @@ def read_pose_lines(path: str | os.PathLike) -> tuple[np.ndarray, dict[int, str]
     """poses.txt (one 3x4 row-major pose per line) as (M, 4, 4) float64, NaN where a line is
     not a pose, and {line index: why} for those lines (messages name the file and line).
 
-    Trailing blank lines are ignored; a blank line before them refuses the file (every
-    later pose would belong to another scan). A line is a pose when it holds 12 finite numbers that
+    Trailing blank lines are ignored. A line is a pose when it holds 12 finite numbers that
     `tisem.poses.pose_problem` accepts. DatasetError when the file is missing, unreadable or
     empty. The poses are in the frame they are stored in (the left camera for
     SemanticKITTI): see `camera_poses_to_lidar`.
@@ -112,7 +97,7 @@ def read_pose_lines(path: str | os.PathLike) -> tuple[np.ndarray, dict[int, str]
     path = Path(path)
     if not path.is_file():
         raise DatasetError(f"{path}: poses file not found (one 3x4 pose per scan)")
-    lines = _scan_lines(path, "poses file")
+    lines = _read_text(path, "poses file").rstrip().splitlines()
     if not lines:
         raise DatasetError(f"{path}: the poses file is empty (one 3x4 pose per scan)")
     poses = np.full((len(lines), 4, 4), np.nan)
@@ -165,10 +150,9 @@ def camera_poses_to_lidar(poses: np.ndarray, Tr: np.ndarray) -> np.ndarray:
 def read_time_lines(path: str | os.PathLike) -> tuple[np.ndarray, dict[int, str]]:
     """times.txt (one time in seconds per line) as (M,) float64, NaN where a line is not a
     plausible time, and {line index: why} for those lines (messages name the file and line).
-    Trailing blank lines are ignored; DatasetError when the file cannot be read or holds a
-    blank line before them (every later time would belong to another scan)."""
+    Trailing blank lines are ignored; DatasetError when the file cannot be read."""
     path = Path(path)
-    lines = _scan_lines(path, "times file")
+    lines = _read_text(path, "times file").rstrip().splitlines()
     times = np.full(len(lines), np.nan)
     problems: dict[int, str] = {}
     for i, line in enumerate(lines):

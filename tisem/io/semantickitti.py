@@ -13,10 +13,9 @@ The LiDAR pose of scan i is ``T_world_lidar = Tr^-1 . pose_i . Tr``.
 
 Errors: a problem with the sequence as a whole (no `velodyne/`, two scan files with the same
 number, no `Tr:` or two of them, a `Tr` that is not a rigid transform, no or empty
-`poses.txt`, a blank line inside `poses.txt` or `times.txt` (the lines after it cannot be
-matched to their scans), missing input label folder, empty frame range) raises `DatasetError`
-from the constructor; a problem with one scan (truncated `.bin`, missing label file, label
-count != point count, 0 points, all points non-finite, no pose or time for it, a pose line that is not
+`poses.txt`, missing input label folder, empty frame range) raises `DatasetError` from the
+constructor; a problem with one scan (truncated `.bin`, missing label file, label count !=
+point count, 0 points, all points non-finite, no pose or time for it, a pose line that is not
 a pose by `tisem.poses.pose_problem`, a time that is not plausible) raises `ScanError` from
 ``seq[k]`` and becomes a `SkippedScan` when iterating. Every message names the file, and for
 poses.txt, times.txt and calib.txt the line.
