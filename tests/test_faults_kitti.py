@@ -15,7 +15,7 @@ import pytest
 
 from test_pipeline import run_app, tiny_sequence
 from test_semantickitti import IDENTITY_ROWS, TR_ROWS, _fmt, _kinds, make_sequence
-from tisem.errors import DatasetError, ScanError, SkippedScan
+from tisem.errors import DatasetError, ScanError
 from tisem.io.semantickitti import MAX_TIME_S, SemanticKittiSequence, read_calib_tr
 
 
@@ -132,16 +132,3 @@ def test_bad_poses_and_times_through_the_app_cost_their_scans(tmp_path):
     snapshot, _, _ = load_map_file(out / "map.npz")
     assert np.isfinite(snapshot.t_last).all() and snapshot.t_last.max() < 10.0
     assert not [r for r in rec.records if r.levelno >= logging.ERROR]
-
-
-def test_a_skip_line_names_the_file_once(tmp_path):
-    """The reader's reason starts with the scan's file; the line a run logs says it once."""
-    d = make_sequence(tmp_path / "seq")
-    bin_path = d / "velodyne" / "000001.bin"
-    bin_path.write_bytes(bin_path.read_bytes()[:-3])
-    (skipped,) = [s for s in SemanticKittiSequence(d) if hasattr(s, "reason")]
-    line = skipped.line()
-    assert line.startswith(f"skipped scan 1: {bin_path}: truncated scan file"), line
-    assert line.count(str(bin_path)) == 1
-    gate = SkippedScan(2, str(bin_path), "pose outlier: the sensor is 300 km away")
-    assert gate.line() == f"skipped scan 2 ({bin_path}): pose outlier: the sensor is 300 km away"
