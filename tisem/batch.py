@@ -105,7 +105,7 @@ def _kept(folder: Path, cell: dict) -> dict | None:
 def run_cell(cell: dict, folder: str, threads: int, arch: str, map_files: bool) -> dict:
     """One cell's mapping run (in a process of its own: it starts Taichi); its table row."""
     from tisem.backend import init_taichi
-    from tisem.fleet_task import run_config_from_dict
+    from tisem.config import run_config_from_dict
     from tisem.pipeline import run_pipeline
     cfg = run_config_from_dict(cell["config"])
     spec = LogSpec(**cell["log"])

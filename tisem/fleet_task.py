@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from tisem.config import RunConfig, _apply
+from tisem.config import run_config_from_dict
 from tisem.errors import SkippedScan
 from tisem.logs import LogSpec, open_log
 from tisem.merge import contribution, merge_snapshots
@@ -32,7 +32,7 @@ from tisem.tiles import (TILE_VOX, TileIndex, TiledMap, concat_snapshots, empty_
 
 log = logging.getLogger(__name__)
 
-__all__ = ["MapTask", "map_task", "run_config_from_dict", "seed_snapshot"]
+__all__ = ["MapTask", "map_task", "seed_snapshot"]
 
 
 @dataclass(frozen=True)
@@ -54,13 +54,6 @@ class MapTask:
         return {"task_id": self.task_id, "log": self.log.to_dict(), "first": self.first,
                 "last": self.last, "warmup": self.warmup, "group": self.group,
                 "seed_from": list(self.seed_from), "anchor": self.anchor}
-
-
-def run_config_from_dict(data: dict) -> RunConfig:
-    cfg = RunConfig()
-    _apply(cfg, data, "run config")
-    cfg.mapper.validate()
-    return cfg
 
 
 def seed_snapshot(seed_dirs: list[str], footprint: set[tuple[int, int]], tau_s: float,
