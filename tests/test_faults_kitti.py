@@ -132,3 +132,15 @@ def test_bad_poses_and_times_through_the_app_cost_their_scans(tmp_path):
     snapshot, _, _ = load_map_file(out / "map.npz")
     assert np.isfinite(snapshot.t_last).all() and snapshot.t_last.max() < 10.0
     assert not [r for r in rec.records if r.levelno >= logging.ERROR]
+
+
+def test_a_blank_line_among_the_poses_is_skipped_and_later_lines_keep_their_numbers(tmp_path):
+    """An editor's stray newline is not a pose: the poses after it stay with their own scans,
+    and a bad line after it is still named by its place in the file."""
+    from tisem.io.kitti_files import read_pose_lines
+    row = "1 0 0 0 0 1 0 0 0 0 1 0\n"
+    (tmp_path / "poses.txt").write_text(row + "\n" + row.replace(" 0\n", " 5\n") + "x\n")
+    poses, problems = read_pose_lines(tmp_path / "poses.txt")
+    assert len(poses) == 3
+    assert poses[1][0, 3] == 0.0 and poses[1][2, 3] == 5.0
+    assert list(problems) == [2] and f"{tmp_path / 'poses.txt'}:4:" in problems[2]

@@ -10,6 +10,7 @@ clock backwards.
 """
 from __future__ import annotations
 
+import logging
 import os
 from bisect import bisect_right
 from pathlib import Path
@@ -21,6 +22,8 @@ from tisem.poses import pose_problem
 
 __all__ = ["read_calib_tr", "read_pose_lines", "read_poses", "read_time_lines", "read_times",
            "out_of_order", "camera_poses_to_lidar", "MAX_TIME_S"]
+
+log = logging.getLogger(__name__)
 
 MAX_TIME_S = 1.0e10      # the year 2286 in Unix time: any later stamp is corrupt data
 
@@ -46,6 +49,21 @@ def _parse_pose_row(text: str, where: str, line: str, subject: str) -> np.ndarra
     if not np.all(np.isfinite(values)):
         raise DatasetError(f"{where}: {subject} has NaN/inf values")
     return _row_to_4x4(values)
+
+
+def _entry_lines(path: Path, what: str) -> list[tuple[int, str]]:
+    """The non-blank lines of a one-entry-per-line file as (line number, text). A blank line
+    is an editor's stray newline, not an entry: skipping it keeps every later entry with its
+    own scan (the lines still name their place in the file); it is logged once."""
+    numbered = list(enumerate(_read_text(path, what).splitlines(), start=1))
+    blank = [n for n, line in numbered if not line.strip()]
+    last = max((n for n, line in numbered if line.strip()), default=0)
+    inner = [n for n in blank if n < last]
+    if inner:
+        log.warning("%s: blank line%s %s ignored (one entry per line)", path,
+                    "s" if len(inner) > 1 else "", ", ".join(map(str, inner[:5]))
+                    + (", ..." if len(inner) > 5 else ""))
+    return [(n, line) for n, line in numbered if line.strip()]
 
 
 def _read_text(path: Path, what: str) -> str:
@@ -89,7 +107,7 @@ def read_pose_lines(path: str | os.PathLike) -> tuple[np.ndarray, dict[int, str]
     """poses.txt (one 3x4 row-major pose per line) as (M, 4, 4) float64, NaN where a line is
     not a pose, and {line index: why} for those lines (messages name the file and line).
 
-    Trailing blank lines are ignored. A line is a pose when it holds 12 finite numbers that
+    Blank lines are ignored (logged when inside the file). A line is a pose when it holds 12 finite numbers that
     `tisem.poses.pose_problem` accepts. DatasetError when the file is missing, unreadable or
     empty. The poses are in the frame they are stored in (the left camera for
     SemanticKITTI): see `camera_poses_to_lidar`.
@@ -97,13 +115,13 @@ def read_pose_lines(path: str | os.PathLike) -> tuple[np.ndarray, dict[int, str]
     path = Path(path)
     if not path.is_file():
         raise DatasetError(f"{path}: poses file not found (one 3x4 pose per scan)")
-    lines = _read_text(path, "poses file").rstrip().splitlines()
+    lines = _entry_lines(path, "poses file")
     if not lines:
         raise DatasetError(f"{path}: the poses file is empty (one 3x4 pose per scan)")
     poses = np.full((len(lines), 4, 4), np.nan)
     problems: dict[int, str] = {}
-    for i, line in enumerate(lines):
-        where = f"{path}:{i + 1}"
+    for i, (lineno, line) in enumerate(lines):
+        where = f"{path}:{lineno}"
         try:
             T = _parse_pose_row(line, where, f"pose line (pose {i})", f"pose {i}")
         except DatasetError as exc:
@@ -150,13 +168,13 @@ def camera_poses_to_lidar(poses: np.ndarray, Tr: np.ndarray) -> np.ndarray:
 def read_time_lines(path: str | os.PathLike) -> tuple[np.ndarray, dict[int, str]]:
     """times.txt (one time in seconds per line) as (M,) float64, NaN where a line is not a
     plausible time, and {line index: why} for those lines (messages name the file and line).
-    Trailing blank lines are ignored; DatasetError when the file cannot be read."""
+    Blank lines are ignored (`read_pose_lines`); DatasetError when the file cannot be read."""
     path = Path(path)
-    lines = _read_text(path, "times file").rstrip().splitlines()
+    lines = _entry_lines(path, "times file")
     times = np.full(len(lines), np.nan)
     problems: dict[int, str] = {}
-    for i, line in enumerate(lines):
-        where = f"{path}:{i + 1}"
+    for i, (lineno, line) in enumerate(lines):
+        where = f"{path}:{lineno}"
         fields = line.split()
         try:
             if len(fields) != 1:
