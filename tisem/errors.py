@@ -74,3 +74,9 @@ class SkippedScan:
     index: int
     name: str
     reason: str
+
+    def line(self) -> str:
+        """'skipped scan N (name): reason', the name left out where the reason starts with it
+        (a reader's reason names its file already)."""
+        named = self.name and not self.reason.startswith(self.name)
+        return f"skipped scan {self.index}{f' ({self.name})' if named else ''}: {self.reason}"

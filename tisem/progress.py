@@ -34,9 +34,12 @@ class DropLog:
     ANOMALIES = {"dropped_nonfinite": "non-finite (NaN/inf) points",
                  "unknown_raw_ids": "unknown raw ids (mapped to 0)",
                  "dropped_far": "implausibly far points (> 1 km)",
-                 "dropped_window": "points outside the map's index window"}
+                 "dropped_window": "points outside the map's index window",
+                 "dropped_dense": "points beyond the block cap"}
     COUNTS = ("dropped_nonfinite", "unknown_raw_ids", "dropped_range", "dropped_far",
-              "dropped_window")
+              "dropped_window", "dropped_dense")
+    # the mapper's own warning gives these with their numbers: recorded here, not logged again
+    SAID_BY_THE_MAPPER = ("dropped_dense",)
 
     def __init__(self, totals: dict | None = None, scans: list[dict] | None = None):
         self.totals = {k: 0 for k in self.COUNTS}
@@ -69,14 +72,17 @@ class DropLog:
         counts = {"dropped_nonfinite": report.dropped_nonfinite,
                   "unknown_raw_ids": scan.source.unknown_raw_ids if scan.source else 0,
                   "dropped_range": report.dropped_range, "dropped_far": report.dropped_far,
-                  "dropped_window": report.dropped_window}
+                  "dropped_window": report.dropped_window,
+                  "dropped_dense": report.dropped_dense}
         for k, v in counts.items():
             self.totals[k] += int(v)
         anomalies = {k: int(counts[k]) for k in self.ANOMALIES if counts[k]}
         if anomalies:
             self.scans.append({"index": scan.index, "name": scan.name, **anomalies})
+        to_say = {k: v for k, v in anomalies.items() if k not in self.SAID_BY_THE_MAPPER}
+        if to_say:
             log.info("scan %s (%s): %s", scan.index, scan.name,
-                     ", ".join(f"{v} {self.ANOMALIES[k]}" for k, v in anomalies.items()))
+                     ", ".join(f"{v} {self.ANOMALIES[k]}" for k, v in to_say.items()))
 
 
 @dataclass

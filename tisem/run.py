@@ -260,7 +260,7 @@ class MappingRun:
         if self.progress.was_skipped(skipped.index):
             return
         self.progress.add_skipped(skipped)
-        log.warning("skipped scan %s (%s): %s", skipped.index, skipped.name, skipped.reason)
+        log.warning("%s", skipped.line())
 
     def _nothing_mapped(self) -> str:
         skipped = self.progress.skipped

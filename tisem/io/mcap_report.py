@@ -65,7 +65,7 @@ class ReadReport:
         if self.partial_chunk_messages:
             out.append(f"{self.partial_chunk_messages} message(s) recovered from the incomplete "
                        f"last chunk (its CRC cannot be checked; cut files keep their bytes)")
-        out += [f"skipped scan {s.index} ({s.name}): {s.reason}" for s in self.skipped]
+        out += [s.line() for s in self.skipped]
         by_reason: dict[str, list[int]] = {}
         for index, why in sorted(self.suspect.items()):
             by_reason.setdefault(why, []).append(index)
