@@ -5,7 +5,6 @@ import argparse
 import json
 import platform
 import resource
-import tempfile
 from pathlib import Path
 
 import numpy as np
