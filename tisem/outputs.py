@@ -47,15 +47,22 @@ def write_map_files(out_dir: Path, mapper: Mapper, config: MapperConfig,
                     trajectory: np.ndarray) -> dict[str, Path]:
     """Write the finished map of `mapper` (built with `config`) into `out_dir`; `trajectory`
     (M, 3) is drawn on the top-down picture. Returns {kind: path}."""
+    from tisem.extras import MissingExtra, require
     from tisem.io.export import write_ply
     from tisem.io.mapfile import save_map
-    from tisem.viz.bev import render_bev
 
     snap = mapper.snapshot()
     paths = {"npz": out_dir / "map.npz", "ply": out_dir / "map.ply",
              "bev": out_dir / "map_bev.png"}
     save_map(paths["npz"], snap, to_dict(config), dict(mapper.state()))
     write_ply(paths["ply"], snap)
+    try:                               # the picture is the one output that needs an extra
+        require("matplotlib")
+        from tisem.viz.bev import render_bev
+    except MissingExtra as exc:
+        log.warning("no %s: %s", paths["bev"].name, exc)
+        del paths["bev"]
+        return paths
     if len(snap):
         render_bev(snap, paths["bev"], trajectory_xy=trajectory[:, :2],
                    title=f"tisem map ({config.mode}), {len(snap):,} voxels")
