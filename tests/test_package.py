@@ -102,3 +102,21 @@ def test_extras_cover_the_optional_stacks():
     assert {"mcap", "viz", "ray", "test", "all"} <= set(extras)
     core = " ".join(PYPROJECT["project"]["dependencies"])
     assert "mcap" not in core and "matplotlib" not in core and "ray" not in core
+
+
+def test_results_table_is_aligned_and_names_the_input():
+    from tisem.report import results_table
+    summary = {"miou": 0.41, "accuracy": 0.86, "wiou": 0.78, "oa_paper": 0.76, "points": 10,
+               "per_class_iou": {"car": 0.8, "road": 0.9, "truck": 0.0, "person": None},
+               "present_classes": ["car", "road"]}
+    metrics = {"evaluated": True, "mode": "st", "input": summary, "final": summary,
+               "online": summary, "scans": 5, "skipped": [], "seconds_per_scan": 0.07,
+               "active_voxels": 1000}
+    text = results_table(metrics, per_class=True, input_name="labels (input)")
+    tables = [[line for line in block.splitlines() if line.startswith("|")]
+              for block in text.split("\n\n")]
+    main, per_class = tables[0], tables[1]
+    assert len({len(line) for line in main}) == 1 and len({len(line) for line in per_class}) == 1
+    assert main[2].startswith("| labels (input) ")
+    names = [line.split("|")[1].strip() for line in per_class[2:]]
+    assert names == ["car", "road", "truck *", "**mIoU (GT-present)**"]   # person: undefined

@@ -15,7 +15,8 @@ if TYPE_CHECKING:
 __all__ = ["METRIC_KEYS", "run_metrics", "results_table", "aligned"]
 
 # the figures of each protocol that metrics.json keeps
-METRIC_KEYS = ("miou", "miou_all", "accuracy", "wiou", "oa_paper", "per_class_iou", "points")
+METRIC_KEYS = ("miou", "miou_all", "accuracy", "wiou", "oa_paper", "per_class_iou",
+               "present_classes", "points")
 
 
 def _summary(conf: Confusion) -> dict:
@@ -48,20 +49,24 @@ def run_metrics(progress: RunProgress, final: Confusion, mapper: Mapper, cfg: Ru
 
 def aligned(table: str) -> str:
     """A markdown table with its columns padded to one width, so that it reads as a table in a
-    terminal and stays valid markdown (numbers right-aligned, as the `---:` rule says)."""
-    rows = [[cell.strip() for cell in line.strip().strip("|").split(" | ")]
-            for line in table.splitlines()]
-    widths = [max(len(row[i]) for row in rows if i < len(row)) for i in range(len(rows[0]))]
-    lines = []
-    for row in rows:
+    terminal and stays valid markdown (numbers right-aligned, as the `---:` rule says). Lines
+    that are not table rows (a footnote) are kept as they are."""
+    lines = table.splitlines()
+    rows = {i: [cell.strip() for cell in line.strip().strip("|").split(" | ")]
+            for i, line in enumerate(lines) if line.startswith("|")}
+    if not rows:
+        return table
+    columns = max(len(row) for row in rows.values())
+    widths = [max(len(row[c]) for row in rows.values() if c < len(row)) for c in range(columns)]
+    for i, row in rows.items():
         cells = []
-        for i, cell in enumerate(row):
-            if set(cell) <= set("-:"):                        # the header rule
-                cells.append("-" * (widths[i] - 1) + ":" if cell.endswith(":")
-                             else "-" * widths[i])
+        for c, cell in enumerate(row):
+            if cell and set(cell) <= set("-:"):                # the header rule
+                cells.append("-" * (widths[c] - 1) + ":" if cell.endswith(":")
+                             else "-" * widths[c])
             else:
-                cells.append(cell.ljust(widths[i]) if i == 0 else cell.rjust(widths[i]))
-        lines.append("| " + " | ".join(cells) + " |")
+                cells.append(cell.ljust(widths[c]) if c == 0 else cell.rjust(widths[c]))
+        lines[i] = "| " + " | ".join(cells) + " |"
     return "\n".join(lines)
 
 
@@ -77,10 +82,10 @@ def results_table(metrics: dict, per_class: bool = False, input_name: str = "net
                 (f"map, online ({mode})", metrics["online"])]
     text = aligned(format_table(rows)) if rows else "(no ground truth: nothing to score)"
     if rows and per_class:
-        # metrics.json keeps no list of the classes present in the ground truth: every class
-        # with a defined IoU is shown (0 for one that is predicted but not in the ground truth)
-        shown = [(name, {**m, "present_classes": [c for c, v in m["per_class_iou"].items()
-                                                  if v is not None]}) for name, m in rows]
+        # metrics of a run resumed from an older checkpoint may lack the present classes: then
+        # every class with a defined IoU counts as present (none is marked)
+        shown = [(name, {"present_classes": [c for c, v in m["per_class_iou"].items()
+                                             if v is not None], **m}) for name, m in rows]
         text += "\n\nIoU per class\n" + aligned(format_per_class(shown))
     sps = metrics["seconds_per_scan"]
     text += (f"\n\n{metrics['scans']} scans mapped, {len(metrics['skipped'])} skipped; "
