@@ -120,3 +120,16 @@ def test_results_table_is_aligned_and_names_the_input():
     assert main[2].startswith("| labels (input) ")
     names = [line.split("|")[1].strip() for line in per_class[2:]]
     assert names == ["car", "road", "truck *", "**mIoU (GT-present)**"]   # person: undefined
+
+
+def test_verbose_shows_tisem_debug_lines_not_the_libraries():
+    import logging
+
+    from tisem.cli import setup_logging
+    setup_logging(verbose=True)
+    try:
+        assert logging.getLogger("tisem.map_kitti").isEnabledFor(logging.DEBUG)
+        assert not logging.getLogger("matplotlib.font_manager").isEnabledFor(logging.DEBUG)
+    finally:
+        setup_logging(verbose=False)
+    assert not logging.getLogger("tisem.map_kitti").isEnabledFor(logging.DEBUG)
