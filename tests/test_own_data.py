@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import importlib.util
 import json
+import re
 from pathlib import Path
 
 import numpy as np
@@ -116,7 +117,7 @@ def test_bad_trajectory_lines_name_file_and_line(tmp_path, text, problem):
         message = str(exc)
     else:
         message = problems[min(problems)]
-    assert __import__("re").search(problem, message), message
+    assert re.search(problem, message), message
 
 
 def test_missing_predictions_suggest_input_labels(street, tmp_path):

@@ -22,8 +22,9 @@ def _kernels_of_checkout() -> None:
     """Installed, the kernels are the subpackage tisem/kernels (the build maps the repository's
     top-level kernels/ there). Run from a checkout (PYTHONPATH, or any import path that finds
     this folder directly), tisem/ has no kernels/ beside its modules: `tisem.kernels` is then
-    the checkout's kernels/ folder, under that one name, so that no second copy of a kernel
-    module (and of its Taichi fields) can be imported as top-level `kernels`."""
+    the checkout's kernels/ folder. Every module imports the kernels as `tisem.kernels` only,
+    so a checkout and an installed copy load each kernel module (and its Taichi fields) once,
+    under one name."""
     package = Path(__file__).resolve().parent
     checkout = package.parent / "kernels" / "__init__.py"
     if (package / "kernels").is_dir() or "tisem.kernels" in sys.modules \

@@ -1,6 +1,6 @@
 """Write a SemanticKITTI sequence as a ROS 2 MCAP recording, the way rosbag2 would store it.
 
-    tisem kitti-to-mcap ../shared/data/semantickitti_08_mini 08_mini.mcap
+    tisem kitti-to-mcap path/to/semantickitti_08_mini 08_mini.mcap
     tisem kitti-to-mcap /data/kitti/dataset 08.mcap --sequence 08 --last 99
 
 Topics: `/velodyne_points` (sensor_msgs/msg/PointCloud2, frame `velodyne`: x y z intensity

@@ -1,8 +1,9 @@
 """Map a SemanticKITTI sequence (or, given no data, a synthetic one) and score it.
 
     tisem map-kitti --arch cpu                      # synthetic street, under a minute
-    tisem map-kitti --data ../shared/data/semantickitti_08_mini --sequence 08
+    tisem map-kitti --data path/to/semantickitti_08_mini --sequence 08
     tisem map-kitti --data /data/kitti/dataset --sequence 08 --first 0 --last 99
+    tisem map-kitti --data my_drive/ --poses kiss_icp_poses.txt --classes my_classes.yaml
     tisem map-kitti --data ... --out results/run --checkpoint-every 100
     tisem map-kitti --resume results/run            # after a crash: go on
 """
@@ -14,9 +15,14 @@ import os
 import shutil
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from tisem import cli
 from tisem.commands import entry, new_parser
+
+if TYPE_CHECKING:                      # (imported when needed: the help stays fast)
+    from tisem.config import RunConfig
+    from tisem.io.semantickitti import SemanticKittiSequence
 
 log = logging.getLogger("tisem.map_kitti")
 KEPT_ON_RESUME = {"input": "--input", "poses": "--poses"}
@@ -45,7 +51,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     return cli.parse_run_args(build_parser(), argv, kept_on_resume=KEPT_ON_RESUME)
 
 
-def open_sequence(data: Path, sequence: str | None, cfg, poses: Path | None = None):
+def open_sequence(data: Path, sequence: str | None, cfg: RunConfig,
+                  poses: Path | None = None) -> SemanticKittiSequence:
     from tisem.io.semantickitti import SemanticKittiSequence
     with cli.bad_input():
         return SemanticKittiSequence(data, sequence=sequence, input=cfg.input, first=cfg.first,
