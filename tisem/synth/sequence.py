@@ -182,13 +182,13 @@ def write_semantickitti(out_dir: str | Path, num_scans: int, seed: int = 0, rout
     unless `overwrite`, which removes that sequence first (`clear_sequence`).
     """
     out = write_frames(out_dir, iter_synthetic(num_scans, seed, route, points_per_ring),
-                       num_scans, progress)
+                       num_scans, progress, overwrite)
     log.info("wrote %d synthetic scans (%s, seed %d) to %s", num_scans, route, seed, out)
     return out
 
 
 def write_frames(out_dir: str | Path, frames: Iterator[SynthFrame], total: int | None = None,
-                 progress: bool = True) -> Path:
+                 progress: bool = True, overwrite: bool = False) -> Path:
     """Write synthetic frames as one SemanticKITTI sequence folder (`write_semantickitti`)."""
     out = Path(out_dir)
     if out.exists() and not out.is_dir():
