@@ -16,11 +16,11 @@ import math
 
 import taichi as ti
 
-from kernels.entropy import fresh_length
-from kernels.fusion import fuse_voxel
-from kernels.layout import (LEAF, LEAF_BITS, is_pending, local_of_index, pending_row, rows_below,
-                            rows_to)
-from kernels.params import KernelSettings, ScanParams
+from tisem.kernels.entropy import fresh_length
+from tisem.kernels.fusion import fuse_voxel
+from tisem.kernels.layout import (LEAF, LEAF_BITS, is_pending, local_of_index, pending_row,
+                                  rows_below, rows_to)
+from tisem.kernels.params import KernelSettings, ScanParams
 
 VOXELS = LEAF ** 3
 HITS = 32    # hit list length: hits are summed in batches, after the distance tests

@@ -12,10 +12,10 @@ import numpy as np
 import taichi as ti
 from taichi.lang.argpack import ArgPack
 
-from kernels.fusion import decay_factor
-from kernels.layout import MapFields, pending_length
-from kernels.params import ADAPTIVE_LENGTH, NO_KERNEL
-from kernels.training import visit_training_voxels
+from tisem.kernels.fusion import decay_factor
+from tisem.kernels.layout import MapFields, pending_length
+from tisem.kernels.params import ADAPTIVE_LENGTH, NO_KERNEL
+from tisem.kernels.training import visit_training_voxels
 
 LN2 = math.log(2.0)
 

@@ -10,9 +10,9 @@ import numpy as np
 import taichi as ti
 from taichi.lang.argpack import ArgPack
 
-from kernels.layout import MapFields
-from kernels.params import EXPONENTIAL, FORGET, PER_CLASS
-from kernels.training import visit_training_voxels
+from tisem.kernels.layout import MapFields
+from tisem.kernels.params import EXPONENTIAL, FORGET, PER_CLASS
+from tisem.kernels.training import visit_training_voxels
 
 
 @ti.func

@@ -17,8 +17,8 @@ import functools
 
 import taichi as ti
 
-from kernels.layout import LEAF, block_and_local
-from kernels.params import ScanParams
+from tisem.kernels.layout import LEAF, block_and_local
+from tisem.kernels.params import ScanParams
 
 # what happened to a point (locate), and the slots of the counts the locate kernel returns (the
 # last one: how many leaf blocks the kept points fall in)

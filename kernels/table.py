@@ -7,7 +7,7 @@ column is one contiguous slice. One kernel does that for both, given how to coun
 """
 import taichi as ti
 
-from kernels.layout import EMPTY_LO, LEAF, rows_to
+from tisem.kernels.layout import EMPTY_LO, LEAF, rows_to
 
 
 @ti.func

@@ -17,9 +17,9 @@ import functools
 
 import taichi as ti
 
-from kernels.layout import LAYER_BITS, LEAF, local_of_index, rows_to
-from kernels.params import ScanParams
-from kernels.rasterize import EVIDENCE, evidence_array, to_local
+from tisem.kernels.layout import LAYER_BITS, LEAF, local_of_index, rows_to
+from tisem.kernels.params import ScanParams
+from tisem.kernels.rasterize import EVIDENCE, evidence_array, to_local
 
 VOXELS = LEAF ** 3
 

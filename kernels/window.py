@@ -12,9 +12,9 @@ block SNode yield them; they are unwrapped around a centre (in blocks) like voxe
 """
 import taichi as ti
 
-from kernels.layout import LEAF, TOP, rows_to
-from kernels.params import ScanParams
-from kernels.query import copy_voxel_out
+from tisem.kernels.layout import LEAF, TOP, rows_to
+from tisem.kernels.params import ScanParams
+from tisem.kernels.query import copy_voxel_out
 
 
 @ti.func

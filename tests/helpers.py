@@ -16,8 +16,8 @@ import numpy as np
 import taichi as ti
 from scipy.spatial import cKDTree
 
-from kernels import bki, entropy
-from kernels.layout import TOP, MapFields
+from tisem.kernels import bki, entropy
+from tisem.kernels.layout import TOP, MapFields
 from tisem.backend import init_taichi
 from tisem.config import MapperConfig
 from tisem.reference import voxel_histograms

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from kernels.layout import LEAF, MAX_REACH_BLK, TOP
+from tisem.kernels.layout import LEAF, MAX_REACH_BLK, TOP
 from tisem.config import MapperConfig
 from tisem.geometry import MapGeometry, block_aligned_origin
 

@@ -339,7 +339,7 @@ def test_debug_scan_at_the_edge_of_the_window(debug_map):
 def test_a_scan_with_more_points_than_training_rows_can_count_is_refused(taichi_cpu, monkeypatch):
     """Training rows pass through float32 (exact below 2^24): a scan that could need more is
     refused with its name before any kernel runs, and the map is untouched."""
-    from kernels import layout
+    from tisem.kernels import layout
     mapper = Mapper(small_config(mode="st"))
     rng = np.random.default_rng(0)
     pts = rng.uniform(-5, 5, (50, 3))

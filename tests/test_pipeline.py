@@ -218,9 +218,10 @@ def test_resume_refuses_options_the_checkpoint_holds(app, argv, flag, capsys):
 
 # --------------------------------------------------------------------------- embedded default
 
-def test_embedded_default_beats_the_network_input(tmp_path):
+def test_embedded_default_beats_the_network_input(tmp_path, monkeypatch):
     """`python apps/map_kitti.py --arch cpu --synthetic-scans 6 --out DIR --no-progress`."""
     out = tmp_path / "run"
+    monkeypatch.setenv("TISEM_CACHE_DIR", str(tmp_path / "cache"))
     rc, rec = run_app(["--arch", "cpu", "--synthetic-scans", 6, "--out", out, "--no-progress"])
     assert rc == 0, rec.text()
     m = json.loads((out / "metrics.json").read_text())
@@ -230,7 +231,8 @@ def test_embedded_default_beats_the_network_input(tmp_path):
     assert m["final"]["accuracy"] > m["input"]["accuracy"] + 0.01, (m["final"], m["input"])
     assert m["final"]["miou"] > m["input"]["miou"]
     assert m["online"]["accuracy"] > m["input"]["accuracy"]
-    seq = out / "synthetic"
+    seq = Path(json.loads((out / "run.json").read_text())["data"])
+    assert seq.parent == tmp_path / "cache"          # the street is cached, not in the results
     pred = out / "sequences" / "00" / "predictions"
     for i in range(6):
         labels = np.fromfile(pred / f"{i:06d}.label", "<u4")

@@ -11,6 +11,34 @@ mapper, `load_map` or `init_taichi` is needed).
 from __future__ import annotations
 
 import importlib
+import importlib.util
+import sys
+from pathlib import Path
+
+__version__ = "0.1.0"
+
+
+def _kernels_of_checkout() -> None:
+    """Installed, the kernels are the subpackage tisem/kernels (the build maps the repository's
+    top-level kernels/ there). Run from a checkout (PYTHONPATH, or any import path that finds
+    this folder directly), tisem/ has no kernels/ beside its modules: `tisem.kernels` is then
+    the checkout's kernels/ folder. Every module imports the kernels as `tisem.kernels` only,
+    so a checkout and an installed copy load each kernel module (and its Taichi fields) once,
+    under one name."""
+    package = Path(__file__).resolve().parent
+    checkout = package.parent / "kernels" / "__init__.py"
+    if (package / "kernels").is_dir() or "tisem.kernels" in sys.modules \
+            or not checkout.is_file():
+        return
+    spec = importlib.util.spec_from_file_location(
+        "tisem.kernels", checkout, submodule_search_locations=[str(checkout.parent)])
+    module = importlib.util.module_from_spec(spec)
+    sys.modules["tisem.kernels"] = module
+    spec.loader.exec_module(module)
+    globals()["kernels"] = module          # what the import system does for a subpackage
+
+
+_kernels_of_checkout()
 
 _EXPORTS = {
     "Mapper": "tisem.mapper",

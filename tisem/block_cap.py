@@ -17,9 +17,9 @@ from dataclasses import dataclass
 import numpy as np
 from taichi.lang.argpack import ArgPack
 
-from kernels.layout import LEAF, MapFields
-from kernels.rasterize import DROPPED
-from kernels.window import flag_new_blocks
+from tisem.kernels.layout import LEAF, MapFields
+from tisem.kernels.rasterize import DROPPED
+from tisem.kernels.window import flag_new_blocks
 
 
 @dataclass

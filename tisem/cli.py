@@ -43,7 +43,8 @@ EXIT_RUN_FAILED = 1
 EXIT_BAD_INPUT = 2
 EXIT_INTERRUPTED = 130                 # 128 + SIGINT, what a shell reports for Ctrl-C
 # options a resumed run takes from its checkpoint: dest -> flag
-CONFIG_OPTIONS = {"config": "--config", "overrides": "--set", "mode": "--mode"}
+CONFIG_OPTIONS = {"config": "--config", "overrides": "--set", "mode": "--mode",
+                  "classes": "--classes"}
 RESULTS_ROOT = "results"
 
 
@@ -58,6 +59,10 @@ def add_run_args(parser: argparse.ArgumentParser) -> None:
                    help="YAML config (a RunConfig or just its mapper section)")
     g.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                    help="override a config value, e.g. --set tau_s=1.5 (repeatable)")
+    g.add_argument("--classes", type=Path, metavar="YAML",
+                   help="the label space, when not SemanticKITTI's 20 classes: a "
+                        "semantic-kitti.yaml-style file (labels, color_map, learning_map); "
+                        "num_classes follows from it")
     g.add_argument("--first", type=int, help="first scan (inclusive)")
     g.add_argument("--last", type=int, help="last scan (inclusive)")
     g.add_argument("--out", type=Path, help="output folder (default results/<timestamp>/); "
@@ -70,7 +75,9 @@ def add_run_args(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--threads", type=int, default=2,
                    help="CPU threads for the kernels (>= 1; capped at the cores available)")
     g.add_argument("--no-progress", action="store_true", help="no progress bar")
-    g.add_argument("-v", "--verbose", action="store_true")
+    g.add_argument("--per-class", action="store_true",
+                   help="also print the IoU of every class after the results table")
+    g.add_argument("-v", "--verbose", action="store_true", help="also tisem's debug lines")
     g = parser.add_argument_group("checkpoints")
     g.add_argument("--checkpoint-every", type=int, metavar="N",
                    help="save the map and the metrics so far every N mapped scans, atomically, "
@@ -98,8 +105,10 @@ def parse_run_args(parser: argparse.ArgumentParser, argv: list[str] | None = Non
 
 
 def setup_logging(verbose: bool = False) -> None:
-    logging.basicConfig(level=logging.DEBUG if verbose else logging.INFO,
-                        format="%(levelname)s %(name)s: %(message)s")
+    """INFO lines of every logger; with `verbose` also tisem's own DEBUG lines (the libraries'
+    debug chatter, matplotlib's font search and the like, stays out)."""
+    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+    logging.getLogger("tisem").setLevel(logging.DEBUG if verbose else logging.NOTSET)
 
 
 def finite_number(flag: str, value: float, low: float = 0.0) -> float:
@@ -149,6 +158,9 @@ def run_app(body: Callable[[argparse.Namespace], int], args: argparse.Namespace,
     except KeyboardInterrupt:
         app_log.error("interrupted")
         return EXIT_INTERRUPTED
+    finally:                           # --classes set it for this run only
+        from tisem.labels import use_label_space
+        use_label_space(None)
 
 
 # --------------------------------------------------------------------------- the prologue
@@ -184,6 +196,7 @@ class RunPlan:
     device: str = ""
     threads: int = 2
     overwrite: bool = False
+    classes: Path | None = None        # --classes: the label space's file
     link_latest: bool = False          # a results/<timestamp>/ folder: re-point results/latest
 
     @property
@@ -258,11 +271,33 @@ def plan_run(args: argparse.Namespace) -> RunPlan:
             cfg = ckpt.run_config()
             apply_frame_range(cfg, args)
         plan = RunPlan(cfg, ckpt)
+    classes = args.classes if args.resume is None else plan.source.get("classes")
+    if classes is not None:
+        plan.classes = Path(classes).resolve()
+        apply_label_space(plan.cfg, plan.classes, explicit=args.overrides)
     plan.threads = threads
     plan.overwrite = args.overwrite
     plan.out_dir, plan.link_latest = choose_results_dir(args.out, plan.checkpoint,
                                                         args.overwrite)
     return plan
+
+
+def apply_label_space(cfg: RunConfig, path: Path, explicit: Iterable[str] = ()) -> None:
+    """Read the label space of `path`, make it the process's (tisem.labels) and give `cfg` its
+    number of classes; AppError for a bad file or a --set num_classes that disagrees."""
+    from tisem.label_space import load_label_space
+    from tisem.labels import use_label_space
+    with bad_input("--classes "):
+        space = load_label_space(path)
+    given = [a.split("=", 1)[1] for a in explicit if a.split("=", 1)[0].strip() in
+             ("num_classes", "mapper.num_classes")]
+    if given and given[-1].strip() != str(space.num_classes):
+        raise AppError(f"--set num_classes={given[-1]}: {path} defines {space.num_classes} "
+                       f"classes; leave num_classes out, it follows from --classes")
+    cfg.mapper.num_classes = space.num_classes
+    with bad_input("config: "):
+        check_run_config(cfg)
+    use_label_space(space)
 
 
 def init_backend(arch: str, threads: int) -> str:

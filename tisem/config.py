@@ -190,7 +190,7 @@ def check_geometry(cfg: MapperConfig) -> None:
     kernel reach, the scan's table fits, the kernel reach fits the table's margin
     (`MapGeometry.from_config` holds those rules); the window's storage stays within memory
     and within the store's key range."""
-    from kernels.layout import TOP
+    from tisem.kernels.layout import TOP
     from tisem.geometry import MapGeometry
     from tisem.store_segments import KEY_LIMIT
     try:

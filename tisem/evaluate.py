@@ -33,7 +33,7 @@ from typing import Iterable, Sequence
 
 import numpy as np
 
-from tisem.labels import CLASS_NAMES, NUM_CLASSES
+from tisem.labels import NUM_CLASSES, class_names
 from tisem.scan import Scan, finite_rows
 
 __all__ = ["Confusion", "format_table", "format_per_class", "METRIC_NAMES", "score_scan",
@@ -173,7 +173,8 @@ def score_scan(conf: Confusion, scan: Scan, labels: np.ndarray) -> None:
 
 
 def _class_name(c: int) -> str:
-    return CLASS_NAMES[c] if c < len(CLASS_NAMES) else f"class-{c}"
+    names = class_names()                      # the active label space's
+    return names[c] if c < len(names) else f"class-{c}"
 
 
 # --------------------------------------------------------------------------- tables

@@ -22,7 +22,7 @@ def block_aligned_origin(voxel: np.ndarray) -> np.ndarray:
     """The map origin (int64 global voxel index) for a map centred near `voxel`: aligned to
     a top cell of the SNode tree, so that local indices stay small and the tree's cells line
     up with the global grid."""
-    from kernels.layout import TOP
+    from tisem.kernels.layout import TOP
     return (np.asarray(voxel, np.int64) // TOP) * TOP
 
 
@@ -52,8 +52,8 @@ class MapGeometry:
     @classmethod
     def from_config(cls, cfg: MapperConfig) -> MapGeometry:
         """The geometry of a map with this config; ValueError if the config cannot work."""
-        from kernels.layout import (LEAF, MAX_REACH_BLK, MAX_TABLE_CELLS, TABLE_BYTES_PER_CELL,
-                                    storage_extent, table_half_blocks)
+        from tisem.kernels.layout import (LEAF, MAX_REACH_BLK, MAX_TABLE_CELLS,
+                                          TABLE_BYTES_PER_CELL, storage_extent, table_half_blocks)
         res = float(cfg.resolution_m)
         reach = cfg.reach_m
         radius_vox = int(math.ceil(reach / res + 0.5)) if cfg.uses_kernel else 0

@@ -1,8 +1,11 @@
-"""The SemanticKITTI label space: raw ids, the 20 train ids, names and colours.
+"""The label space: raw ids, train ids, names and colours (SemanticKITTI's 20 classes, or one
+read from a YAML file).
 
-Raw ids are what `.label` files store (lower 16 bits); train ids are the 20 classes
-the network predicts and the map stores (0 = unlabeled / ignored). The two are kept
-apart in every name in tisem: `raw_label` vs `train_id`.
+Raw ids are what `.label` files store (lower 16 bits); train ids are the classes the network
+predicts and the map stores (0 = unlabeled / ignored). The two are kept apart in every name in
+tisem: `raw_label` vs `train_id`. The constants below are SemanticKITTI's; `raw_to_train`,
+`train_to_raw`, `class_names` and `class_colors` follow the active label space, which a run
+given `--classes FILE` sets (`use_label_space`, tisem/label_space.py).
 """
 from __future__ import annotations
 
@@ -58,26 +61,55 @@ for _raw, _train in LEARNING_MAP.items():
 
 
 def raw_to_train(raw_label: np.ndarray) -> tuple[np.ndarray, int]:
-    """Map raw SemanticKITTI labels (instance bits allowed) to train ids.
+    """Map raw labels (instance bits allowed) to train ids of the active label space.
 
     Returns (train_id int32, number of points whose raw id is unknown -> 0).
     """
     semantic = np.asarray(raw_label).astype(np.uint32) & 0xFFFF
-    train_id = _RAW_TO_TRAIN[semantic]
-    unknown = int(np.count_nonzero(~_RAW_KNOWN[semantic]))
+    to_train, known = (_RAW_TO_TRAIN, _RAW_KNOWN) if _active is None else _active.lookup
+    train_id = to_train[semantic]
+    unknown = int(np.count_nonzero(~known[semantic]))
     return train_id, unknown
 
 
 def train_to_raw(train_id: np.ndarray) -> np.ndarray:
-    """Map train ids (0..19) to raw ids (uint32), as SemanticKITTI predictions store them."""
+    """Map train ids to raw ids (uint32), as SemanticKITTI predictions store them."""
     train_id = np.asarray(train_id)
-    if train_id.size and (train_id.min() < 0 or train_id.max() >= NUM_CLASSES):
-        raise ValueError(f"train ids must lie in [0, {NUM_CLASSES}), got "
+    to_raw = LEARNING_MAP_INV if _active is None else _active.learning_map_inv
+    if train_id.size and (train_id.min() < 0 or train_id.max() >= to_raw.size):
+        raise ValueError(f"train ids must lie in [0, {to_raw.size}), got "
                          f"[{train_id.min()}, {train_id.max()}]")
-    return LEARNING_MAP_INV[train_id]
+    return to_raw[train_id]
+
+
+def num_classes() -> int:
+    """Train ids of the active label space (0 = unlabeled included)."""
+    return NUM_CLASSES if _active is None else _active.num_classes
+
+
+def class_names() -> tuple[str, ...]:
+    """The names of the active label space, per train id."""
+    return CLASS_NAMES if _active is None else _active.names
+
+
+def class_colors() -> np.ndarray:
+    """(C, 3) uint8 RGB colours of the active label space, per train id."""
+    return CLASS_COLORS_RGB if _active is None else _active.colors_rgb
 
 
 def class_table() -> list[dict]:
     """The class table as plain records (for metadata in exported files)."""
-    return [{"train_id": i, "raw_id": int(LEARNING_MAP_INV[i]), "name": CLASS_NAMES[i],
-             "rgb": [int(c) for c in CLASS_COLORS_RGB[i]]} for i in range(NUM_CLASSES)]
+    raw = LEARNING_MAP_INV if _active is None else _active.learning_map_inv
+    names, colors = class_names(), class_colors()
+    return [{"train_id": i, "raw_id": int(raw[i]), "name": names[i],
+             "rgb": [int(c) for c in colors[i]]} for i in range(num_classes())]
+
+
+_active = None                       # a LabelSpace; None: SemanticKITTI's
+
+
+def use_label_space(space) -> None:
+    """Make `space` (a `tisem.label_space.LabelSpace`, or None for SemanticKITTI's) the label
+    space of everything that reads or writes labels in this process."""
+    global _active
+    _active = space

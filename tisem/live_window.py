@@ -24,8 +24,8 @@ from dataclasses import dataclass
 import numpy as np
 import taichi as ti
 
-from kernels import query as kquery, raycast, window
-from kernels.layout import LEAF, TOP, MapFields
+from tisem.kernels import query as kquery, raycast, window
+from tisem.kernels.layout import LEAF, TOP, MapFields
 from tisem.geometry import MapGeometry
 from tisem.scan import finite_rows
 from tisem.snapshot import MapSnapshot

@@ -25,10 +25,10 @@ import numpy as np
 import taichi as ti
 from taichi.lang.argpack import ArgPack
 
-from kernels import bki, entropy, fusion, rasterize, table, training
-from kernels.layout import MapFields
-from kernels.params import (ADAPTIVE_LENGTH, FIXED_LENGTH, NO_KERNEL, KernelSettings,
-                            ScanParams)
+from tisem.kernels import bki, entropy, fusion, rasterize, table, training
+from tisem.kernels.layout import MapFields
+from tisem.kernels.params import (ADAPTIVE_LENGTH, FIXED_LENGTH, NO_KERNEL, KernelSettings,
+                                  ScanParams)
 from tisem import backend
 from tisem.block_cap import cut_to_nearest, new_blocks_beyond
 from tisem.config import MapperConfig

@@ -49,32 +49,52 @@ def write_metrics(out_dir: Path, metrics: dict) -> Path:
 
 
 def write_map_files(out_dir: Path, mapper: Mapper, config: MapperConfig,
-                    trajectory: np.ndarray) -> dict[str, Path]:
+                    trajectory: np.ndarray, progress: bool = False) -> dict[str, Path]:
     """Write the finished map of `mapper` (built with `config`) into `out_dir`; `trajectory`
-    (M, 3) is drawn on the top-down picture. Returns {kind: path}."""
+    (M, 3) is drawn on the top-down picture; `progress`: a bar over the files. Returns
+    {kind: path}."""
+    from tqdm import tqdm
+
+    from tisem.extras import MissingExtra, require
     from tisem.io.export import write_ply
     from tisem.io.mapfile import save_map
-    from tisem.viz.bev import render_bev
 
-    snap = mapper.snapshot()
     paths = {"npz": out_dir / "map.npz", "ply": out_dir / "map.ply",
              "bev": out_dir / "map_bev.png"}
-    save_map(paths["npz"], snap, to_dict(config), dict(mapper.state()))
-    if snap.occupancy is not None:
-        # free space: map.ply is the static map, map_dynamic.ply the voxels seen through
-        # (trails of what moved, with the class they held); map.npz keeps both, and the top
-        # view draws the removed voxels in the colour of label 0 (black)
-        paths["dynamic_ply"] = out_dir / "map_dynamic.ply"
-        write_ply(paths["dynamic_ply"], snap.dynamic_layer())
-        write_ply(paths["ply"], snap.static_map())
-    else:
-        write_ply(paths["ply"], snap)
-    if len(snap):
-        render_bev(snap, paths["bev"], trajectory_xy=trajectory[:, :2],
-                   title=f"tisem map ({config.mode}), {len(snap):,} voxels")
-    else:
-        log.warning("the map is empty: no %s written", paths["bev"].name)
-        del paths["bev"]
+    with tqdm(total=len(paths) + 1, unit="step", desc="map files",
+              disable=not progress) as bar:
+        bar.set_postfix_str("snapshot")
+        snap = mapper.snapshot()
+        bar.update()
+        bar.set_postfix_str(paths["npz"].name)
+        save_map(paths["npz"], snap, to_dict(config), dict(mapper.state()))
+        bar.update()
+        bar.set_postfix_str(paths["ply"].name)
+        if snap.occupancy is not None:
+            # free space: map.ply is the static map, map_dynamic.ply the voxels seen through
+            # (trails of what moved, with the class they held); map.npz keeps both, and the
+            # top view draws the removed voxels in the colour of label 0 (black)
+            paths["dynamic_ply"] = out_dir / "map_dynamic.ply"
+            write_ply(paths["dynamic_ply"], snap.dynamic_layer())
+            write_ply(paths["ply"], snap.static_map())
+        else:
+            write_ply(paths["ply"], snap)
+        bar.update()
+        try:                           # the picture is the one output that needs an extra
+            require("matplotlib")
+            from tisem.viz.bev import render_bev
+        except MissingExtra as exc:
+            log.warning("no %s: %s", paths["bev"].name, exc)
+            del paths["bev"]
+            return paths
+        if len(snap):
+            bar.set_postfix_str(paths["bev"].name)
+            render_bev(snap, paths["bev"], trajectory_xy=trajectory[:, :2],
+                       title=f"tisem map ({config.mode}), {len(snap):,} voxels")
+        else:
+            log.warning("the map is empty: no %s written", paths["bev"].name)
+            del paths["bev"]
+        bar.update()
     return paths
 
 

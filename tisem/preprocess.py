@@ -7,8 +7,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from kernels import layout
-from kernels.rasterize import CORRUPT_RANGE_M
+from tisem.kernels import layout
+from tisem.kernels.rasterize import CORRUPT_RANGE_M
 from tisem.config import MapperConfig
 from tisem.scan import (Scan, checked_ids, checked_pose, checked_probabilities,
                         finite_rows, scan_label)

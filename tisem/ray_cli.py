@@ -18,7 +18,8 @@ def add_cluster_args(p: argparse.ArgumentParser) -> None:
     g.add_argument("--threads", type=int, default=None,
                    help="kernel threads per task, reserved as its CPUs")
     g.add_argument("--retries", type=int, default=1, help="retries of a failed task")
-    g.add_argument("--arch", choices=("cpu", "cuda"), default="cpu")
+    g.add_argument("--arch", choices=("cpu", "cuda"), default="cpu",
+                   help="Taichi backend of the tasks")
 
 
 def add_config_args(p: argparse.ArgumentParser) -> None:
@@ -28,7 +29,7 @@ def add_config_args(p: argparse.ArgumentParser) -> None:
                    help="override a config value (repeatable)")
     p.add_argument("--sequences", nargs="+", help="sequences of a dataset root (default all)")
     p.add_argument("--out", type=Path, help="output folder (default results/<timestamp>/)")
-    p.add_argument("-v", "--verbose", action="store_true")
+    p.add_argument("-v", "--verbose", action="store_true", help="also tisem's debug lines")
 
 
 def results_folder(out: Path | None) -> Path:

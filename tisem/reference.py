@@ -11,7 +11,7 @@ import math
 import numpy as np
 from scipy.spatial import cKDTree
 
-from kernels.bki import MIN_UPDATE
+from tisem.kernels.bki import MIN_UPDATE
 from tisem.config import MapperConfig
 from tisem.geometry import block_aligned_origin
 from tisem.map_clock import MapClock

@@ -6,16 +6,17 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from tisem.config import RunConfig, to_dict
-from tisem.evaluate import Confusion, format_table
+from tisem.evaluate import Confusion, format_per_class, format_table
 from tisem.progress import RunProgress
 
 if TYPE_CHECKING:
     from tisem.mapper import Mapper
 
-__all__ = ["METRIC_KEYS", "run_metrics", "results_table"]
+__all__ = ["METRIC_KEYS", "run_metrics", "results_table", "aligned"]
 
 # the figures of each protocol that metrics.json keeps
-METRIC_KEYS = ("miou", "miou_all", "accuracy", "wiou", "oa_paper", "per_class_iou", "points")
+METRIC_KEYS = ("miou", "miou_all", "accuracy", "wiou", "oa_paper", "per_class_iou",
+               "present_classes", "points")
 
 
 def _summary(conf: Confusion) -> dict:
@@ -46,15 +47,46 @@ def run_metrics(progress: RunProgress, final: Confusion, mapper: Mapper, cfg: Ru
     }
 
 
-def results_table(metrics: dict) -> str:
-    """The end-of-run table: network input vs the map, both protocols, then one summary line
-    (scans mapped and skipped, time per scan, voxels)."""
+def aligned(table: str) -> str:
+    """A markdown table with its columns padded to one width, so that it reads as a table in a
+    terminal and stays valid markdown (numbers right-aligned, as the `---:` rule says). Lines
+    that are not table rows (a footnote) are kept as they are."""
+    lines = table.splitlines()
+    rows = {i: [cell.strip() for cell in line.strip().strip("|").split(" | ")]
+            for i, line in enumerate(lines) if line.startswith("|")}
+    if not rows:
+        return table
+    columns = max(len(row) for row in rows.values())
+    widths = [max(len(row[c]) for row in rows.values() if c < len(row)) for c in range(columns)]
+    for i, row in rows.items():
+        cells = []
+        for c, cell in enumerate(row):
+            if cell and set(cell) <= set("-:"):                # the header rule
+                cells.append("-" * (widths[c] - 1) + ":" if cell.endswith(":")
+                             else "-" * widths[c])
+            else:
+                cells.append(cell.ljust(widths[c]) if c == 0 else cell.rjust(widths[c]))
+        lines[i] = "| " + " | ".join(cells) + " |"
+    return "\n".join(lines)
+
+
+def results_table(metrics: dict, per_class: bool = False, input_name: str = "network input"
+                  ) -> str:
+    """The end-of-run table: the input (`input_name`: the network's labels, or the ground truth
+    given as input) vs the map, both protocols, with `per_class` the IoU of every class, then
+    one summary line (scans mapped and skipped, time per scan, voxels)."""
     rows = []
     if metrics["evaluated"]:
         mode = metrics["mode"]
-        rows = [("network input", metrics["input"]), (f"map, final ({mode})", metrics["final"]),
+        rows = [(input_name, metrics["input"]), (f"map, final ({mode})", metrics["final"]),
                 (f"map, online ({mode})", metrics["online"])]
-    text = format_table(rows) if rows else "(no ground truth: nothing to score)"
+    text = aligned(format_table(rows)) if rows else "(no ground truth: nothing to score)"
+    if rows and per_class:
+        # metrics of a run resumed from an older checkpoint may lack the present classes: then
+        # every class with a defined IoU counts as present (none is marked)
+        shown = [(name, {"present_classes": [c for c, v in m["per_class_iou"].items()
+                                             if v is not None], **m}) for name, m in rows]
+        text += "\n\nIoU per class\n" + aligned(format_per_class(shown))
     sps = metrics["seconds_per_scan"]
     text += (f"\n\n{metrics['scans']} scans mapped, {len(metrics['skipped'])} skipped; "
              f"{sps * 1000 if sps else float('nan'):.1f} ms per scan (median); "

@@ -152,7 +152,7 @@ class MappingRun:
                 if self.stopped:
                     raise RunError(f"mapping stopped {self.stopped}; no scan was mapped")
                 raise NothingMapped(self._nothing_mapped())
-            final = self.final_pass(final_scans)
+            final = self.final_pass(final_scans, show_progress)
         metrics = run_metrics(self.progress, final, self.mapper, self.cfg)
         if self.stopped:
             metrics["stopped"] = self.stopped
@@ -163,7 +163,7 @@ class MappingRun:
         if write_map_files:
             with self._writing("the map files"):
                 outputs.write_map_files(self.out_dir, self.mapper, self.cfg.mapper,
-                                        result.trajectory)
+                                        result.trajectory, progress=show_progress)
         return result
 
     def map_scans(self, show_progress: bool = True,
@@ -298,13 +298,16 @@ class MappingRun:
         self.checkpointed_index = self.progress.last_index
         return path
 
-    def final_pass(self, scans: Iterable[Scan | SkippedScan]) -> Confusion:
+    def final_pass(self, scans: Iterable[Scan | SkippedScan],
+                   show_progress: bool = False) -> Confusion:
         """The final-map protocol: every mapped scan looked up in the finished map; writes its
         predictions (one label per point of the scan) and returns the pooled confusion.
         Scans that were not mapped are passed over: no predictions file, not scored."""
         self._write_info()
         final = Confusion(self.mapper.C)
-        for item in scans:
+        # minutes on a long drive: the bar counts the mapped scans it looks up
+        for item in tqdm(scans, total=self.progress.mapped, unit="scan", disable=not show_progress,
+                         desc="final map: predictions"):
             if not isinstance(item, Scan) or not self.progress.is_mapped(item.index):
                 continue
             labels, _ = self.mapper.query(item.points_world(), with_probs=False)

@@ -32,7 +32,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from kernels.layout import LEAF
+from tisem.kernels.layout import LEAF
 from tisem.spill import SpillError, SpillFile
 from tisem.store_segments import (COMPACT, KEY_LIMIT, LOCAL_INDEX, SEGMENT_VOXELS, Payload,
                                   Segment, pack, pieces, ranges)

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from kernels.layout import LEAF
+from tisem.kernels.layout import LEAF
 
 _BITS = 21
 _HALF = 1 << (_BITS - 1)

@@ -13,8 +13,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from kernels.layout import LAYER_BITS, LEAF
-from kernels.rasterize import DROPPED, EVIDENCE
+from tisem.kernels.layout import LAYER_BITS, LEAF
+from tisem.kernels.rasterize import DROPPED, EVIDENCE
 
 
 @dataclass

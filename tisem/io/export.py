@@ -15,7 +15,7 @@ import os
 import numpy as np
 from plyfile import PlyData, PlyElement
 
-from tisem.labels import CLASS_COLORS_RGB, CLASS_NAMES, LEARNING_MAP_INV
+from tisem.labels import class_colors, class_names, train_to_raw
 from tisem.snapshot import MapSnapshot
 
 __all__ = ["write_ply", "read_ply", "ply_comments"]
@@ -36,7 +36,9 @@ def ply_comments(snapshot: MapSnapshot) -> list[str]:
              f"voxels {len(snapshot)}",
              "label = train id (SemanticKITTI learning_map), raw_label = raw id, "
              "probability = normalised counter of the label"]
-    lines += [f"class {i} {int(LEARNING_MAP_INV[i])} {name}" for i, name in enumerate(CLASS_NAMES)]
+    names = class_names()
+    raw_ids = train_to_raw(np.arange(len(names)))
+    lines += [f"class {i} {int(raw_ids[i])} {name}" for i, name in enumerate(names)]
     return lines
 
 
@@ -49,21 +51,22 @@ def write_ply(path: str | os.PathLike, snapshot: MapSnapshot, binary: bool = Tru
     `binary=False` writes ASCII (larger, but diffable).
     """
     num_classes = snapshot.counts.shape[1] if snapshot.counts.ndim == 2 else 0
-    if num_classes > len(CLASS_NAMES):
-        # colours and raw ids are only defined for the SemanticKITTI table
+    names = class_names()
+    if num_classes > len(names):
+        # colours and raw ids are only defined for the classes of the label space
         raise ValueError(f"snapshot has {num_classes} classes; the PLY export knows the "
-                         f"{len(CLASS_NAMES)} SemanticKITTI classes only")
+                         f"{len(names)} classes of the label space only")
     labels = snapshot.labels()
     # uchar holds the 20 SemanticKITTI train ids; a wider label space would need ushort
-    label_type = "u1" if len(CLASS_NAMES) <= 256 else "<u2"
+    label_type = "u1" if len(names) <= 256 else "<u2"
     vertex = np.empty(len(snapshot), dtype=_VERTEX_DTYPE_BASE + [
         ("label", label_type), ("raw_label", "<u4"), ("probability", "<f4")])
     centers = snapshot.centers()
     vertex["x"], vertex["y"], vertex["z"] = centers[:, 0], centers[:, 1], centers[:, 2]
-    rgb = CLASS_COLORS_RGB[labels]
+    rgb = class_colors()[labels]
     vertex["red"], vertex["green"], vertex["blue"] = rgb[:, 0], rgb[:, 1], rgb[:, 2]
     vertex["label"] = labels
-    vertex["raw_label"] = LEARNING_MAP_INV[labels]
+    vertex["raw_label"] = train_to_raw(labels)
     vertex["probability"] = snapshot.confidence()
     element = PlyElement.describe(vertex, "vertex")
     PlyData([element], text=not binary, byte_order="<",

@@ -21,7 +21,7 @@ from tisem.errors import DatasetError
 from tisem.poses import pose_problem
 
 __all__ = ["read_calib_tr", "read_pose_lines", "read_poses", "read_time_lines", "read_times",
-           "out_of_order", "camera_poses_to_lidar", "MAX_TIME_S"]
+           "read_trajectory", "out_of_order", "camera_poses_to_lidar", "MAX_TIME_S"]
 
 log = logging.getLogger(__name__)
 
@@ -133,6 +133,58 @@ def read_pose_lines(path: str | os.PathLike) -> tuple[np.ndarray, dict[int, str]
             continue
         poses[i] = T
     return poses, problems
+
+
+def read_trajectory(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray | None,
+                                                     dict[int, str]]:
+    """A trajectory of LiDAR poses, one per scan in order: (M, 4, 4) float64 poses (NaN where
+    a line is not a pose), the TUM stamps (M,) in seconds or None, and {pose index: why}.
+
+    Two formats, told apart by the first line: KITTI (12 numbers, a 3x4 row-major pose, as
+    poses.txt but already in the LiDAR frame, e.g. a KISS-ICP result) and TUM (8 numbers:
+    `t x y z qx qy qz qw`; lines starting with `#` are comments). DatasetError when the file
+    is missing, empty or in neither format.
+    """
+    from tisem.io.tf import quat_to_matrix
+
+    path = Path(path)
+    if not path.is_file():
+        raise DatasetError(f"{path}: trajectory file not found (--poses: one LiDAR pose per "
+                           f"scan, KITTI or TUM format)")
+    rows = [(i + 1, line) for i, line in enumerate(_read_text(path, "trajectory").splitlines())
+            if line.strip() and not line.lstrip().startswith("#")]
+    if not rows:
+        raise DatasetError(f"{path}: the trajectory file is empty")
+    width = len(rows[0][1].split())
+    if width == 12:
+        poses, problems = read_pose_lines(path)
+        return poses, None, problems
+    if width != 8:
+        raise DatasetError(f"{path}:{rows[0][0]}: {width} numbers; a trajectory line is KITTI "
+                           f"(12: a 3x4 pose) or TUM (8: t x y z qx qy qz qw)")
+    poses = np.full((len(rows), 4, 4), np.nan)
+    stamps = np.full(len(rows), np.nan)
+    problems: dict[int, str] = {}
+    for k, (lineno, line) in enumerate(rows):
+        where = f"{path}:{lineno}"
+        try:
+            values = np.array([float(v) for v in line.split()], dtype=np.float64)
+        except ValueError:
+            problems[k] = f"{where}: non-numeric value in {line.strip()[:80]!r}"
+            continue
+        if values.size != 8 or not np.all(np.isfinite(values)) or not values[4:].any():
+            problems[k] = f"{where}: expected 8 finite numbers t x y z qx qy qz qw (a unit " \
+                          f"quaternion), got {line.strip()[:80]!r}"
+            continue
+        T = np.eye(4)
+        T[:3, :3] = quat_to_matrix(values[4:])
+        T[:3, 3] = values[1:4]
+        problem = pose_problem(T)
+        if problem is not None:
+            problems[k] = f"{where}: pose {k} is not a pose: {problem}"
+            continue
+        poses[k], stamps[k] = T, values[0]
+    return poses, stamps, problems
 
 
 def read_poses(path: str | os.PathLike) -> np.ndarray:

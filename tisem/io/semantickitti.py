@@ -9,7 +9,11 @@ Layout of one sequence folder::
     calib.txt                with a `Tr:` line (velodyne -> camera, 3x4 row-major)
     times.txt                optional, seconds per scan (absent -> 0.1 s spacing)
 
-The LiDAR pose of scan i is ``T_world_lidar = Tr^-1 . pose_i . Tr``.
+The LiDAR pose of scan i is ``T_world_lidar = Tr^-1 . pose_i . Tr``. In the KITTI odometry
+layout the poses are `dataset/poses/NN.txt` beside `dataset/sequences/NN/` (same format), used
+when the sequence folder has no poses.txt. `poses=FILE` instead reads a trajectory that is
+already in the LiDAR frame (KITTI or TUM format, `kitti_files.read_trajectory`); calib.txt is
+then optional, and TUM's stamps are the scan times where there is no times.txt.
 
 Errors: a problem with the sequence as a whole (no `velodyne/`, two scan files with the same
 number, no `Tr:` or two of them, a `Tr` that is not a rigid transform, no or empty
@@ -38,7 +42,7 @@ import numpy as np
 from tisem.errors import DatasetError, ScanError, SkippedScan
 from tisem.io.kitti_files import (MAX_TIME_S, camera_poses_to_lidar, out_of_order,
                                   read_calib_tr, read_pose_lines, read_poses, read_time_lines,
-                                  read_times)
+                                  read_times, read_trajectory)
 from tisem.labels import moving_raw, raw_to_train, train_to_raw
 from tisem.scan import KittiSource, Scan, finite_rows
 
@@ -111,6 +115,7 @@ class SemanticKittiSequence:
         only sets `sequence_name` (default: the folder name when it is two digits, else "00").
     input: "predictions" (the network's labels feed the map) or "labels" (ground truth as input).
     first, last: inclusive range of scan ids (the numbers of the `velodyne/*.bin` files).
+    poses: a trajectory file of LiDAR poses, one per scan (instead of poses.txt and `Tr`).
 
     Attributes
     ----------
@@ -125,7 +130,8 @@ class SemanticKittiSequence:
     """
 
     def __init__(self, path: str | os.PathLike, sequence: str | int | None = None,
-                 input: str = "predictions", first: int = 0, last: int | None = None):
+                 input: str = "predictions", first: int = 0, last: int | None = None,
+                 poses: str | os.PathLike | None = None):
         if input not in INPUTS:
             raise ValueError(f"input must be one of {INPUTS}, got {input!r}")
         self.input = input
@@ -166,9 +172,12 @@ class SemanticKittiSequence:
         self.has_ground_truth = self.labels_dir.is_dir()
         self.input_dir = d / input
         if not self.input_dir.is_dir():
+            hint = ("; to map the ground truth instead give --input labels (input='labels')"
+                    if input == "predictions" and self.has_ground_truth else "")
             raise DatasetError(f"{self.input_dir}: input label folder missing (input={input!r}); "
                                f"folders present: "
-                               f"{', '.join(sorted(p.name for p in d.iterdir() if p.is_dir()))}")
+                               f"{', '.join(sorted(p.name for p in d.iterdir() if p.is_dir()))}"
+                               f"{hint}")
 
         bin_names: dict[int, str] = {}
         for p in sorted(self.velodyne_dir.iterdir()):
@@ -189,11 +198,8 @@ class SemanticKittiSequence:
                                f"scans present: {all_ids[0]}..{all_ids[-1]} ({len(all_ids)} files)")
         self._bin_names = {i: bin_names[i] for i in self.scan_ids}
 
-        self.Tr = read_calib_tr(d / "calib.txt")
-        self.poses_file = d / "poses.txt"
-        poses_cam, pose_problems = read_pose_lines(self.poses_file)
-        self.num_poses = int(poses_cam.shape[0])
-        lidar_all = camera_poses_to_lidar(poses_cam, self.Tr)
+        lidar_all, pose_problems, stamps = self._read_poses(poses)
+        self.num_poses = int(lidar_all.shape[0])
         ids = np.asarray(self.scan_ids, dtype=np.int64)
         self.has_pose = ids < self.num_poses
         self.poses_lidar = np.full((len(ids), 4, 4), np.nan)
@@ -214,9 +220,41 @@ class SemanticKittiSequence:
                     self.problems.setdefault(sid, time_problems[sid])
             for k, why in out_of_order(self.times, self.scan_ids, self.times_file).items():
                 self.problems.setdefault(self.scan_ids[k], why)
+        elif stamps is not None:                      # a TUM trajectory's stamps
+            self.times_file = self.poses_file
+            self.times = np.full(len(ids), np.nan)
+            self.times[self.has_pose] = stamps[ids[self.has_pose]]
+            self._num_times = int(stamps.size)
+            for k, why in out_of_order(self.times, self.scan_ids, self.poses_file).items():
+                self.problems.setdefault(self.scan_ids[k], why)
         else:
             self.times = ids.astype(np.float64) * DEFAULT_SCAN_PERIOD_S
             self._num_times = None
+
+    def _read_poses(self, trajectory: str | os.PathLike | None
+                    ) -> tuple[np.ndarray, dict[int, str], np.ndarray | None]:
+        """Every pose of the sequence in the LiDAR frame (M, 4, 4), {pose index: why a line is
+        not a pose}, and the trajectory's stamps (TUM) or None; sets `Tr` and `poses_file`."""
+        d = self.sequence_dir
+        if trajectory is not None:
+            self.poses_file = Path(trajectory)
+            # the trajectory is the LiDAR's already; Tr only places the camera (MCAP /tf)
+            self.Tr = read_calib_tr(d / "calib.txt") if (d / "calib.txt").is_file() \
+                else np.eye(4)
+            poses, stamps, problems = read_trajectory(self.poses_file)
+            return poses, problems, stamps
+        self.Tr = read_calib_tr(d / "calib.txt")
+        self.poses_file = d / "poses.txt"
+        odometry = d.parent.parent / "poses" / f"{d.name}.txt"   # dataset/poses/NN.txt
+        if not self.poses_file.is_file() and d.parent.name == "sequences" \
+                and odometry.is_file():
+            self.poses_file = odometry
+        if not self.poses_file.is_file():
+            raise DatasetError(f"{self.poses_file}: poses file not found (nor {odometry}, the "
+                               f"KITTI odometry layout); give a LiDAR trajectory with --poses "
+                               f"FILE (KITTI or TUM format)")
+        poses_cam, problems = read_pose_lines(self.poses_file)
+        return camera_poses_to_lidar(poses_cam, self.Tr), problems, None
 
     # ------------------------------------------------------------------ paths
     def scan_path(self, k: int) -> Path:
@@ -277,7 +315,7 @@ class SemanticKittiSequence:
                 raise ScanError(f"{bin_path}: empty scan (0 points)", sid, name)
             if not self.has_pose[k]:
                 raise ScanError(f"{self.poses_file}: no pose for scan {sid} ({bin_path.name}); "
-                                f"poses.txt has {self.num_poses} poses (scans 0.."
+                                f"{self.poses_file.name} has {self.num_poses} poses (scans 0.."
                                 f"{self.num_poses - 1})", sid, name)
             if sid in self.problems:
                 raise ScanError(self.problems[sid], sid, name)

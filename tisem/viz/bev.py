@@ -28,7 +28,7 @@ from matplotlib.patches import Patch
 from matplotlib import patheffects
 from mpl_toolkits.axes_grid1.anchored_artists import AnchoredSizeBar
 
-from tisem.labels import CLASS_COLORS_RGB, CLASS_NAMES
+from tisem.labels import class_colors, class_names
 from tisem.snapshot import MapSnapshot
 
 __all__ = ["render_bev", "TopDownGrid", "top_labels", "colorize", "draw_label_image",
@@ -105,7 +105,7 @@ def colorize(label_image: np.ndarray, background: str = "white") -> np.ndarray:
     rgb = np.empty(label_image.shape + (3,), dtype=np.uint8)
     rgb[...] = BACKGROUNDS[background]
     filled = label_image != EMPTY
-    rgb[filled] = CLASS_COLORS_RGB[label_image[filled]]
+    rgb[filled] = class_colors()[label_image[filled]]
     return rgb
 
 
@@ -121,8 +121,9 @@ def draw_label_image(ax, grid: TopDownGrid, label_image: np.ndarray,
 
 def legend_handles(labels_present) -> list:
     """Colour patches with class names for the given train ids, in train id order."""
-    return [Patch(facecolor=CLASS_COLORS_RGB[c] / 255.0, edgecolor="0.4", linewidth=0.5,
-                  label=f"{int(c):2d} {CLASS_NAMES[c]}") for c in sorted(set(labels_present))]
+    colors, names = class_colors(), class_names()
+    return [Patch(facecolor=colors[c] / 255.0, edgecolor="0.4", linewidth=0.5,
+                  label=f"{int(c):2d} {names[c]}") for c in sorted(set(labels_present))]
 
 
 def _nice_length(max_m: float) -> float:

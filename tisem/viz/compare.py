@@ -1,7 +1,8 @@
 """Side-by-side comparison of a region: raw network labels | the map's labels | ground truth.
 
 Reads a results folder written by the pipeline (`run.json`, `config.yaml`, the map's per-point
-predictions in `sequences/NN/predictions/`) and the input sequence it names, and draws the
+predictions in `sequences/NN/predictions/`) and the input it names (a SemanticKITTI sequence or
+an MCAP recording: `tisem.viz.sources`), and draws the
 points of a region top-down with the same raster as the BEV (highest point per cell), so the
 three panels differ only by their labels and the map's cleaning shows as colour changes.
 Each panel's title carries its accuracy against the ground truth over the region's points.
@@ -16,11 +17,10 @@ import numpy as np
 import yaml
 from matplotlib.figure import Figure
 
-from tisem.errors import DatasetError, ScanError
-from tisem.io.semantickitti import SemanticKittiSequence
 from tisem.labels import raw_to_train
 from tisem.viz.bev import (TopDownGrid, add_scale_bar, draw_label_image, draw_trajectory,
                            legend_handles, top_labels)
+from tisem.viz.sources import open_run_scans
 
 __all__ = ["render_comparison", "load_results", "region_accuracy", "DEFAULT_REGION_M"]
 
@@ -37,8 +37,6 @@ def load_results(results_dir: str | os.PathLike) -> tuple[dict, dict]:
         raise FileNotFoundError(f"{run_path}: not found; is {results_dir} a tisem results folder?")
     with open(run_path) as f:
         run = json.load(f)
-    if "data" not in run:
-        raise ValueError(f"{run_path}: no 'data' entry (the input sequence folder)")
     config_path = results_dir / "config.yaml"
     config = {}
     if config_path.is_file():
@@ -53,26 +51,6 @@ def region_accuracy(pred: np.ndarray, gt: np.ndarray) -> tuple[float | None, int
     valid = gt != 0
     n = int(np.count_nonzero(valid))
     return (float(np.mean(pred[valid] == gt[valid])) if n else None), n
-
-
-def _resolve_data(run: dict, results_dir: Path) -> Path:
-    data = Path(run["data"])
-    if not data.is_absolute() and not data.exists() and (results_dir / data).exists():
-        data = results_dir / data          # a results folder moved together with its data
-    return data
-
-
-def _open_sequence(data: Path, run: dict, config: dict) -> tuple[SemanticKittiSequence, str]:
-    """The input sequence with the network's labels as input when it has them."""
-    kwargs = dict(sequence=run.get("sequence"), first=int(run.get("first", config.get("first", 0))),
-                  last=run.get("last", config.get("last")))
-    try:
-        return SemanticKittiSequence(data, input="predictions", **kwargs), "network labels"
-    except DatasetError:
-        fallback = config.get("input", "labels")
-        if fallback == "predictions":
-            raise
-        return SemanticKittiSequence(data, input=fallback, **kwargs), f"input ({fallback})"
 
 
 def _map_predictions_dir(results_dir: Path, sequence_name: str) -> Path:
@@ -120,14 +98,15 @@ def render_comparison(results_dir: str | os.PathLike, out: str | os.PathLike | N
     """
     results_dir = Path(results_dir)
     run, config = load_results(results_dir)
-    seq, input_title = _open_sequence(_resolve_data(run, results_dir), run, config)
+    seq = open_run_scans(run, config, results_dir, results_dir / "run.json")
+    input_title = seq.input_title
     pred_dir = _map_predictions_dir(results_dir, seq.sequence_name)
 
     run_ids = set(int(i) for i in run.get("scan_ids", seq.scan_ids))
     positions = {k: seq.poses_lidar[k][:3, 3] for k, sid in enumerate(seq.scan_ids)
                  if sid in run_ids and seq.has_pose[k]}
     if not positions:
-        raise ValueError(f"{results_dir}: no scan of the run has a pose in {seq.sequence_dir}")
+        raise ValueError(f"{results_dir}: no scan of the run has a pose in {seq.origin}")
     trajectory = np.array([positions[k][:2] for k in sorted(positions)])
     if scan is not None:
         chosen = [k for k in positions if seq.scan_ids[k] == int(scan)]
@@ -150,11 +129,9 @@ def render_comparison(results_dir: str | os.PathLike, out: str | os.PathLike | N
     # gather the region's points with their three labelings
     parts = {"xy": [], "z": [], "net": [], "map": [], "gt": []}
     used, skipped = [], []
-    for k in chosen:
-        try:
-            s = seq[k]
-        except ScanError as exc:
-            skipped.append(f"{seq.scan_ids[k]}: {exc}")
+    for k, s in seq.load(chosen):
+        if isinstance(s, str):                       # why the scan cannot be read
+            skipped.append(s)
             continue
         mapped = _map_labels(pred_dir / f"{s.index:06d}.label", s)
         if mapped is None:
