@@ -33,6 +33,10 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+
+if not __package__:        # run as `python benchmarks/NAME.py`: import from the checkout
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
 from benchmarks.common import KITTI_MINI, benchmark_main, device_line  # noqa: E402
 from tisem.backend import init_taichi  # noqa: E402
 from tisem.config import MapperConfig, RunConfig, set_value  # noqa: E402

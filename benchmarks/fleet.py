@@ -21,6 +21,10 @@ import sys
 import time
 from pathlib import Path
 
+
+if not __package__:        # run as `python benchmarks/NAME.py`: import from the checkout
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
 from benchmarks.common import benchmark_main, device_line, peak_rss_mb, write_json
 
 MODES = ("csm", "bki", "spatial", "adaptive", "st")

@@ -30,6 +30,10 @@ from pathlib import Path
 
 import numpy as np
 
+
+if not __package__:        # run as `python benchmarks/NAME.py`: import from the checkout
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
 from benchmarks.common import benchmark_main
 
 GIB = 1 << 30

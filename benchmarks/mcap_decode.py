@@ -23,6 +23,10 @@ import tempfile
 import time
 from pathlib import Path
 
+
+if not __package__:        # run as `python benchmarks/NAME.py`: import from the checkout
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
 from benchmarks.common import benchmark_main
 
 

@@ -18,6 +18,11 @@ import time
 
 import numpy as np
 
+
+from pathlib import Path
+if not __package__:        # run as `python benchmarks/NAME.py`: import from the checkout
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
 from benchmarks.common import benchmark_main
 
 

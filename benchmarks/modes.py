@@ -13,6 +13,10 @@ import logging
 import sys
 from pathlib import Path
 
+
+if not __package__:        # run as `python benchmarks/NAME.py`: import from the checkout
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
 from benchmarks.common import KITTI_MINI, benchmark_main, device_line
 
 MODES = ("csm", "bki", "spatial", "adaptive", "st")

@@ -13,6 +13,11 @@ import argparse
 import sys
 import time
 
+
+from pathlib import Path
+if not __package__:        # run as `python benchmarks/NAME.py`: import from the checkout
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
 from benchmarks.common import (add_data_args, benchmark_main, device_line, load_scans, median,
                                peak_rss_mb, replay)
 

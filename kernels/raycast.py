@@ -19,9 +19,9 @@ import functools
 
 import taichi as ti
 
-from kernels.fusion import decay_voxel_to
-from kernels.params import ScanParams
-from kernels.rasterize import to_local
+from tisem.kernels.fusion import decay_voxel_to
+from tisem.kernels.params import ScanParams
+from tisem.kernels.rasterize import to_local
 
 # parameters of one ray's faces closer than this (fractions of the ray) count as one: a ray
 # through a voxel edge or corner steps every axis at once

@@ -4,7 +4,7 @@ and rays shorter than their margin."""
 import numpy as np
 import pytest
 
-from kernels import raycast
+from tisem.kernels import raycast
 
 MAX_VOXELS = 2048
 

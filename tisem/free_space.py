@@ -25,9 +25,9 @@ import dataclasses
 import numpy as np
 from taichi.lang.argpack import ArgPack
 
-from kernels import raycast
-from kernels.layout import MapFields
-from kernels.params import EXPONENTIAL, FORGET, PER_CLASS
+from tisem.kernels import raycast
+from tisem.kernels.layout import MapFields
+from tisem.kernels.params import EXPONENTIAL, FORGET, PER_CLASS
 from tisem.config import MapperConfig
 from tisem.labels import MOVABLE_CLASSES
 from tisem.live_window import ivec
