@@ -34,9 +34,10 @@ class DropLog:
     ANOMALIES = {"dropped_nonfinite": "non-finite (NaN/inf) points",
                  "unknown_raw_ids": "unknown raw ids (mapped to 0)",
                  "dropped_far": "implausibly far points (> 1 km)",
+                 "dropped_band": "points outside the height band (unmapped)",
                  "dropped_window": "points outside the map's index window"}
     COUNTS = ("dropped_nonfinite", "unknown_raw_ids", "dropped_range", "dropped_far",
-              "dropped_window")
+              "dropped_band", "dropped_window")
 
     def __init__(self, totals: dict | None = None, scans: list[dict] | None = None):
         self.totals = {k: 0 for k in self.COUNTS}
@@ -69,7 +70,7 @@ class DropLog:
         counts = {"dropped_nonfinite": report.dropped_nonfinite,
                   "unknown_raw_ids": scan.source.unknown_raw_ids if scan.source else 0,
                   "dropped_range": report.dropped_range, "dropped_far": report.dropped_far,
-                  "dropped_window": report.dropped_window}
+                  "dropped_band": report.dropped_band, "dropped_window": report.dropped_window}
         for k, v in counts.items():
             self.totals[k] += int(v)
         anomalies = {k: int(counts[k]) for k in self.ANOMALIES if counts[k]}

@@ -47,8 +47,9 @@ def run_metrics(progress: RunProgress, final: Confusion, mapper: Mapper, cfg: Ru
 
 
 def results_table(metrics: dict) -> str:
-    """The end-of-run table: network input vs the map, both protocols, then one summary line
-    (scans mapped and skipped, time per scan, voxels)."""
+    """The end-of-run table: network input vs the map, both protocols, then a summary (scans
+    mapped and skipped, time per scan, voxels; the points left unmapped by the height band and
+    by the range band, counted apart)."""
     rows = []
     if metrics["evaluated"]:
         mode = metrics["mode"]
@@ -59,4 +60,8 @@ def results_table(metrics: dict) -> str:
     text += (f"\n\n{metrics['scans']} scans mapped, {len(metrics['skipped'])} skipped; "
              f"{sps * 1000 if sps else float('nan'):.1f} ms per scan (median); "
              f"{metrics['active_voxels']:,} voxels")
+    dropped = metrics.get("dropped") or {}
+    band, out_of_range = dropped.get("dropped_band", 0), dropped.get("dropped_range", 0)
+    text += (f"\nunmapped points: {band:,} outside the height band, {out_of_range:,} outside "
+             f"the range band")
     return text
