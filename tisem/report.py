@@ -15,7 +15,8 @@ if TYPE_CHECKING:
 __all__ = ["METRIC_KEYS", "run_metrics", "results_table"]
 
 # the figures of each protocol that metrics.json keeps
-METRIC_KEYS = ("miou", "miou_all", "accuracy", "wiou", "oa_paper", "per_class_iou", "points")
+METRIC_KEYS = ("miou", "miou_all", "accuracy", "wiou", "oa_paper", "per_class_iou",
+               "present_classes", "points")
 
 
 def _summary(conf: Confusion) -> dict:
