@@ -110,7 +110,8 @@ def test_rasterize_filter_entropy_query_on_known_points(taichi_cpu):
     world = np.concatenate(pts)
     labels = np.concatenate(labels).astype(np.int32)
     sensor = (world - T[:3, 3]) @ T[:3, :3]
-    # dropped before rasterisation: out of range (far, too near, above the band), non-finite
+    # dropped before rasterisation: out of range (far, too near), above the height band,
+    # non-finite
     extra = np.array([[25.0, 0, 0], [0.3, 0.2, 0.1], [3.0, 0, 6.0], [np.nan, 1, 1],
                       [1, np.inf, 1]])
     sensor = np.concatenate([sensor, extra])

@@ -321,7 +321,8 @@ def test_debug_scan_at_the_edge_of_the_window(debug_map):
     n = len(out.edge_range)
     in_range = (out.edge_range <= 20.0) & (out.edge_range >= 2.0)
     for rep in out.edge_reports:
-        assert rep.used + rep.dropped_range + rep.dropped_window + rep.dropped_nonfinite == n
+        assert rep.used + rep.dropped_range + rep.dropped_band + rep.dropped_window \
+            + rep.dropped_nonfinite == n
         assert rep.dropped_range == np.count_nonzero(~in_range)
     first = out.edge_reports[0]
     assert first.dropped_window == 0          # a level sensor: every point in range fits
