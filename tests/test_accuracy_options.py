@@ -184,8 +184,9 @@ def test_bad_accuracy_options_are_one_line(assignment, said):
 
 
 def test_accuracy_option_defaults():
-    cfg = load_config(overrides=["thin_classes=[]"]).mapper
+    cfg = load_config(overrides=["thin_classes=[]", "query_blend=off"]).mapper
     assert cfg.thin_classes == [] and np.isinf(cfg.evidence_caps_m).all()
+    assert cfg.query_blend == "off"         # (YAML reads an unquoted off as false)
     cfg = MapperConfig()
     assert (cfg.min_z_m, cfg.max_z_m, cfg.query_blend, cfg.query_radius_m) == \
         (-20.0, 20.0, "missing", 0.4)

@@ -161,7 +161,7 @@ MAPPER_RULES = {
     "ell_fixed_vox": Number(float, 0.0, 100.0, low_open=True, unit="voxels"),
     "point_weight": Choice(("count", "unit")),
     "thin_classes": ClassNames(),
-    "query_blend": Choice(QUERY_BLENDS),
+    "query_blend": Choice(QUERY_BLENDS, off_word="off"),
     # the blend reads the (2 R / resolution + 1)^3 voxels around a point: a few metres at most
     "query_radius_m": Number(float, 0.0, 5.0, low_open=True, unit="m"),
     # 1/tau is a float32 in the kernels; below 1 us every decay is exp(-1e5) = 0 anyway (mode

@@ -79,11 +79,15 @@ class Number:
 
 @dataclass(frozen=True)
 class Choice:
-    """One of a few words."""
+    """One of a few words. `off_word`: the option that YAML's `off` means (YAML 1.1 reads an
+    unquoted off, no or false as the boolean false)."""
 
     options: tuple[str, ...]
+    off_word: str | None = None
 
     def check(self, key: str, value, where: str = ""):
+        if value is False and self.off_word is not None:
+            return self.off_word
         if not isinstance(value, str) or value not in self.options:
             raise ConfigError(f"{_prefix(where, key, value)}: expected one of "
                               f"{', '.join(self.options)}")
