@@ -6,6 +6,10 @@ within its own kernel length L(v), then folds the sum into its counters. The wor
 grows with L(v)^3, so low-entropy voxels (short kernels) are cheap: the adaptive kernel pays
 only where the map is uncertain. No atomics: each voxel is written by one thread.
 
+Evidence caps (settings.evidence_caps): the evidence of class c reaches receiver v with the
+kernel of length min(L(v), cap_c), a per-class table read and a max per (hit, class); L(v)
+itself, and with it every distance test, is unchanged.
+
 Training points are sorted by leaf block, the blocks of each (x, y) column of the table one
 after another in z, and a block's rows by voxel, z layer by z layer (kernels/training.py): a
 voxel reads, per column its kernel sphere touches, the one slice of rows in the voxel layers
@@ -14,6 +18,7 @@ the sphere reaches there, not every voxel cell within reach.
 import functools
 import math
 
+import numpy as np
 import taichi as ti
 
 from tisem.kernels.entropy import fresh_length
@@ -92,34 +97,62 @@ def voxel_centre(wb, local, resolution):
     return ((wb * LEAF + local).cast(ti.f32) + 0.5) * resolution
 
 
+def evidence_cap_table(caps_m: np.ndarray) -> np.ndarray:
+    """The update's per-class table of evidence caps: 1 / cap_c^2 (float32), 0 for no cap
+    (an infinite cap_c)."""
+    caps = np.asarray(caps_m, np.float64)
+    return np.where(np.isfinite(caps), 1.0 / np.square(caps), 0.0).astype(np.float32)
+
+
+@ti.func
+def capped_kernel(m: ti.template(), d2, inv_ell2, cap_inv2):
+    """g for evidence at squared distance d2 from a receiver of length L (inv_ell2 = 1 / L^2),
+    of a class whose evidence reaches at most cap (cap_inv2 = 1 / cap^2, 0 for no cap): the
+    kernel of length min(L, cap), 0 beyond it."""
+    r2 = d2 * ti.max(inv_ell2, cap_inv2)
+    k = sparse_kernel_of_r2(m, r2)
+    if r2 >= 1.0:       # the table's last entry is g(1) in float32, a little above 0
+        k = 0.0
+    return k
+
+
 @ti.func
 def add_hits(m: ti.template(), acc: ti.template(), hit_p: ti.template(), hit_r2: ti.template(),
              n_hits, inv_ell2, hist: ti.template(), classes: ti.template(),
-             single: ti.template()):
+             single: ti.template(), cap_inv2: ti.template(), capped: ti.template()):
     """Add to acc the kernel-weighted evidence of the first n_hits training rows of the hit
-    list (local vectors by reference: by value, Taichi copied all three at every call)."""
+    list (local vectors by reference: by value, Taichi copied all three at every call).
+    `capped`: each class's evidence takes the kernel of its own cap (`cap_inv2`, per class)."""
     for h in range(n_hits):
         p = hit_p[h]
-        k = sparse_kernel_of_r2(m, hit_r2[h] * inv_ell2)
+        k = 0.0
+        if ti.static(not capped):
+            k = sparse_kernel_of_r2(m, hit_r2[h] * inv_ell2)
         c1 = single[p]
         if c1 > 0:      # one class: the common case
+            if ti.static(capped):
+                k = capped_kernel(m, hit_r2[h], inv_ell2, cap_inv2[c1])
             acc[c1] += k * hist[p, c1]
         else:
             mask = classes[p]
             for c in ti.static(range(1, m.C)):
                 if mask & (1 << c):
+                    if ti.static(capped):
+                        k = capped_kernel(m, hit_r2[h], inv_ell2, cap_inv2[c])
                     acc[c] += k * hist[p, c]
 
 
 @functools.cache
 def update_kernel(settings: KernelSettings):
-    """The kernel update for one kernel-length rule, decay and parallel loop (`settings`)."""
+    """The kernel update for one kernel-length rule, decay, parallel loop and evidence caps
+    (`settings`)."""
     decay = settings.decay
+    capped = settings.evidence_caps
 
     @ti.func
     def update_voxel(m: ti.template(), u, stored, centre, base, blk_m, t_rel, inv_tau, sigma0,
                      prior, ell_min, ell_max, xyz: ti.template(), hist: ti.template(),
-                     classes: ti.template(), single: ti.template()):
+                     classes: ti.template(), single: ti.template(), cap_inv2: ti.template()):
         """One live voxel (`stored` = m.length[u]: its kernel length, or a pending mark): its
         length if the scan brought it evidence, the kernel-weighted sum over the training
         points within that length, and the fusion.
@@ -190,9 +223,10 @@ def update_kernel(settings: KernelSettings):
                                 n_hits += ti.cast(d2 < ell2, ti.i32)
                                 if n_hits == HITS:
                                     add_hits(m, acc, hit_p, hit_r2, n_hits, inv_ell2, hist,
-                                             classes, single)
+                                             classes, single, cap_inv2, capped)
                                     n_hits = 0
-            add_hits(m, acc, hit_p, hit_r2, n_hits, inv_ell2, hist, classes, single)
+            add_hits(m, acc, hit_p, hit_r2, n_hits, inv_ell2, hist, classes, single, cap_inv2,
+                     capped)
             acc *= sigma0
             if acc.sum() > MIN_UPDATE:
                 fuse_voxel(m, u, acc, t_rel, inv_tau, decay)
@@ -202,7 +236,8 @@ def update_kernel(settings: KernelSettings):
                       xyz: ti.types.ndarray(dtype=ti.f32, ndim=2),      # (K, 3) training points
                       hist: ti.types.ndarray(dtype=ti.f32, ndim=2),     # (K, C) block-sorted
                       classes: ti.types.ndarray(dtype=ti.i32, ndim=1),  # (K,) bit c: hist > 0
-                      single: ti.types.ndarray(dtype=ti.i32, ndim=1)):  # (K,) the one class
+                      single: ti.types.ndarray(dtype=ti.i32, ndim=1),   # (K,) the one class
+                      cap_inv2: ti.types.ndarray(dtype=ti.f32, ndim=1)):  # (C,) 1 / cap^2
         """The update of every live voxel a training point can reach.
 
         The parallel loop (settings.per_voxel): on a CPU one task per leaf block (two threads,
@@ -220,7 +255,8 @@ def update_kernel(settings: KernelSettings):
                     local = u - B * LEAF
                     update_voxel(m, u, m.length[u], voxel_centre(wb, local, s.resolution_m),
                                  base, blk_m, s.time_rel_s, s.inv_tau, s.sigma0, s.prior,
-                                 s.length_min_m, s.length_max_m, xyz, hist, classes, single)
+                                 s.length_min_m, s.length_max_m, xyz, hist, classes, single,
+                                 cap_inv2)
         else:
             for B in ti.grouped(m.blk):
                 wb, near = reached_block(m, B, center_blk, s.stamp)
@@ -238,6 +274,6 @@ def update_kernel(settings: KernelSettings):
                                          voxel_centre(wb, local, s.resolution_m), base, blk_m,
                                          s.time_rel_s, s.inv_tau, s.sigma0, s.prior,
                                          s.length_min_m, s.length_max_m, xyz, hist, classes,
-                                         single)
+                                         single, cap_inv2)
 
     return gather_update

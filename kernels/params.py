@@ -60,6 +60,9 @@ class KernelSettings:
     kernel_length: str = ADAPTIVE_LENGTH
     decay: str = EXPONENTIAL
     unit_weight: bool = False   # a training voxel weighs once, not by its point count
+    # some classes' evidence reaches less far than the receiver's length: the update reads a
+    # per-class table (kernels/bki.py); off, the update never reads it
+    evidence_caps: bool = False
     per_voxel: bool = False     # the update's parallel loop: per voxel (GPUs), per block (CPUs)
 
     def __post_init__(self):

@@ -1,15 +1,69 @@
 """Step 9 and the map's host interface: query, count, export, import."""
+import functools
+
 import taichi as ti
+
+from tisem.kernels.bki import sparse_kernel
+
+
+@ti.func
+def inside_window(w, center, half):
+    off = ti.abs(w - center)
+    return off[0] <= half[0] and off[1] <= half[1] and off[2] <= half[2]
+
+
+@ti.func
+def blended_posterior(m: ti.template(), w, x, center, half, radius_m, inv_res):
+    """Sum over the live voxels whose centres lie within radius_m of local point x (world
+    voxel w) of g(d / radius) times the voxel's normalised counters: the continuous map's
+    answer between its voxels (voxels the window does not hold are not read)."""
+    reach = ti.cast(ti.ceil(radius_m * inv_res), ti.i32)
+    res = 1.0 / inv_res
+    acc = ti.Vector([0.0] * m.C)
+    for dx in range(-reach, reach + 1):
+        for dy in range(-reach, reach + 1):
+            for dz in range(-reach, reach + 1):
+                v = w + ti.Vector([dx, dy, dz])
+                d = (x - (v.cast(ti.f32) + 0.5) * res).norm()
+                if d < radius_m and inside_window(v, center, half):
+                    u = m.wrap(v)
+                    total = 0.0
+                    for c in ti.static(range(m.C)):
+                        total += m.counts[u, c]
+                    if total > 0:
+                        k = sparse_kernel(d / radius_m) / total
+                        for c in ti.static(range(m.C)):
+                            acc[c] += k * m.counts[u, c]
+    return acc
+
+
+@ti.func
+def answer(m: ti.template(), values, p, out_label: ti.template(), out_prob: ti.template(),
+           with_prob):
+    """Point p's label (the argmax of values, 0 when all are 0) and, with_prob, the values
+    normalised."""
+    best = 0
+    best_v = 0.0
+    total = 0.0
+    for c in ti.static(range(m.C)):
+        v = values[c]
+        total += v
+        if v > best_v:
+            best_v = v
+            best = c
+    if with_prob:
+        for c in ti.static(range(m.C)):
+            out_prob[p, c] = values[c] / total if total > 0 else 0.0
+    out_label[p] = best
 
 
 @ti.func
 def lookup(m: ti.template(), w, center, half, p, out_label: ti.template(),
            out_inside: ti.template(), out_prob: ti.template(), with_prob):
     """Answer query point p, whose world voxel is w: argmax and normalised counters."""
-    off = ti.abs(w - center)
     best = 0
     inside = 0
-    if off[0] <= half[0] and off[1] <= half[1] and off[2] <= half[2]:
+    if inside_window(w, center, half):
         inside = 1
         u = m.wrap(w)
         best_v = 0.0
@@ -30,24 +84,40 @@ def lookup(m: ti.template(), w, center, half, p, out_label: ti.template(),
     out_inside[p] = inside
 
 
-@ti.kernel
-def query(m: ti.template(),
-          pts: ti.types.ndarray(dtype=ti.f32, ndim=2),        # (N, 3) local coordinates, m
-          center: ti.types.vector(3, ti.i32), half: ti.types.vector(3, ti.i32), inv_res: ti.f32,
-          with_prob: ti.i32,                                  # 1: write out_prob
-          out_label: ti.types.ndarray(dtype=ti.i32, ndim=1),  # (N,) train id, 0: no evidence
-          out_inside: ti.types.ndarray(dtype=ti.i32, ndim=1),  # (N,) 1: the window covers it
-          out_prob: ti.types.ndarray(dtype=ti.f32, ndim=2)):  # (N, C), or (0, C): unused
-    """Labels (and probabilities) of the points whose voxel the live window holds, the window
-    being the box |w - center| <= half.
+@functools.cache
+def query_kernel(blend: bool):
+    """The query kernel: voxel lookups only, or (`blend`) with the blended posterior for the
+    points in the window whose voxel holds no evidence."""
 
-    `with_prob` is a runtime flag on purpose: as a compile-time choice, the compiler vectorises
-    the 20-class total into a tree of additions in the kernel that writes probabilities, which
-    rounds some of them differently in the last bit.
-    """
-    for p in range(out_label.shape[0]):
-        w = ti.floor(ti.Vector([pts[p, 0], pts[p, 1], pts[p, 2]]) * inv_res, ti.i32)
-        lookup(m, w, center, half, p, out_label, out_inside, out_prob, with_prob)
+    @ti.kernel
+    def query(m: ti.template(),
+              pts: ti.types.ndarray(dtype=ti.f32, ndim=2),        # (N, 3) local coordinates, m
+              center: ti.types.vector(3, ti.i32), half: ti.types.vector(3, ti.i32),
+              inv_res: ti.f32,
+              with_prob: ti.i32,                                  # 1: write out_prob
+              radius_m: ti.f32,                                   # blend: the query radius
+              out_label: ti.types.ndarray(dtype=ti.i32, ndim=1),  # (N,) train id, 0: no evidence
+              out_inside: ti.types.ndarray(dtype=ti.i32, ndim=1),  # (N,) 1: the window covers it
+              out_prob: ti.types.ndarray(dtype=ti.f32, ndim=2)):  # (N, C), or (0, C): unused
+        """Labels (and probabilities) of the points whose voxel the live window holds, the
+        window being the box |w - center| <= half.
+
+        `with_prob` is a runtime flag on purpose: as a compile-time choice, the compiler
+        vectorises the 20-class total into a tree of additions in the kernel that writes
+        probabilities, which rounds some of them differently in the last bit.
+        """
+        for p in range(out_label.shape[0]):
+            x = ti.Vector([pts[p, 0], pts[p, 1], pts[p, 2]])
+            w = ti.floor(x * inv_res, ti.i32)
+            lookup(m, w, center, half, p, out_label, out_inside, out_prob, with_prob)
+            if ti.static(blend):
+                # a point in the window whose voxel has no evidence (label 0: class 0 is never
+                # evidence): the voxels around it
+                if out_inside[p] == 1 and out_label[p] == 0:
+                    answer(m, blended_posterior(m, w, x, center, half, radius_m, inv_res), p,
+                           out_label, out_prob, with_prob)
+
+    return query
 
 
 @ti.kernel

@@ -22,7 +22,7 @@ from tisem.kernels.params import ScanParams
 
 # what happened to a point (locate), and the slots of the counts the locate kernel returns (the
 # last one: how many leaf blocks the kept points fall in)
-USED, OUT_OF_RANGE, OUT_OF_WINDOW, IMPLAUSIBLY_FAR, BLOCKS = 0, 1, 2, 3, 4
+USED, OUT_OF_RANGE, OUT_OF_WINDOW, IMPLAUSIBLY_FAR, OUT_OF_BAND, BLOCKS = 0, 1, 2, 3, 4, 5
 CORRUPT_RANGE_M = 1000.0   # no LiDAR returns from this far: such points are corrupt data
 EVIDENCE = LEAF ** 3   # bit of a point's voxel code: the point carries class evidence
 DROPPED = -1           # a point's cell when it is not used
@@ -45,14 +45,17 @@ def to_local(R, p, translation):
 
 @ti.func
 def locate(p, s: ti.template()):
-    """What becomes of sensor-frame point p (USED, OUT_OF_RANGE, OUT_OF_WINDOW or
-    IMPLAUSIBLY_FAR, a kind of out of range), and its world voxel."""
+    """What becomes of sensor-frame point p (USED, OUT_OF_RANGE, OUT_OF_BAND: in range but
+    outside the height band, OUT_OF_WINDOW or IMPLAUSIBLY_FAR, a kind of out of range), and its
+    world voxel."""
     fate = USED
     q = to_local(s.rotation, p, s.translation_m)
     w = ti.floor(q * s.inv_resolution, ti.i32)
     r2 = p.dot(p)
-    if r2 < s.min_range2_m2 or r2 > s.max_range2_m2 or p[2] < s.min_z_m or p[2] > s.max_z_m:
+    if r2 < s.min_range2_m2 or r2 > s.max_range2_m2:
         fate = IMPLAUSIBLY_FAR if r2 > CORRUPT_RANGE_M * CORRUPT_RANGE_M else OUT_OF_RANGE
+    elif p[2] < s.min_z_m or p[2] > s.max_z_m:
+        fate = OUT_OF_BAND
     else:
         off = ti.abs(w - s.center_vox)
         limit = s.limit_vox
@@ -86,19 +89,20 @@ def locate_kernel(use_probs: bool):
                       cell: ti.types.ndarray(dtype=ti.i32, ndim=1),    # (N,) out: table cell id
                       code: ti.types.ndarray(dtype=ti.i32, ndim=1),    # (N,) out: voxel in block
                       blocks: ti.types.ndarray(dtype=ti.i32, ndim=1)   # (N,) out: occupied cells
-                      ) -> ti.types.vector(5, ti.i32):
+                      ) -> ti.types.vector(6, ti.i32):
         """Count every kept point in its block's cell (p_count), list the cells that get points
         (`blocks`, in no particular order) and widen their columns' z-ranges.
 
         Writes each point's cell id (DROPPED if not kept) and its voxel's index in the block,
         plus EVIDENCE if the point carries class evidence. Returns the number of points per fate
-        (index USED, OUT_OF_RANGE, ...; implausibly far points are also counted as out of
-        range) and, at index BLOCKS, the number of occupied cells.
+        (index USED, OUT_OF_RANGE, OUT_OF_BAND, ...; implausibly far points are also counted as
+        out of range) and, at index BLOCKS, the number of occupied cells.
         """
         m.counter[None] = 0
         # kernel-scope counters: Taichi keeps them per thread and adds them up at the end, where
         # one shared atomic counter per point made the two threads fight over a cache line
         out_of_range = 0
+        out_of_band = 0
         out_of_window = 0
         far = 0
         center_blk = ti.floor(s.center_vox / LEAF, ti.i32)
@@ -111,6 +115,8 @@ def locate_kernel(use_probs: bool):
             elif fate == IMPLAUSIBLY_FAR:
                 out_of_range += 1
                 far += 1
+            elif fate == OUT_OF_BAND:
+                out_of_band += 1
             elif fate == OUT_OF_WINDOW:
                 out_of_window += 1
             else:
@@ -123,8 +129,8 @@ def locate_kernel(use_probs: bool):
                     blocks[ti.atomic_add(m.counter[None], 1)] = cell[n]
                     ti.atomic_min(m.col_lo[i[0], i[1]], i[2])
                     ti.atomic_max(m.col_hi[i[0], i[1]], i[2])
-        return ti.Vector([pts.shape[0] - out_of_range - out_of_window, out_of_range,
-                          out_of_window, far, m.counter[None]])
+        return ti.Vector([pts.shape[0] - out_of_range - out_of_band - out_of_window,
+                          out_of_range, out_of_window, far, out_of_band, m.counter[None]])
 
     return locate_points
 

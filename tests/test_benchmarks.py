@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from benchmarks import kernel_length, modes, throughput
+from benchmarks import kernel_length, modes, peers, throughput
 from tisem.mapper import STAGES
 
 REPO = Path(__file__).resolve().parents[1]
@@ -60,3 +60,44 @@ def test_modes_benchmark_runs(tiny_sequence, tmp_path, capsys):
     assert [r["row"] for r in rows][-2:] == ["csm", "st"]
     assert all(0.5 < r["accuracy"] <= 1 for r in rows)
     assert "| st |" in capsys.readouterr().out
+
+
+@pytest.mark.slow
+def test_peers_benchmark_runs_tisem(tiny_sequence, tmp_path, capsys):
+    """tisem's rows on two held-out splits, each mapped alone; S-BKI's need its driver."""
+    out = tmp_path / "p.json"
+    assert peers.main(["--data", str(tiny_sequence), "--splits", "0-1", "2-3", "--methods", "st",
+                       "bki4", "--rounds", "1", "--out", str(tmp_path / "runs"),
+                       "--json", str(out)]) == 0
+    rows = json.loads(out.read_text())["rows"]
+    assert [(r["split"], r["method"]) for r in rows] == [
+        (s, m) for s in ("0-1", "2-3") for m in ("network input", "st", "bki4")]
+    for r in rows:
+        assert 0.5 < r["accuracy"] <= 1 and r["per_class_iou"] and r["present_classes"]
+        assert r["method"] == "network input" or r["seconds_per_scan"] > 0
+    assert "| 2-3 | st |" in capsys.readouterr().out
+
+
+@pytest.mark.slow
+def test_peers_benchmark_runs_sbki(tiny_sequence, tmp_path, capsys):
+    if not peers.SBKI_BIN.is_file():
+        pytest.skip(f"S-BKI is not built ({peers.SBKI_BIN}): bash ../shared/peers/sbki/build.sh")
+    out = tmp_path / "p.json"
+    assert peers.main(["--data", str(tiny_sequence), "--splits", "0-3", "--methods", "csm",
+                       "sbki-upstream", "--rounds", "1", "--out", str(tmp_path / "runs"),
+                       "--json", str(out)]) == 0
+    rows = {r["method"]: r for r in json.loads(out.read_text())["rows"]}
+    assert rows["sbki-upstream"]["seconds_per_scan"] > 0
+    assert 0.5 < rows["sbki-upstream"]["accuracy"] <= 1
+    assert "| 0-3 | sbki-upstream |" in capsys.readouterr().out
+
+
+def test_peers_benchmark_skips_an_unbuilt_peer(tiny_sequence, tmp_path, capsys):
+    out = tmp_path / "p.json"
+    assert peers.main(["--data", str(tiny_sequence), "--splits", "0-3", "--methods", "csm",
+                       "sbki-tuned", "--rounds", "1", "--sbki-bin", str(tmp_path / "none"),
+                       "--out", str(tmp_path / "runs"), "--json", str(out)]) == 0
+    r = json.loads(out.read_text())
+    assert [x["method"] for x in r["rows"]] == ["network input", "csm"]
+    assert "sbki-tuned" in r["skipped"]
+    assert "skipped sbki-tuned: S-BKI is not built" in capsys.readouterr().out

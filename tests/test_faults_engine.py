@@ -74,7 +74,8 @@ def test_a_dense_scan_is_cut_to_the_block_cap_and_later_scans_still_map(taichi_c
     assert 0 < mapper.live_blocks <= CAP // 2
     kept = trace.scans[-1].cut_points
     assert rep.used == len(kept) and rep.dropped_dense > 0
-    assert rep.used + rep.dropped_dense + rep.dropped_range + rep.dropped_window == len(pts)
+    assert rep.used + rep.dropped_dense + rep.dropped_range + rep.dropped_band \
+        + rep.dropped_window == len(pts)
     assert f"{rep.used:,} points mapped, {rep.dropped_dense:,} dropped" in line[0]
     # the nearest blocks: every kept point lies closer to the sensor than the ones dropped
     r = np.linalg.norm(pts, axis=1)

@@ -89,7 +89,7 @@ def test_sizes_hold_every_scan_and_its_kernels(seed):
 
 
 def test_impossible_configs_are_refused_with_the_figure():
-    with pytest.raises(ValueError, match=r"must hold the scan .*need >= 82.0 m / 10.0 m"):
+    with pytest.raises(ValueError, match=r"must hold the scan .*need >= 82.0 m / 22.0 m"):
         MapGeometry.from_config(MapperConfig(window_xy_m=60.0))
     with pytest.raises(ValueError, match=r"longer than 2 leaf blocks \(1.60 m at 0.2 m voxels\)"):
         MapGeometry.from_config(MapperConfig(ell_max_m=2.0, window_xy_m=110.0))

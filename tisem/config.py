@@ -18,8 +18,9 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from tisem.config_rules import (INPUTS, MAX_CLASSES, MODES, Choice, Flag, Folder, Number,
-                                check_fields, read_yaml, yaml_value)
+from tisem.config_rules import (INPUTS, MAX_CLASSES, MODES, QUERY_BLENDS, THIN_CLASSES, Choice,
+                                ClassNames, Flag, Folder, Number, check_fields, read_yaml,
+                                yaml_value)
 from tisem.errors import ConfigError
 
 __all__ = ["MODES", "INPUTS", "MAX_CLASSES", "MapperConfig", "RunConfig", "ConfigError",
@@ -37,8 +38,11 @@ class MapperConfig:
     # 1. preprocess: points outside [min_range, max_range] or the height band are dropped
     min_range_m: float = 2.0         # the ego vehicle's own returns
     max_range_m: float = 80.0
-    min_z_m: float = -4.0            # height band relative to the sensor (region of interest)
-    max_z_m: float = 8.0
+    # the height band, relative to the sensor: it crops only what is physically implausible
+    # (a road going downhill lies metres below the sensor, and a point dropped here is unmapped
+    # and scores as wrong); the live window's z half-size must hold it plus the kernel reach
+    min_z_m: float = -20.0
+    max_z_m: float = 20.0
     # 3. redundant voxel filtering
     min_points: int = 1
     # 4.-6. entropy, adaptive length, sparse kernel (defaults measured: README "Parameters")
@@ -50,6 +54,15 @@ class MapperConfig:
     ell_max_m: float = 1.2
     ell_fixed_vox: float = 4.0       # bki: fixed kernel length, in voxels
     point_weight: str = "count"      # count: a training voxel weighs by its points; unit: once
+    # evidence of these classes reaches at most ell_min_m from its training point, whatever the
+    # receiving voxel's length: the network mistakes foliage for trunk and trunk for pole far
+    # more often than the reverse, and a long kernel spreads each such label over a metre
+    # (docs/method.md); [] gives every class the receiver's length
+    thin_classes: list[str] = field(default_factory=lambda: list(THIN_CLASSES))
+    # 9. query: a point in the live window whose voxel holds no evidence takes the
+    # kernel-weighted posterior of the live voxels within query_radius_m (missing), or 0 (off)
+    query_blend: str = "missing"
+    query_radius_m: float = 0.4
     # 8. temporal fusion
     tau_s: float = 5.0               # decay time constant (st mode)
     tau_movable_s: float | None = None   # tau of the movable classes (car ... motorcycle,
@@ -120,6 +133,17 @@ class MapperConfig:
         return self.tau_movable_s
 
     @property
+    def evidence_caps_m(self) -> np.ndarray:
+        """(num_classes,) how far each class's evidence reaches at most, metres (inf: as far
+        as the receiving voxel's kernel); csm has no kernel to cap."""
+        from tisem.labels import CLASS_NAMES
+        caps = np.full(self.num_classes, np.inf)
+        if self.uses_kernel:
+            for name in self.thin_classes:
+                caps[CLASS_NAMES.index(name)] = self.ell_min_m
+        return caps
+
+    @property
     def decay_tau_s(self) -> float:
         """tau for the exp(-dt/tau) decay: inf = plain accumulation, 0 = each scan alone."""
         return {"st": self.tau_s, "spatial": 0.0}.get(self.mode, float("inf"))
@@ -156,6 +180,10 @@ MAPPER_RULES = {
     "ell_max_m": Number(float, 0.0, 100.0, low_open=True, unit="m"),
     "ell_fixed_vox": Number(float, 0.0, 100.0, low_open=True, unit="voxels"),
     "point_weight": Choice(("count", "unit")),
+    "thin_classes": ClassNames(),
+    "query_blend": Choice(QUERY_BLENDS, off_word="off"),
+    # the blend reads the (2 R / resolution + 1)^3 voxels around a point: a few metres at most
+    "query_radius_m": Number(float, 0.0, 5.0, low_open=True, unit="m"),
     # 1/tau is a float32 in the kernels; below 1 us every decay is exp(-1e5) = 0 anyway (mode
     # spatial), and tau = inf is mode adaptive
     "tau_s": Number(float, 1.0e-6, 1.0e12, unit="s"),

@@ -20,6 +20,10 @@ from tisem.errors import ConfigError
 
 MODES = ("st", "adaptive", "spatial", "bki", "csm")
 INPUTS = ("predictions", "labels")
+QUERY_BLENDS = ("missing", "off")
+# the classes whose evidence keeps a short kernel by default (MapperConfig.thin_classes)
+THIN_CLASSES = ("pole", "traffic-sign", "trunk", "person", "bicycle", "bicyclist",
+                "motorcycle", "motorcyclist")
 # kernels/bki.py and kernels/training.py keep the classes a training voxel has evidence for as
 # the bits of an int32 (a literal 1 << 31 overflows it), and unroll their per-class loops:
 # 31 classes at most
@@ -75,15 +79,38 @@ class Number:
 
 @dataclass(frozen=True)
 class Choice:
-    """One of a few words."""
+    """One of a few words. `off_word`: the option that YAML's `off` means (YAML 1.1 reads an
+    unquoted off, no or false as the boolean false)."""
 
     options: tuple[str, ...]
+    off_word: str | None = None
 
     def check(self, key: str, value, where: str = ""):
+        if value is False and self.off_word is not None:
+            return self.off_word
         if not isinstance(value, str) or value not in self.options:
             raise ConfigError(f"{_prefix(where, key, value)}: expected one of "
                               f"{', '.join(self.options)}")
         return value
+
+
+@dataclass(frozen=True)
+class ClassNames:
+    """A list of distinct SemanticKITTI class names (tisem.labels.CLASS_NAMES, not unlabeled)."""
+
+    def check(self, key: str, value, where: str = ""):
+        from tisem.labels import CLASS_NAMES
+        known = CLASS_NAMES[1:]
+        if not isinstance(value, (list, tuple)) or not all(isinstance(v, str) for v in value):
+            raise ConfigError(f"{_prefix(where, key, value)}: expected a list of class names, "
+                              f"e.g. [pole, trunk] or []")
+        for name in value:
+            if name not in known:
+                raise ConfigError(f"{_prefix(where, key, list(value))}: unknown class "
+                                  f"{name!r}; known: {', '.join(known)}")
+        if len(set(value)) != len(value):
+            raise ConfigError(f"{_prefix(where, key, list(value))}: a class is named twice")
+        return list(value)
 
 
 @dataclass(frozen=True)

@@ -288,7 +288,7 @@ class LiveWindow:
 
     # ------------------------------------------------------------------ reading
     def lookup_world(self, points_world: np.ndarray, origin_vox: np.ndarray, labels: np.ndarray,
-                     probs: np.ndarray | None) -> None:
+                     probs: np.ndarray | None, blend_radius_m: float = 0.0) -> None:
         """`lookup` of float64 world points in a map whose local voxel 0 is `origin_vox`: far
         or non-finite points are clamped so that their voxel index fits an int32 in the kernel
         (they land outside the window either way)."""
@@ -299,19 +299,22 @@ class LiveWindow:
             local[~finite] = 0.0
         clamp = min(QUERY_CLAMP_M, QUERY_CLAMP_VOX * res)
         self.lookup(np.clip(local, -clamp, clamp, out=local).astype(np.float32), finite, labels,
-                    probs)
+                    probs, blend_radius_m)
 
     def lookup(self, local: np.ndarray, finite: np.ndarray, labels: np.ndarray,
-               probs: np.ndarray | None) -> None:
+               probs: np.ndarray | None, blend_radius_m: float = 0.0) -> None:
         """Fill labels (N,) and, unless None, probs (N, C) of points at float32 local
         coordinates `local` (N, 3): from the field where the window holds their voxel, else
-        from the store (`finite`: which points have a voxel at all)."""
+        from the store (`finite`: which points have a voxel at all). `blend_radius_m` > 0: a
+        point in the window whose voxel holds no evidence takes the blended posterior of the
+        live voxels within that radius (kernels/query.py)."""
         m, st = self._fields, self.state
         inv_res = 1.0 / self._geometry.resolution_m
         inside = np.zeros(len(local), np.int32)
         out_prob = probs if probs is not None else np.zeros((0, m.C), np.float32)
-        kquery.query(m, local, ivec(st.center_vox), ivec(st.half_vox), inv_res,
-                     int(probs is not None), labels, inside, out_prob)
+        kquery.query_kernel(blend_radius_m > 0)(
+            m, local, ivec(st.center_vox), ivec(st.half_vox), inv_res, int(probs is not None),
+            blend_radius_m, labels, inside, out_prob)
         rest = finite & (inside == 0)
         if len(self.store) and rest.any():
             # the voxel index exactly as the kernel computes it (float32 local * 1/res), so a

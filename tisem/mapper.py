@@ -64,6 +64,7 @@ class IntegrationReport:
     used: int = 0
     dropped_nonfinite: int = 0
     dropped_range: int = 0
+    dropped_band: int = 0           # in range, but outside the height band: unmapped
     dropped_window: int = 0
     dropped_far: int = 0            # of dropped_range: implausibly far (> 1 km), corrupt data
     dropped_dense: int = 0          # a scan too dense for the block cap: points cut away
@@ -80,7 +81,8 @@ def kernel_settings(cfg: MapperConfig, per_voxel: bool) -> KernelSettings:
     length = ADAPTIVE_LENGTH if cfg.adaptive else FIXED_LENGTH if cfg.uses_kernel else NO_KERNEL
     return KernelSettings(kernel_length=length,
                           decay=decay_rule(cfg),
-                          unit_weight=cfg.point_weight == "unit", per_voxel=per_voxel)
+                          unit_weight=cfg.point_weight == "unit", per_voxel=per_voxel,
+                          evidence_caps=bool(np.isfinite(cfg.evidence_caps_m).any()))
 
 
 class Mapper:
@@ -116,6 +118,7 @@ class Mapper:
         self._free = FreeSpace(self._fields, cfg, self._settings.decay) if cfg.free_space else None
         self.window = LiveWindow(self._fields, self.store, self.geometry, cfg.max_live_blocks)
         self._params = self._scan_params()
+        self._cap_inv2 = bki.evidence_cap_table(cfg.evidence_caps_m)
         self.origin_vox: np.ndarray | None = None   # global voxel index of local voxel 0
         self.clock = MapClock(cfg.decay_tau_s)     # map time: seconds since the first scan
         self.scans = 0
@@ -303,6 +306,7 @@ class Mapper:
             pts.blocks)
         report.used = int(stats[rasterize.USED])
         report.dropped_range = int(stats[rasterize.OUT_OF_RANGE]) - report.dropped_nonfinite
+        report.dropped_band = int(stats[rasterize.OUT_OF_BAND])
         report.dropped_window = int(stats[rasterize.OUT_OF_WINDOW])
         report.dropped_far = int(stats[rasterize.IMPLAUSIBLY_FAR]) - report.dropped_nonfinite
         # in table order (x, y, z), so that the per-block passes touch the map block by block
@@ -342,7 +346,8 @@ class Mapper:
         if not settings.uses_kernel:
             fusion.fuse_histograms(m, p, pts.blocks, rows.voxel, rows.hist)
         elif n_rows:
-            bki.update_kernel(settings)(m, p, rows.xyz, rows.hist, rows.classes, rows.single)
+            bki.update_kernel(settings)(m, p, rows.xyz, rows.hist, rows.classes, rows.single,
+                                        self._cap_inv2)
 
     def _check_alive(self) -> None:
         if self._generation != backend.generation():
@@ -366,7 +371,10 @@ class Mapper:
               with_probs: bool = True) -> tuple[np.ndarray, np.ndarray | None]:
         """Labels (N,) int32 train ids and probabilities (N, C) float32 of world points.
 
-        A point in no voxel gets label 0 and all-zero probabilities.
+        A point in the live window whose voxel holds no evidence gets, with query_blend
+        `missing`, the kernel-weighted posterior of the live voxels within query_radius_m;
+        otherwise (none there, query_blend `off`, or a point outside the window and the store)
+        label 0 and all-zero probabilities.
         """
         self._check_alive()
         pts = np.asarray(points_world)
@@ -380,7 +388,8 @@ class Mapper:
         probs = np.zeros((n, self.C), np.float32) if with_probs else None
         if self.origin_vox is None or n == 0:
             return labels, probs
-        self.window.lookup_world(pts, self.origin_vox, labels, probs)
+        blend = self.config.query_radius_m if self.config.query_blend == "missing" else 0.0
+        self.window.lookup_world(pts, self.origin_vox, labels, probs, blend)
         return labels, probs
 
     @property

@@ -34,10 +34,11 @@ class DropLog:
     ANOMALIES = {"dropped_nonfinite": "non-finite (NaN/inf) points",
                  "unknown_raw_ids": "unknown raw ids (mapped to 0)",
                  "dropped_far": "implausibly far points (> 1 km)",
+                 "dropped_band": "points outside the height band (unmapped)",
                  "dropped_window": "points outside the map's index window",
                  "dropped_dense": "points beyond the block cap"}
     COUNTS = ("dropped_nonfinite", "unknown_raw_ids", "dropped_range", "dropped_far",
-              "dropped_window", "dropped_dense")
+              "dropped_band", "dropped_window", "dropped_dense")
     # the mapper's own warning gives these with their numbers: recorded here, not logged again
     SAID_BY_THE_MAPPER = ("dropped_dense",)
 
@@ -72,7 +73,7 @@ class DropLog:
         counts = {"dropped_nonfinite": report.dropped_nonfinite,
                   "unknown_raw_ids": scan.source.unknown_raw_ids if scan.source else 0,
                   "dropped_range": report.dropped_range, "dropped_far": report.dropped_far,
-                  "dropped_window": report.dropped_window,
+                  "dropped_band": report.dropped_band, "dropped_window": report.dropped_window,
                   "dropped_dense": report.dropped_dense}
         for k, v in counts.items():
             self.totals[k] += int(v)

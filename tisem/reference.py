@@ -149,9 +149,11 @@ class ReferenceMapper:
         d = np.linalg.norm(centroid[p_idx] - centres[v_idx], axis=1)
         inside = d < self.length_m[v_idx]
         v_idx, p_idx, d = v_idx[inside], p_idx[inside], d[inside]
-        w = cfg.sigma0 * sparse_kernel(d / self.length_m[v_idx])
+        # class c's evidence takes the kernel of length min(L(v), cap_c)
+        caps = cfg.evidence_caps_m
         delta = np.zeros((len(centres), self.C))
         for c in range(1, self.C):
+            w = cfg.sigma0 * sparse_kernel(d / np.minimum(self.length_m[v_idx], caps[c]))
             delta[:, c] = np.bincount(v_idx, w * h[p_idx, c], len(centres))
         upd = delta.sum(axis=1) > MIN_UPDATE
         alpha = decay(t_rel - self.t_last_rel[upd], cfg)
@@ -159,19 +161,45 @@ class ReferenceMapper:
         self.t_last_rel[upd] = t_rel
 
     def query(self, points_world: np.ndarray):
-        """(labels, probabilities) of world points; 0 / zeros outside the map."""
+        """(labels, probabilities) of world points: the voxel's posterior; for a point in a
+        voxel without evidence (query_blend missing) the blend of the voxels within
+        query_radius_m; else 0 / zeros."""
         pts = np.asarray(points_world, np.float64)
         labels = np.zeros(len(pts), np.int32)
         probs = np.zeros((len(pts), self.C))
         if self.origin_vox is None:
             return labels, probs
         keys = np.floor(pts / self.res).astype(np.int64) - self.origin_vox
+        missing = np.ones(len(pts), bool)
         for i, k in enumerate(map(tuple, keys)):
             j = self.index.get(k)
             if j is not None and self.counts[j].sum() > 0:
                 labels[i] = int(np.argmax(self.counts[j]))
                 probs[i] = self.counts[j] / self.counts[j].sum()
+                missing[i] = False
+        if self.config.query_blend == "missing" and missing.any():
+            blend = self.blended_posterior(pts[missing])
+            total = blend.sum(axis=1)
+            labels[missing] = np.where(total > 0, blend.argmax(axis=1), 0)
+            probs[missing] = blend / np.where(total > 0, total, 1.0)[:, None]
         return labels, probs
+
+    def blended_posterior(self, points_world: np.ndarray) -> np.ndarray:
+        """(N, C): sum over the voxels with evidence whose centres lie within query_radius_m
+        of each point of g(d / R) times the voxel's normalised counters."""
+        radius = self.config.query_radius_m
+        total = self.counts.sum(axis=1)
+        has = np.flatnonzero(total > 0)
+        out = np.zeros((len(points_world), self.C))
+        if not len(has):
+            return out
+        centres = (self.keys[has] + self.origin_vox + 0.5) * self.res
+        posterior = self.counts[has] / total[has, None]
+        for i, near in enumerate(cKDTree(centres).query_ball_point(points_world, r=radius)):
+            if near:
+                d = np.linalg.norm(centres[near] - points_world[i], axis=1)
+                out[i] = (sparse_kernel(d / radius)[:, None] * posterior[near]).sum(axis=0)
+        return out
 
     def voxels(self):
         """(global keys, counts, t_last, ell_m) sorted by key, like `Mapper.snapshot()`."""

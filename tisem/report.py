@@ -74,7 +74,8 @@ def results_table(metrics: dict, per_class: bool = False, input_name: str = "net
                   ) -> str:
     """The end-of-run table: the input (`input_name`: the network's labels, or the ground truth
     given as input) vs the map, both protocols, with `per_class` the IoU of every class, then
-    one summary line (scans mapped and skipped, time per scan, voxels)."""
+    a summary (scans mapped and skipped, time per scan, voxels; the points left unmapped by
+    the height band and by the range band, counted apart)."""
     rows = []
     if metrics["evaluated"]:
         mode = metrics["mode"]
@@ -91,4 +92,8 @@ def results_table(metrics: dict, per_class: bool = False, input_name: str = "net
     text += (f"\n\n{metrics['scans']} scans mapped, {len(metrics['skipped'])} skipped; "
              f"{sps * 1000 if sps else float('nan'):.1f} ms per scan (median); "
              f"{metrics['active_voxels']:,} voxels")
+    dropped = metrics.get("dropped") or {}
+    band, out_of_range = dropped.get("dropped_band", 0), dropped.get("dropped_range", 0)
+    text += (f"\nunmapped points: {band:,} outside the height band, {out_of_range:,} outside "
+             f"the range band")
     return text
