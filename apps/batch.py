@@ -1,4 +1,5 @@
 """`python apps/batch.py ARGS` is `tisem batch ARGS` (tisem/commands/batch.py)."""
+
 import sys
 
 # the launcher's names are the command's: tests and scripts load it as a module

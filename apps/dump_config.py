@@ -1,4 +1,5 @@
 """`python apps/dump_config.py ARGS` is `tisem dump-config ARGS` (tisem/commands/dump_config.py)."""
+
 import sys
 
 # the launcher's names are the command's: tests and scripts load it as a module

@@ -1,4 +1,5 @@
 """`python apps/fleet.py ARGS` is `tisem fleet ARGS` (tisem/commands/fleet.py)."""
+
 import sys
 
 # the launcher's names are the command's: tests and scripts load it as a module

@@ -1,5 +1,6 @@
 """`python apps/kitti_to_mcap.py ARGS` is `tisem kitti-to-mcap ARGS`
 (tisem/commands/kitti_to_mcap.py)."""
+
 import sys
 
 # the launcher's names are the command's: tests and scripts load it as a module

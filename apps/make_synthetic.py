@@ -1,5 +1,6 @@
 """`python apps/make_synthetic.py ARGS` is `tisem make-synthetic ARGS`
 (tisem/commands/make_synthetic.py)."""
+
 import sys
 
 # the launcher's names are the command's: tests and scripts load it as a module

@@ -1,4 +1,5 @@
 """`python apps/map_kitti.py ARGS` is `tisem map-kitti ARGS` (tisem/commands/map_kitti.py)."""
+
 import sys
 
 # the launcher's names are the command's: tests and scripts load it as a module

@@ -1,4 +1,5 @@
 """`python apps/map_mcap.py ARGS` is `tisem map-mcap ARGS` (tisem/commands/map_mcap.py)."""
+
 import sys
 
 # the launcher's names are the command's: tests and scripts load it as a module

@@ -1,4 +1,5 @@
 """`python apps/merge_maps.py ARGS` is `tisem merge-maps ARGS` (tisem/commands/merge_maps.py)."""
+
 import sys
 
 # the launcher's names are the command's: tests and scripts load it as a module

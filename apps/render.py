@@ -1,4 +1,5 @@
 """`python apps/render.py ARGS` is `tisem render ARGS` (tisem/commands/render.py)."""
+
 import sys
 
 # the launcher's names are the command's: tests and scripts load it as a module

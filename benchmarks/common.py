@@ -1,4 +1,5 @@
 """Shared pieces of the benchmarks: where the data is, how scans are replayed, the device line."""
+
 from __future__ import annotations
 
 import argparse
@@ -15,10 +16,14 @@ KITTI_MINI = Path(__file__).resolve().parents[2] / "shared" / "data" / "semantic
 
 
 def add_data_args(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--data", type=Path, default=None,
-                   help="SemanticKITTI sequence folder (default: "
-                        "../shared/data/semantickitti_08_mini when present, else a synthetic "
-                        "street)")
+    p.add_argument(
+        "--data",
+        type=Path,
+        default=None,
+        help="SemanticKITTI sequence folder (default: "
+        "../shared/data/semantickitti_08_mini when present, else a synthetic "
+        "street)",
+    )
     p.add_argument("--synthetic", action="store_true", help="use a synthetic street instead")
     p.add_argument("--arch", choices=("cpu", "cuda"), default="cpu")
     p.add_argument("--threads", type=int, default=2)
@@ -28,6 +33,7 @@ def add_data_args(p: argparse.ArgumentParser) -> None:
 def load_scans(args, count: int) -> tuple[list[Scan], str]:
     """Up to `count` distinct scans from --data, the mini KITTI data, or a synthetic street."""
     from tisem.io.semantickitti import SemanticKittiSequence
+
     data = args.data
     if data is None and not args.synthetic and KITTI_MINI.is_dir():
         data = KITTI_MINI
@@ -36,6 +42,7 @@ def load_scans(args, count: int) -> tuple[list[Scan], str]:
         scans = [s for s in seq if isinstance(s, Scan)][:count]
         return scans, f"{data} ({len(scans)} scans)"
     from tisem.synth.sequence import iter_synthetic, to_scan
+
     scans = [to_scan(f) for f in iter_synthetic(count, seed=0)]
     return scans, f"synthetic street ({len(scans)} scans)"
 
@@ -48,8 +55,16 @@ def replay(scans: list[Scan], n: int, period_s: float = 0.1):
     """
     for k in range(n):
         s = scans[k % len(scans)]
-        yield Scan(s.points_sensor, s.T_world_sensor, k * period_s, labels=s.labels, probs=s.probs,
-                   gt_labels=s.gt_labels, index=k, name=s.name)
+        yield Scan(
+            s.points_sensor,
+            s.T_world_sensor,
+            k * period_s,
+            labels=s.labels,
+            probs=s.probs,
+            gt_labels=s.gt_labels,
+            index=k,
+            name=s.name,
+        )
 
 
 def peak_rss_mb() -> float:
@@ -58,6 +73,7 @@ def peak_rss_mb() -> float:
 
 def device_line(arch: str) -> str:
     from tisem.backend import describe
+
     return f"{describe()}, {platform.node()}, Python {platform.python_version()}"
 
 

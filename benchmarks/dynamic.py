@@ -21,6 +21,7 @@ the labels alone (the input's motion labels are withheld, so that motion is foun
 * seconds_per_scan: mean `integrate` time after the first scans (compilation); stages_ms: the
   mapper's per-stage profile (free_space: flags, hits and rays).
 """
+
 from __future__ import annotations
 
 import argparse
@@ -34,7 +35,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 
-if not __package__:        # run as `python benchmarks/NAME.py`: import from the checkout
+if not __package__:  # run as `python benchmarks/NAME.py`: import from the checkout
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from benchmarks.common import KITTI_MINI, benchmark_main, device_line  # noqa: E402
@@ -60,14 +61,23 @@ METHODS = (
 def parse_args(argv):
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--data", type=Path, default=None, help="SemanticKITTI sequence folder")
-    p.add_argument("--synthetic", action="store_true",
-                   help="the synthetic street with its extra movers")
+    p.add_argument(
+        "--synthetic", action="store_true", help="the synthetic street with its extra movers"
+    )
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--scans", type=int, default=150)
-    p.add_argument("--methods", default=",".join(m for m, _ in METHODS),
-                   help="comma-separated subset of the rows")
-    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
-                   help="a mapper setting for every row (e.g. free_margin_fraction=0.1)")
+    p.add_argument(
+        "--methods",
+        default=",".join(m for m, _ in METHODS),
+        help="comma-separated subset of the rows",
+    )
+    p.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="a mapper setting for every row (e.g. free_margin_fraction=0.1)",
+    )
     p.add_argument("--json", type=Path)
     return p.parse_args(argv)
 
@@ -79,11 +89,13 @@ def load(args) -> tuple[list[Scan], str]:
         data = KITTI_MINI
     if data is not None:
         from tisem.io.semantickitti import SemanticKittiSequence
+
         scans = [s for s in SemanticKittiSequence(data, last=None) if isinstance(s, Scan)]
-        scans = scans[:args.scans]
+        scans = scans[: args.scans]
         what = f"{data} ({len(scans)} scans)"
     else:
         from tisem.synth.sequence import SyntheticSequence, to_scan
+
         seq = SyntheticSequence(args.scans, seed=args.seed, movers=True)
         scans = [to_scan(f) for f in seq]
         what = f"synthetic street with movers, seed {args.seed} ({len(scans)} scans)"
@@ -139,20 +151,34 @@ def run_method(scans: list[Scan], cfg: MapperConfig) -> dict:
         labels, _ = mapper.query(scan.points_world()[static_pts], with_probs=False)
         final.add(scan.gt_labels[static_pts], labels)
     movable_voxels = pack(static.keys[np.isin(static.labels(), MOVABLE_CLASSES)])
-    trails = int((np.isin(movable_voxels, np.concatenate(trail_region))
-                  & ~np.isin(movable_voxels, np.concatenate(occupied_by_movable))).sum())
+    trails = int(
+        (
+            np.isin(movable_voxels, np.concatenate(trail_region))
+            & ~np.isin(movable_voxels, np.concatenate(occupied_by_movable))
+        ).sum()
+    )
     sa = kept_static / max(n_static, 1)
     da = 1.0 - kept_dynamic / max(n_dynamic, 1)
     on, fin = online.metrics(), final.metrics()
     iou = on["per_class_iou"]
-    return {"sa": sa, "da": da, "aa": float(np.sqrt(sa * da)), "trail_voxels": trails,
-            "miou_online": on["miou"], "accuracy_online": on["accuracy"],
-            "iou_car_online": iou.get("car"), "iou_person_online": iou.get("person"),
-            "miou_final_static": fin["miou"], "accuracy_final_static": fin["accuracy"],
-            "seconds_per_scan": float(np.mean(seconds)) if seconds else float("nan"),
-            "stages_ms": {s: v / timed * 1000 for s, v in mapper.stage_seconds.items()},
-            "static_points": n_static, "dynamic_points": n_dynamic,
-            "voxels": len(snap), "empty_voxels": int(snap.empty().sum())}
+    return {
+        "sa": sa,
+        "da": da,
+        "aa": float(np.sqrt(sa * da)),
+        "trail_voxels": trails,
+        "miou_online": on["miou"],
+        "accuracy_online": on["accuracy"],
+        "iou_car_online": iou.get("car"),
+        "iou_person_online": iou.get("person"),
+        "miou_final_static": fin["miou"],
+        "accuracy_final_static": fin["accuracy"],
+        "seconds_per_scan": float(np.mean(seconds)) if seconds else float("nan"),
+        "stages_ms": {s: v / timed * 1000 for s, v in mapper.stage_seconds.items()},
+        "static_points": n_static,
+        "dynamic_points": n_dynamic,
+        "voxels": len(snap),
+        "empty_voxels": int(snap.empty().sum()),
+    }
 
 
 def run(args) -> dict:
@@ -163,7 +189,7 @@ def run(args) -> dict:
     for name, overrides in METHODS:
         if name not in chosen:
             continue
-        init_taichi("cpu", threads=2)     # one map per runtime
+        init_taichi("cpu", threads=2)  # one map per runtime
         cfg = RunConfig(mapper=MapperConfig(**overrides))
         for assignment in args.set:
             set_value(cfg, assignment)
@@ -173,25 +199,41 @@ def run(args) -> dict:
     return {"data": what, "device": device_line("cpu"), "settings": args.set, "rows": rows}
 
 
-COLUMNS = ("sa", "da", "aa", "trail_voxels", "miou_online", "accuracy_online", "iou_car_online",
-           "iou_person_online", "miou_final_static", "accuracy_final_static", "seconds_per_scan")
+COLUMNS = (
+    "sa",
+    "da",
+    "aa",
+    "trail_voxels",
+    "miou_online",
+    "accuracy_online",
+    "iou_car_online",
+    "iou_person_online",
+    "miou_final_static",
+    "accuracy_final_static",
+    "seconds_per_scan",
+)
 
 
 def format_row(row: dict) -> str:
-    cells = [row["method"]] + [f"{row[c]:.4f}" if isinstance(row[c], float) else str(row[c])
-                               for c in COLUMNS]   # (None: a class absent from the data)
+    cells = [row["method"]] + [
+        f"{row[c]:.4f}" if isinstance(row[c], float) else str(row[c]) for c in COLUMNS
+    ]  # (None: a class absent from the data)
     return "| " + " | ".join(cells) + " |"
 
 
 def format_result(result: dict) -> str:
-    lines = [f"{result['data']}; {result['device']}", "",
-             "| method | " + " | ".join(COLUMNS) + " |",
-             "|---" * (len(COLUMNS) + 1) + "|"]
+    lines = [
+        f"{result['data']}; {result['device']}",
+        "",
+        "| method | " + " | ".join(COLUMNS) + " |",
+        "|---" * (len(COLUMNS) + 1) + "|",
+    ]
     lines += [format_row(r) for r in result["rows"]]
     lines += ["", "stages, ms per scan:"]
     for r in result["rows"]:
-        lines.append(f"  {r['method']}: " + ", ".join(f"{k} {v:.1f}"
-                                                       for k, v in r["stages_ms"].items()))
+        lines.append(
+            f"  {r['method']}: " + ", ".join(f"{k} {v:.1f}" for k, v in r["stages_ms"].items())
+        )
     return "\n".join(lines)
 
 

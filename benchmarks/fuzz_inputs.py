@@ -13,6 +13,7 @@ signal, another exception, memory beyond the limit, a hang, or damage nothing re
 failure is printed with its seed and case; `--case K --keep DIR` replays one case in this
 process and keeps the damaged input.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -20,18 +21,22 @@ import datetime as dt
 import sys
 from pathlib import Path
 
-
-if not __package__:        # run as `python benchmarks/NAME.py`: import from the checkout
+if not __package__:  # run as `python benchmarks/NAME.py`: import from the checkout
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from benchmarks.common import benchmark_main
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
-    p = argparse.ArgumentParser(description=__doc__,
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--minutes", type=float, default=1.0,
-                   help="how long the campaign runs, all targets together (default 1)")
+    p = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    p.add_argument(
+        "--minutes",
+        type=float,
+        default=1.0,
+        help="how long the campaign runs, all targets together (default 1)",
+    )
     p.add_argument("--cases", type=int, help="run this many cases per target instead")
     p.add_argument("--seed", type=int, default=0, help="the campaign's seed (default 0)")
     p.add_argument("--target", choices=("mcap", "kitti", "all"), default="all")
@@ -48,32 +53,48 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 
 def run(args: argparse.Namespace) -> dict:
     from tisem.testing.fuzz import TARGETS, replay, run_campaign
+
     targets = TARGETS if args.target == "all" else (args.target,)
     if args.case is not None:
         args.keep.mkdir(parents=True, exist_ok=True)
         what, path, outcome = replay(args.target, args.seed, args.case, args.keep)
-        return {"replay": {"target": args.target, "seed": args.seed, "case": args.case,
-                           "what": what, "input": str(path), "outcome": outcome.kind,
-                           "detail": outcome.detail}}
+        return {
+            "replay": {
+                "target": args.target,
+                "seed": args.seed,
+                "case": args.case,
+                "what": what,
+                "input": str(path),
+                "outcome": outcome.kind,
+                "detail": outcome.detail,
+            }
+        }
     results = []
     for target in targets:
         minutes = None if args.cases else args.minutes / len(targets)
         results += run_campaign(target, args.seed, count=args.cases, minutes=minutes)
-    return {"date": dt.date.today().isoformat(), "seed": args.seed,
-            "minutes": None if args.cases else args.minutes,
-            "results": [vars(r) for r in results]}
+    return {
+        "date": dt.date.today().isoformat(),
+        "seed": args.seed,
+        "minutes": None if args.cases else args.minutes,
+        "results": [vars(r) for r in results],
+    }
 
 
 def format_result(result: dict) -> str:
     from tisem.testing.fuzz import CaseResult, summary_table
+
     if "replay" in result:
         r = result["replay"]
-        return (f"{r['target']} seed {r['seed']} case {r['case']}: {r['what']}\n"
-                f"input kept in {r['input']}\noutcome: {r['outcome']} {r['detail']}")
+        return (
+            f"{r['target']} seed {r['seed']} case {r['case']}: {r['what']}\n"
+            f"input kept in {r['input']}\noutcome: {r['outcome']} {r['detail']}"
+        )
     results = [CaseResult(**r) for r in result["results"]]
     budget = f"{result['minutes']} min" if result["minutes"] else "fixed cases"
-    return (f"fuzz campaign, {result['date']}, seed {result['seed']}, {budget}\n\n"
-            + summary_table(results))
+    return f"fuzz campaign, {result['date']}, seed {result['seed']}, {budget}\n\n" + summary_table(
+        results
+    )
 
 
 def main(argv: list[str] | None = None) -> int:

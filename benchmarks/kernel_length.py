@@ -10,6 +10,7 @@ medians over all of them, so a drift in the machine's speed does not favour one 
 and mIoU follow the final-map protocol (every ground-truth point of every scan looked up in the
 map after the last scan). The `st` row (adaptive + decay, the default) is added for reference.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -19,8 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-
-if not __package__:        # run as `python benchmarks/NAME.py`: import from the checkout
+if not __package__:  # run as `python benchmarks/NAME.py`: import from the checkout
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from benchmarks.common import KITTI_MINI, benchmark_main, device_line, median
@@ -29,17 +29,30 @@ FIXED_VOXELS = (1, 2, 4, 6)
 
 
 def parse_args(argv=None):
-    p = argparse.ArgumentParser(description=__doc__,
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--data", type=Path, default=None,
-                   help="SemanticKITTI sequence folder (default: the mini KITTI data when present)")
-    p.add_argument("--synthetic-scans", type=int, default=20,
-                   help="also run a synthetic street of this many scans (0: skip)")
+    p = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    p.add_argument(
+        "--data",
+        type=Path,
+        default=None,
+        help="SemanticKITTI sequence folder (default: the mini KITTI data when present)",
+    )
+    p.add_argument(
+        "--synthetic-scans",
+        type=int,
+        default=20,
+        help="also run a synthetic street of this many scans (0: skip)",
+    )
     p.add_argument("--scans", type=int, default=None, help="use at most this many scans of --data")
     p.add_argument("--arch", choices=("cpu", "cuda"), default="cpu")
     p.add_argument("--threads", type=int, default=2)
-    p.add_argument("--repeats", type=int, default=3,
-                   help="rounds in which every kernel maps the scans once, taking turns")
+    p.add_argument(
+        "--repeats",
+        type=int,
+        default=3,
+        help="rounds in which every kernel maps the scans once, taking turns",
+    )
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE")
     p.add_argument("--json", type=Path, help="write the rows as JSON here")
     return p.parse_args(argv)
@@ -48,6 +61,7 @@ def parse_args(argv=None):
 def map_once(scans, cfg, args):
     """Map the scans in a fresh runtime: (seconds per scan, the first compiling; final metrics)."""
     import taichi as ti
+
     from tisem.backend import init_taichi
     from tisem.evaluate import Confusion
     from tisem.mapper import Mapper
@@ -76,8 +90,8 @@ def rows_for(scans, label: str, args) -> list[dict]:
     settings = [(f"fixed {v} vox", ["mode=bki", f"ell_fixed_vox={v}"]) for v in FIXED_VOXELS]
     settings += [("adaptive", ["mode=adaptive"]), ("adaptive + decay (st)", ["mode=st"])]
     configs = [load_config(None, [*args.overrides, *sets]).mapper for _, sets in settings]
-    steady = [[] for _ in settings]     # per kernel: steady-state seconds of every round
-    totals = [[] for _ in settings]     # per kernel: seconds for the N steady scans, per round
+    steady = [[] for _ in settings]  # per kernel: steady-state seconds of every round
+    totals = [[] for _ in settings]  # per kernel: seconds for the N steady scans, per round
     compile_s = [[] for _ in settings]
     metrics = [None] * len(settings)
     for rnd in range(args.repeats):
@@ -87,28 +101,47 @@ def rows_for(scans, label: str, args) -> list[dict]:
             steady[k] += rest
             totals[k].append(float(np.sum(rest)))
             compile_s[k].append(seconds[0] - median(rest))
-            print(f"  {label} (round {rnd + 1}/{args.repeats}): {name:>22}  "
-                  f"{1000 * median(rest):7.1f} ms/scan  acc {metrics[k]['accuracy']:.4f}  "
-                  f"mIoU {metrics[k]['miou']:.4f}", flush=True)
+            print(
+                f"  {label} (round {rnd + 1}/{args.repeats}): {name:>22}  "
+                f"{1000 * median(rest):7.1f} ms/scan  acc {metrics[k]['accuracy']:.4f}  "
+                f"mIoU {metrics[k]['miou']:.4f}",
+                flush=True,
+            )
     rows = []
     for k, ((name, _), cfg) in enumerate(zip(settings, configs)):
-        length = (f"{cfg.ell_fixed_vox * cfg.resolution_m:.1f} m" if cfg.mode == "bki"
-                  else f"{cfg.ell_min_m:.1f}-{cfg.ell_max_m:.1f} m")
-        rows.append({"data": label, "kernel": name, "length": length,
-                     "seconds_per_scan": median(steady[k]), "seconds_total": median(totals[k]),
-                     "compile_seconds": median(compile_s[k]), "scans": len(scans),
-                     "rounds": args.repeats,
-                     "accuracy": metrics[k]["accuracy"], "miou": metrics[k]["miou"]})
+        length = (
+            f"{cfg.ell_fixed_vox * cfg.resolution_m:.1f} m"
+            if cfg.mode == "bki"
+            else f"{cfg.ell_min_m:.1f}-{cfg.ell_max_m:.1f} m"
+        )
+        rows.append(
+            {
+                "data": label,
+                "kernel": name,
+                "length": length,
+                "seconds_per_scan": median(steady[k]),
+                "seconds_total": median(totals[k]),
+                "compile_seconds": median(compile_s[k]),
+                "scans": len(scans),
+                "rounds": args.repeats,
+                "accuracy": metrics[k]["accuracy"],
+                "miou": metrics[k]["miou"],
+            }
+        )
     return rows
 
 
 def format_rows(rows: list[dict]) -> str:
-    out = ["| data | kernel | length | s / scan | s for N scans (N) | accuracy | mIoU |",
-           "| --- | --- | --- | ---: | ---: | ---: | ---: |"]
+    out = [
+        "| data | kernel | length | s / scan | s for N scans (N) | accuracy | mIoU |",
+        "| --- | --- | --- | ---: | ---: | ---: | ---: |",
+    ]
     for r in rows:
-        out.append(f"| {r['data']} | {r['kernel']} | {r['length']} | {r['seconds_per_scan']:.3f} | "
-                   f"{r['seconds_total']:.2f} ({r['scans'] - 1}) | {r['accuracy']:.4f} | "
-                   f"{r['miou']:.4f} |")
+        out.append(
+            f"| {r['data']} | {r['kernel']} | {r['length']} | {r['seconds_per_scan']:.3f} | "
+            f"{r['seconds_total']:.2f} ({r['scans'] - 1}) | {r['accuracy']:.4f} | "
+            f"{r['miou']:.4f} |"
+        )
     return "\n".join(out)
 
 
@@ -124,10 +157,15 @@ def run(args) -> dict:
         rows += rows_for(scans, f"{data.name}", args)
     if args.synthetic_scans:
         from tisem.synth.sequence import iter_synthetic, to_scan
+
         scans = [to_scan(f) for f in iter_synthetic(args.synthetic_scans, seed=0)]
         rows += rows_for(scans, f"synthetic street ({args.synthetic_scans})", args)
-    return {"device": device_line(args.arch), "arch": args.arch, "threads": args.threads,
-            "rows": rows}
+    return {
+        "device": device_line(args.arch),
+        "arch": args.arch,
+        "threads": args.threads,
+        "rows": rows,
+    }
 
 
 def format_result(result: dict) -> str:

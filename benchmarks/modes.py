@@ -6,6 +6,7 @@
 Each mode runs through the same pipeline as `apps/map_kitti.py` (final-map protocol, results in
 `--out/<mode>/`) in a fresh Taichi runtime; seconds per scan is the median of the mapping step.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -13,8 +14,7 @@ import logging
 import sys
 from pathlib import Path
 
-
-if not __package__:        # run as `python benchmarks/NAME.py`: import from the checkout
+if not __package__:  # run as `python benchmarks/NAME.py`: import from the checkout
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from benchmarks.common import KITTI_MINI, benchmark_main, device_line
@@ -23,8 +23,9 @@ MODES = ("csm", "bki", "spatial", "adaptive", "st")
 
 
 def parse_args(argv=None):
-    p = argparse.ArgumentParser(description=__doc__,
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     p.add_argument("--data", type=Path, default=None, help="sequence folder (default: mini KITTI)")
     p.add_argument("--sequence", default=None)
     p.add_argument("--modes", nargs="+", default=list(MODES))
@@ -48,25 +49,37 @@ def run(args) -> dict:
         cfg = load_config(None, [*args.overrides, f"mode={mode}"])
         seq = SemanticKittiSequence(data, sequence=args.sequence)
         init_taichi(args.arch, threads=args.threads)
-        result = run_pipeline(seq, cfg, args.out / mode, sequence_name=seq.sequence_name,
-                              total=len(seq), progress=False, write_outputs=False,
-                              source_info={"data": str(data)})
+        result = run_pipeline(
+            seq,
+            cfg,
+            args.out / mode,
+            sequence_name=seq.sequence_name,
+            total=len(seq),
+            progress=False,
+            write_outputs=False,
+            source_info={"data": str(data)},
+        )
         m = result.metrics
         if not rows:
             rows.append({"row": "network input", **m["input"], "seconds_per_scan": None})
         rows.append({"row": mode, **m["final"], "seconds_per_scan": m["seconds_per_scan"]})
-        logging.info("%s: mIoU %.4f accuracy %.4f", mode, m["final"]["miou"],
-                     m["final"]["accuracy"])
+        logging.info(
+            "%s: mIoU %.4f accuracy %.4f", mode, m["final"]["miou"], m["final"]["accuracy"]
+        )
     return {"data": str(data), "device": device_line(args.arch), "rows": rows}
 
 
 def format_rows(rows) -> str:
-    out = ["| row | mIoU | accuracy | wIoU | OA (paper) | s / scan |",
-           "| --- | ---: | ---: | ---: | ---: | ---: |"]
+    out = [
+        "| row | mIoU | accuracy | wIoU | OA (paper) | s / scan |",
+        "| --- | ---: | ---: | ---: | ---: | ---: |",
+    ]
     for r in rows:
         sps = "–" if r["seconds_per_scan"] is None else f"{r['seconds_per_scan']:.3f}"
-        out.append(f"| {r['row']} | {r['miou']:.4f} | {r['accuracy']:.4f} | {r['wiou']:.4f} | "
-                   f"{r['oa_paper']:.4f} | {sps} |")
+        out.append(
+            f"| {r['row']} | {r['miou']:.4f} | {r['accuracy']:.4f} | {r['wiou']:.4f} | "
+            f"{r['oa_paper']:.4f} | {sps} |"
+        )
     return "\n".join(out)
 
 

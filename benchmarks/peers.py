@@ -19,6 +19,7 @@ S-BKI runs when its driver is built (`../shared/peers/sbki/build.sh` builds it w
 adaptive, spatial, csm, bkiN (the fixed kernel of N voxels: bki4 is 0.8 m at 0.2 m voxels),
 sbki-upstream, sbki-tuned.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -45,16 +46,27 @@ METRICS = ("miou", "accuracy", "wiou", "per_class_iou", "present_classes", "poin
 
 
 def parse_args(argv=None):
-    p = argparse.ArgumentParser(description=__doc__,
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     p.add_argument("--data", type=Path, default=None, help="sequence folder (default: mini KITTI)")
-    p.add_argument("--splits", nargs="+", default=["0-4", "0-2", "3-4"],
-                   help="inclusive frame ranges FIRST-LAST, each mapped and scored alone")
+    p.add_argument(
+        "--splits",
+        nargs="+",
+        default=["0-4", "0-2", "3-4"],
+        help="inclusive frame ranges FIRST-LAST, each mapped and scored alone",
+    )
     p.add_argument("--methods", nargs="+", default=list(DEFAULT_METHODS))
     p.add_argument("--rounds", type=int, default=2, help="rounds in which every method runs once")
     p.add_argument("--config", type=Path, help="tisem config YAML (default: tisem's defaults)")
-    p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
-                   help="tisem config override (every tisem method)")
+    p.add_argument(
+        "--set",
+        dest="overrides",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="tisem config override (every tisem method)",
+    )
     p.add_argument("--sbki-bin", type=Path, default=SBKI_BIN, help="the built S-BKI driver")
     p.add_argument("--out", type=Path, default=Path("results/peers"))
     p.add_argument("--threads", type=int, default=2)
@@ -62,8 +74,10 @@ def parse_args(argv=None):
     args = p.parse_args(argv)
     for m in args.methods:
         if not (m in TISEM_METHODS or m in SBKI_METHODS or re.fullmatch(r"bki\d+(\.\d+)?", m)):
-            p.error(f"unknown method {m!r}: one of {', '.join(TISEM_METHODS)}, bkiN, "
-                    f"{', '.join(SBKI_METHODS)}")
+            p.error(
+                f"unknown method {m!r}: one of {', '.join(TISEM_METHODS)}, bkiN, "
+                f"{', '.join(SBKI_METHODS)}"
+            )
     for s in args.splits:
         if not re.fullmatch(r"\d+(-\d+)?", s):
             p.error(f"--splits {s}: expected FIRST-LAST (inclusive frame numbers)")
@@ -93,13 +107,25 @@ def run_tisem(args, data: Path, split: tuple[int, int], method: str, out: Path) 
     cfg.online_eval = False
     seq = SemanticKittiSequence(data, first=split[0], last=split[1])
     init_taichi("cpu", threads=args.threads)
-    result = run_pipeline(seq, cfg, out, sequence_name=seq.sequence_name, total=len(seq),
-                          progress=False, write_outputs=False, source_info={"data": str(data)})
+    result = run_pipeline(
+        seq,
+        cfg,
+        out,
+        sequence_name=seq.sequence_name,
+        total=len(seq),
+        progress=False,
+        write_outputs=False,
+        source_info={"data": str(data)},
+    )
     seconds = result.progress.seconds
     # the first scan compiles the kernels: the steady state is the median after it
     steady = median(seconds[1:]) if len(seconds) > 1 else median(seconds)
-    return {"final": result.metrics["final"], "input": result.metrics["input"],
-            "seconds_per_scan": steady, "dropped": result.metrics["dropped"]}
+    return {
+        "final": result.metrics["final"],
+        "input": result.metrics["input"],
+        "seconds_per_scan": steady,
+        "dropped": result.metrics["dropped"],
+    }
 
 
 def score_predictions(data: Path, split: tuple[int, int], pred_dir: Path) -> dict:
@@ -125,8 +151,18 @@ def score_predictions(data: Path, split: tuple[int, int], pred_dir: Path) -> dic
 
 def run_sbki(args, data: Path, split: tuple[int, int], method: str, out: Path) -> dict:
     out.mkdir(parents=True, exist_ok=True)
-    cmd = [str(args.sbki_bin), "--data", str(data), "--out", str(out), "--first", str(split[0]),
-           "--last", str(split[1]), *SBKI_METHODS[method]]
+    cmd = [
+        str(args.sbki_bin),
+        "--data",
+        str(data),
+        "--out",
+        str(out),
+        "--first",
+        str(split[0]),
+        "--last",
+        str(split[1]),
+        *SBKI_METHODS[method],
+    ]
     env = dict(os.environ, OMP_NUM_THREADS=str(args.threads))
     proc = subprocess.run(cmd, capture_output=True, text=True, env=env)
     (out / "sbki.log").write_text(proc.stdout + proc.stderr)
@@ -141,8 +177,10 @@ def unbuilt_peer(args, methods: list[str]) -> dict[str, str]:
     """{S-BKI method: why it is skipped} when its driver is not built."""
     if args.sbki_bin.is_file():
         return {}
-    reason = (f"S-BKI is not built ({args.sbki_bin} missing): run "
-              f"../shared/peers/sbki/build.sh, or pass --sbki-bin")
+    reason = (
+        f"S-BKI is not built ({args.sbki_bin} missing): run "
+        f"../shared/peers/sbki/build.sh, or pass --sbki-bin"
+    )
     return {m: reason for m in methods if m in SBKI_METHODS}
 
 
@@ -164,26 +202,53 @@ def run(args) -> dict:
                 r = runner(args, data, split, method, args.out / key[0] / method)
                 runs[key] = r
                 times.setdefault(key, []).append(r["seconds_per_scan"])
-                log.info("round %d/%d, frames %s, %-13s mIoU %.4f accuracy %.4f  %.3f s/scan "
-                         "(%.0f s wall)", rnd + 1, args.rounds, key[0], method,
-                         r["final"]["miou"], r["final"]["accuracy"], r["seconds_per_scan"],
-                         time.perf_counter() - t0)
+                log.info(
+                    "round %d/%d, frames %s, %-13s mIoU %.4f accuracy %.4f  %.3f s/scan "
+                    "(%.0f s wall)",
+                    rnd + 1,
+                    args.rounds,
+                    key[0],
+                    method,
+                    r["final"]["miou"],
+                    r["final"]["accuracy"],
+                    r["seconds_per_scan"],
+                    time.perf_counter() - t0,
+                )
     rows = []
     for split in splits:
         name = f"{split[0]}-{split[1]}"
         inputs = [runs[(name, m)]["input"] for m in methods if "input" in runs[(name, m)]]
         if inputs:
-            rows.append({"split": name, "method": "network input", **_metrics(inputs[0]),
-                         "seconds_per_scan": None})
+            rows.append(
+                {
+                    "split": name,
+                    "method": "network input",
+                    **_metrics(inputs[0]),
+                    "seconds_per_scan": None,
+                }
+            )
         for m in methods:
             r = runs[(name, m)]
-            rows.append({"split": name, "method": m, **_metrics(r["final"]),
-                         "seconds_per_scan": median(times[(name, m)]),
-                         "seconds_all_rounds": times[(name, m)],
-                         "dropped": r.get("dropped")})
-    return {"data": str(data), "device": device_line("cpu"), "threads": args.threads,
-            "rounds": args.rounds, "config": str(args.config) if args.config else None,
-            "overrides": args.overrides, "rows": rows, "skipped": skipped}
+            rows.append(
+                {
+                    "split": name,
+                    "method": m,
+                    **_metrics(r["final"]),
+                    "seconds_per_scan": median(times[(name, m)]),
+                    "seconds_all_rounds": times[(name, m)],
+                    "dropped": r.get("dropped"),
+                }
+            )
+    return {
+        "data": str(data),
+        "device": device_line("cpu"),
+        "threads": args.threads,
+        "rounds": args.rounds,
+        "config": str(args.config) if args.config else None,
+        "overrides": args.overrides,
+        "rows": rows,
+        "skipped": skipped,
+    }
 
 
 def _metrics(m: dict) -> dict:
@@ -198,21 +263,29 @@ def format_result(r: dict) -> str:
         lines.append(f"tisem settings: {r['config'] or 'defaults'} {' '.join(r['overrides'])}")
     for method, reason in r["skipped"].items():
         lines.append(f"skipped {method}: {reason}")
-    lines += ["", "| frames | method | mIoU | accuracy | s / scan | st faster by |",
-              "| --- | --- | ---: | ---: | ---: | ---: |"]
+    lines += [
+        "",
+        "| frames | method | mIoU | accuracy | s / scan | st faster by |",
+        "| --- | --- | ---: | ---: | ---: | ---: |",
+    ]
     for row in r["rows"]:
-        st = next((x for x in r["rows"] if x["split"] == row["split"] and x["method"] == "st"),
-                  None)
+        st = next(
+            (x for x in r["rows"] if x["split"] == row["split"] and x["method"] == "st"), None
+        )
         sps = row["seconds_per_scan"]
-        ratio = ("–" if sps is None or st is None or not st["seconds_per_scan"]
-                 else f"{sps / st['seconds_per_scan']:.1f}x")
+        ratio = (
+            "–"
+            if sps is None or st is None or not st["seconds_per_scan"]
+            else f"{sps / st['seconds_per_scan']:.1f}x"
+        )
         shown = "–" if sps is None else f"{sps:.3f}"
-        lines.append(f"| {row['split']} | {row['method']} | {row['miou']:.4f} | "
-                     f"{row['accuracy']:.4f} | {shown} | {ratio} |")
+        lines.append(
+            f"| {row['split']} | {row['method']} | {row['miou']:.4f} | "
+            f"{row['accuracy']:.4f} | {shown} | {ratio} |"
+        )
     for split in dict.fromkeys(x["split"] for x in r["rows"]):
         lines += ["", f"per-class IoU, frames {split}:", ""]
-        lines.append(format_per_class([(x["method"], x) for x in r["rows"]
-                                       if x["split"] == split]))
+        lines.append(format_per_class([(x["method"], x) for x in r["rows"] if x["split"] == split]))
     return "\n".join(lines)
 
 

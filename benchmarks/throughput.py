@@ -7,35 +7,48 @@
 Compile time (the first scan, which JIT-compiles every kernel) is reported apart from the
 steady state. Every clock read is preceded by ti.sync(); figures are medians over the scans.
 """
+
 from __future__ import annotations
 
 import argparse
 import sys
 import time
-
-
 from pathlib import Path
-if not __package__:        # run as `python benchmarks/NAME.py`: import from the checkout
+
+if not __package__:  # run as `python benchmarks/NAME.py`: import from the checkout
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from benchmarks.common import (add_data_args, benchmark_main, device_line, load_scans, median,
-                               peak_rss_mb, replay)
+from benchmarks.common import (
+    add_data_args,
+    benchmark_main,
+    device_line,
+    load_scans,
+    median,
+    peak_rss_mb,
+    replay,
+)
 
 
 def parse_args(argv=None):
-    p = argparse.ArgumentParser(description=__doc__,
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     add_data_args(p)
     p.add_argument("--scans", type=int, default=30, help="steady-state scans to time")
     p.add_argument("--mode", default="st")
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE")
-    p.add_argument("--reference-scans", type=int, default=2,
-                   help="scans to run through the numpy reference for the speedup (0: skip)")
+    p.add_argument(
+        "--reference-scans",
+        type=int,
+        default=2,
+        help="scans to run through the numpy reference for the speedup (0: skip)",
+    )
     return p.parse_args(argv)
 
 
 def run(args) -> dict:
     import taichi as ti
+
     from tisem.backend import init_taichi
     from tisem.config import load_config
     from tisem.mapper import STAGES, Mapper
@@ -74,9 +87,14 @@ def run(args) -> dict:
         points.append(scan.num_points)
 
     result = {
-        "source": source, "device": device_line(args.arch), "arch": args.arch,
-        "threads": args.threads, "mode": cfg.mode, "config": vars(cfg),
-        "scans": len(total), "points_per_scan": median(points),
+        "source": source,
+        "device": device_line(args.arch),
+        "arch": args.arch,
+        "threads": args.threads,
+        "mode": cfg.mode,
+        "config": vars(cfg),
+        "scans": len(total),
+        "points_per_scan": median(points),
         "compile_seconds": compile_s,
         "seconds_per_scan": median(total),
         "scans_per_second": 1.0 / median(total),
@@ -86,6 +104,7 @@ def run(args) -> dict:
     }
     if args.reference_scans:
         from tisem.reference import ReferenceMapper
+
         ref = ReferenceMapper(cfg)
         ref_times = []
         for scan in replay(scans, args.reference_scans + 1):
@@ -95,23 +114,34 @@ def run(args) -> dict:
         # the first reference scan builds a fresh map, like the first timed Taichi scan did not;
         # compare steady states: reference scans after its first
         result["reference_seconds_per_scan"] = median(ref_times[1:])
-        result["speedup_vs_numpy"] = (result["reference_seconds_per_scan"]
-                                      / result["seconds_per_scan"])
+        result["speedup_vs_numpy"] = (
+            result["reference_seconds_per_scan"] / result["seconds_per_scan"]
+        )
     return result
 
 
 def format_result(r: dict) -> str:
-    lines = [f"device: {r['device']}", f"data: {r['source']}, mode {r['mode']}, "
-             f"{r['points_per_scan']:.0f} points per scan, {r['scans']} steady-state scans", "",
-             "| stage | ms per scan (median) |", "| --- | ---: |"]
+    lines = [
+        f"device: {r['device']}",
+        f"data: {r['source']}, mode {r['mode']}, "
+        f"{r['points_per_scan']:.0f} points per scan, {r['scans']} steady-state scans",
+        "",
+        "| stage | ms per scan (median) |",
+        "| --- | ---: |",
+    ]
     lines += [f"| {s} | {v:.1f} |" for s, v in r["stages"].items()]
-    lines += [f"| **mapping, end to end** | **{1000 * r['seconds_per_scan']:.1f}** |", "",
-              f"scans per second: {r['scans_per_second']:.1f}; compile (first scan): "
-              f"{r['compile_seconds']:.2f} s; peak RSS {r['peak_rss_mb']:.0f} MB; "
-              f"{r['active_voxels']:,} voxels"]
+    lines += [
+        f"| **mapping, end to end** | **{1000 * r['seconds_per_scan']:.1f}** |",
+        "",
+        f"scans per second: {r['scans_per_second']:.1f}; compile (first scan): "
+        f"{r['compile_seconds']:.2f} s; peak RSS {r['peak_rss_mb']:.0f} MB; "
+        f"{r['active_voxels']:,} voxels",
+    ]
     if "speedup_vs_numpy" in r:
-        lines.append(f"numpy reference: {r['reference_seconds_per_scan']:.2f} s per scan -> "
-                     f"tisem is {r['speedup_vs_numpy']:.0f}x faster")
+        lines.append(
+            f"numpy reference: {r['reference_seconds_per_scan']:.2f} s per scan -> "
+            f"tisem is {r['speedup_vs_numpy']:.0f}x faster"
+        )
     return "\n".join(lines)
 
 

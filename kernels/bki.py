@@ -15,20 +15,27 @@ after another in z, and a block's rows by voxel, z layer by z layer (kernels/tra
 voxel reads, per column its kernel sphere touches, the one slice of rows in the voxel layers
 the sphere reaches there, not every voxel cell within reach.
 """
+
 import functools
 import math
 
 import numpy as np
 import taichi as ti
-
 from tisem.kernels.entropy import fresh_length
 from tisem.kernels.fusion import fuse_voxel
-from tisem.kernels.layout import (LEAF, LEAF_BITS, is_pending, local_of_index, pending_row,
-                                  rows_below, rows_to)
+from tisem.kernels.layout import (
+    LEAF,
+    LEAF_BITS,
+    is_pending,
+    local_of_index,
+    pending_row,
+    rows_below,
+    rows_to,
+)
 from tisem.kernels.params import KernelSettings, ScanParams
 
-VOXELS = LEAF ** 3
-HITS = 32    # hit list length: hits are summed in batches, after the distance tests
+VOXELS = LEAF**3
+HITS = 32  # hit list length: hits are summed in batches, after the distance tests
 
 # Evidence below this is float noise at the kernel's edge (g -> 0 as d -> L), not an update:
 # counting it would reset the voxel's time and, with alpha = 0, wipe the voxel's history.
@@ -40,14 +47,14 @@ def sparse_kernel(r):
     """Melkumyan-Ramos g(r) for r = d / L in [0, 1): 1 at r = 0, 0 with zero slope at r = 1."""
     two_pi_r = 2.0 * math.pi * r
     g = (2.0 + ti.cos(two_pi_r)) / 3.0 * (1.0 - r) + ti.sin(two_pi_r) / (2.0 * math.pi)
-    return ti.max(g, 0.0)    # the two terms cancel near r = 1: never let rounding go negative
+    return ti.max(g, 0.0)  # the two terms cancel near r = 1: never let rounding go negative
 
 
 @ti.kernel
 def fill_kernel_table(m: ti.template()):
     n = m.kernel_lut.shape[0] - 1
     for i in m.kernel_lut:
-        m.kernel_lut[i] = sparse_kernel(ti.sqrt(ti.min(i / n, 1.0)))    # entries are spaced in r^2
+        m.kernel_lut[i] = sparse_kernel(ti.sqrt(ti.min(i / n, 1.0)))  # entries are spaced in r^2
 
 
 @ti.func
@@ -111,15 +118,25 @@ def capped_kernel(m: ti.template(), d2, inv_ell2, cap_inv2):
     kernel of length min(L, cap), 0 beyond it."""
     r2 = d2 * ti.max(inv_ell2, cap_inv2)
     k = sparse_kernel_of_r2(m, r2)
-    if r2 >= 1.0:       # the table's last entry is g(1) in float32, a little above 0
+    if r2 >= 1.0:  # the table's last entry is g(1) in float32, a little above 0
         k = 0.0
     return k
 
 
 @ti.func
-def add_hits(m: ti.template(), acc: ti.template(), hit_p: ti.template(), hit_r2: ti.template(),
-             n_hits, inv_ell2, hist: ti.template(), classes: ti.template(),
-             single: ti.template(), cap_inv2: ti.template(), capped: ti.template()):
+def add_hits(
+    m: ti.template(),
+    acc: ti.template(),
+    hit_p: ti.template(),
+    hit_r2: ti.template(),
+    n_hits,
+    inv_ell2,
+    hist: ti.template(),
+    classes: ti.template(),
+    single: ti.template(),
+    cap_inv2: ti.template(),
+    capped: ti.template(),
+):
     """Add to acc the kernel-weighted evidence of the first n_hits training rows of the hit
     list (local vectors by reference: by value, Taichi copied all three at every call).
     `capped`: each class's evidence takes the kernel of its own cap (`cap_inv2`, per class)."""
@@ -129,7 +146,7 @@ def add_hits(m: ti.template(), acc: ti.template(), hit_p: ti.template(), hit_r2:
         if ti.static(not capped):
             k = sparse_kernel_of_r2(m, hit_r2[h] * inv_ell2)
         c1 = single[p]
-        if c1 > 0:      # one class: the common case
+        if c1 > 0:  # one class: the common case
             if ti.static(capped):
                 k = capped_kernel(m, hit_r2[h], inv_ell2, cap_inv2[c1])
             acc[c1] += k * hist[p, c1]
@@ -150,9 +167,25 @@ def update_kernel(settings: KernelSettings):
     capped = settings.evidence_caps
 
     @ti.func
-    def update_voxel(m: ti.template(), u, stored, centre, base, blk_m, t_rel, inv_tau, sigma0,
-                     prior, ell_min, ell_max, xyz: ti.template(), hist: ti.template(),
-                     classes: ti.template(), single: ti.template(), cap_inv2: ti.template()):
+    def update_voxel(
+        m: ti.template(),
+        u,
+        stored,
+        centre,
+        base,
+        blk_m,
+        t_rel,
+        inv_tau,
+        sigma0,
+        prior,
+        ell_min,
+        ell_max,
+        xyz: ti.template(),
+        hist: ti.template(),
+        classes: ti.template(),
+        single: ti.template(),
+        cap_inv2: ti.template(),
+    ):
         """One live voxel (`stored` = m.length[u]: its kernel length, or a pending mark): its
         length if the scan brought it evidence, the kernel-weighted sum over the training
         points within that length, and the fusion.
@@ -160,11 +193,12 @@ def update_kernel(settings: KernelSettings):
         The scan's constants come by value (copied per voxel, before the loops): where the
         compiler finds them decides how fast math associates the sums, and this keeps the map
         bitwise what it has been."""
-        ell = stored         # the kernel length L(v), metres
+        ell = stored  # the kernel length L(v), metres
         if ti.static(settings.adaptive):
-            if is_pending(stored):    # evidence in this scan: the length first
-                ell = fresh_length(m, u, hist, pending_row(stored), t_rel, inv_tau, prior,
-                                   ell_min, ell_max, decay)
+            if is_pending(stored):  # evidence in this scan: the length first
+                ell = fresh_length(
+                    m, u, hist, pending_row(stored), t_rel, inv_tau, prior, ell_min, ell_max, decay
+                )
                 m.length[u] = ell
         if ell > 0:
             ell2 = ell * ell
@@ -174,7 +208,7 @@ def update_kernel(settings: KernelSettings):
             lo = ti.floor((centre - ell) * inv_blk, ti.i32)
             hi = ti.floor((centre + ell) * inv_blk, ti.i32)
             acc = ti.Vector([0.0] * m.C)
-            hit_p = ti.Vector([0] * HITS, dt=ti.i32)    # training rows within L(v), their d^2
+            hit_p = ti.Vector([0] * HITS, dt=ti.i32)  # training rows within L(v), their d^2
             hit_r2 = ti.Vector([0.0] * HITS)
             n_hits = 0
             # plain nested loops (ti.ndrange would flatten them with an integer division and
@@ -209,8 +243,9 @@ def update_kernel(settings: KernelSettings):
                             zhi = col_hi
                             lhi = LEAF - 1
                         if zlo <= zhi:
-                            start = m.b_start[tx, ty, zlo] + rows_below(m.b_layers[tx, ty, zlo],
-                                                                        llo)
+                            start = m.b_start[tx, ty, zlo] + rows_below(
+                                m.b_layers[tx, ty, zlo], llo
+                            )
                             end = m.b_start[tx, ty, zhi] + rows_to(m.b_layers[tx, ty, zhi], lhi)
                             for p in range(start, end):
                                 # no branch on the distance test, whose outcome no predictor can
@@ -222,22 +257,37 @@ def update_kernel(settings: KernelSettings):
                                 hit_r2[n_hits] = d2
                                 n_hits += ti.cast(d2 < ell2, ti.i32)
                                 if n_hits == HITS:
-                                    add_hits(m, acc, hit_p, hit_r2, n_hits, inv_ell2, hist,
-                                             classes, single, cap_inv2, capped)
+                                    add_hits(
+                                        m,
+                                        acc,
+                                        hit_p,
+                                        hit_r2,
+                                        n_hits,
+                                        inv_ell2,
+                                        hist,
+                                        classes,
+                                        single,
+                                        cap_inv2,
+                                        capped,
+                                    )
                                     n_hits = 0
-            add_hits(m, acc, hit_p, hit_r2, n_hits, inv_ell2, hist, classes, single, cap_inv2,
-                     capped)
+            add_hits(
+                m, acc, hit_p, hit_r2, n_hits, inv_ell2, hist, classes, single, cap_inv2, capped
+            )
             acc *= sigma0
             if acc.sum() > MIN_UPDATE:
                 fuse_voxel(m, u, acc, t_rel, inv_tau, decay)
 
     @ti.kernel
-    def gather_update(m: ti.template(), s: ScanParams,
-                      xyz: ti.types.ndarray(dtype=ti.f32, ndim=2),      # (K, 3) training points
-                      hist: ti.types.ndarray(dtype=ti.f32, ndim=2),     # (K, C) block-sorted
-                      classes: ti.types.ndarray(dtype=ti.i32, ndim=1),  # (K,) bit c: hist > 0
-                      single: ti.types.ndarray(dtype=ti.i32, ndim=1),   # (K,) the one class
-                      cap_inv2: ti.types.ndarray(dtype=ti.f32, ndim=1)):  # (C,) 1 / cap^2
+    def gather_update(
+        m: ti.template(),
+        s: ScanParams,
+        xyz: ti.types.ndarray(dtype=ti.f32, ndim=2),  # (K, 3) training points
+        hist: ti.types.ndarray(dtype=ti.f32, ndim=2),  # (K, C) block-sorted
+        classes: ti.types.ndarray(dtype=ti.i32, ndim=1),  # (K,) bit c: hist > 0
+        single: ti.types.ndarray(dtype=ti.i32, ndim=1),  # (K,) the one class
+        cap_inv2: ti.types.ndarray(dtype=ti.f32, ndim=1),
+    ):  # (C,) 1 / cap^2
         """The update of every live voxel a training point can reach.
 
         The parallel loop (settings.per_voxel): on a CPU one task per leaf block (two threads,
@@ -253,10 +303,25 @@ def update_kernel(settings: KernelSettings):
                 wb, near = reached_block(m, B, center_blk, s.stamp)
                 if near:
                     local = u - B * LEAF
-                    update_voxel(m, u, m.length[u], voxel_centre(wb, local, s.resolution_m),
-                                 base, blk_m, s.time_rel_s, s.inv_tau, s.sigma0, s.prior,
-                                 s.length_min_m, s.length_max_m, xyz, hist, classes, single,
-                                 cap_inv2)
+                    update_voxel(
+                        m,
+                        u,
+                        m.length[u],
+                        voxel_centre(wb, local, s.resolution_m),
+                        base,
+                        blk_m,
+                        s.time_rel_s,
+                        s.inv_tau,
+                        s.sigma0,
+                        s.prior,
+                        s.length_min_m,
+                        s.length_max_m,
+                        xyz,
+                        hist,
+                        classes,
+                        single,
+                        cap_inv2,
+                    )
         else:
             for B in ti.grouped(m.blk):
                 wb, near = reached_block(m, B, center_blk, s.stamp)
@@ -264,16 +329,30 @@ def update_kernel(settings: KernelSettings):
                     # the block's 64 lengths first, in an unrolled loop: the compiler then walks
                     # the sparse tree to the block once, not once per cell (0 marks a free cell)
                     lengths = ti.Vector([0.0] * VOXELS)
-                    for layer in ti.static(range(LEAF)):        # (nested: Taichi warns past 32)
+                    for layer in ti.static(range(LEAF)):  # (nested: Taichi warns past 32)
                         for q in ti.static(range(layer * LEAF * LEAF, (layer + 1) * LEAF * LEAF)):
                             lengths[q] = m.length[B * LEAF + local_of_index(q)]
                     for q in range(VOXELS):
                         if lengths[q] != 0:
                             local = local_of_index(q)
-                            update_voxel(m, B * LEAF + local, lengths[q],
-                                         voxel_centre(wb, local, s.resolution_m), base, blk_m,
-                                         s.time_rel_s, s.inv_tau, s.sigma0, s.prior,
-                                         s.length_min_m, s.length_max_m, xyz, hist, classes,
-                                         single, cap_inv2)
+                            update_voxel(
+                                m,
+                                B * LEAF + local,
+                                lengths[q],
+                                voxel_centre(wb, local, s.resolution_m),
+                                base,
+                                blk_m,
+                                s.time_rel_s,
+                                s.inv_tau,
+                                s.sigma0,
+                                s.prior,
+                                s.length_min_m,
+                                s.length_max_m,
+                                xyz,
+                                hist,
+                                classes,
+                                single,
+                                cap_inv2,
+                            )
 
     return gather_update

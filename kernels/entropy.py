@@ -5,13 +5,13 @@ the adaptive modes, a pending mark (kernels/layout.py). The adaptive length need
 decayed counters, which the kernel update reads anyway, so the update computes it there
 (`fresh_length`, called from kernels/bki.py) in the same pass over the map.
 """
+
 import functools
 import math
 
 import numpy as np
 import taichi as ti
 from taichi.lang.argpack import ArgPack
-
 from tisem.kernels.fusion import decay_factor
 from tisem.kernels.layout import MapFields, pending_length
 from tisem.kernels.params import ADAPTIVE_LENGTH, NO_KERNEL
@@ -33,8 +33,18 @@ def fast_log(x):
     m = ti.bit_cast((bits & 0x007FFFFF) | 0x3F800000, ti.f32)
     t = (m - 1.0) / (m + 1.0)
     t2 = t * t
-    ln_m = 2.0 * t * (1.0 + t2 * (1.0 / 3.0 + t2 * (1.0 / 5.0 + t2 * (1.0 / 7.0 + t2 * (
-        1.0 / 9.0 + t2 * (1.0 / 11.0))))))
+    ln_m = (
+        2.0
+        * t
+        * (
+            1.0
+            + t2
+            * (
+                1.0 / 3.0
+                + t2 * (1.0 / 5.0 + t2 * (1.0 / 7.0 + t2 * (1.0 / 9.0 + t2 * (1.0 / 11.0))))
+            )
+        )
+    )
     return ln_m + ti.cast(e, ti.f32) * LN2
 
 
@@ -85,8 +95,18 @@ def adaptive_length(p, ell_min, ell_max, num_real: ti.template()):
 
 
 @ti.func
-def fresh_length(m: ti.template(), u, hist: ti.template(), row, t_rel, inv_tau, prior, ell_min,
-                 ell_max, decay: ti.template()):
+def fresh_length(
+    m: ti.template(),
+    u,
+    hist: ti.template(),
+    row,
+    t_rel,
+    inv_tau,
+    prior,
+    ell_min,
+    ell_max,
+    decay: ti.template(),
+):
     """Kernel length of map voxel u given this scan's evidence hist[row, :]: the entropy of
     p(c|v) = prior + decayed counters + the scan's histogram (steps 4-5)."""
     alpha = decay_factor(t_rel - m.t_last_rel[u], inv_tau, decay)
@@ -113,7 +133,7 @@ def _length_visitors(kernel_length: str):
         if ti.static(kernel_length == ADAPTIVE_LENGTH):
             m.length[u] = pending_length(row)
         else:
-            m.length[u] = s.fixed_length_m        # (csm: any positive length marks it live)
+            m.length[u] = s.fixed_length_m  # (csm: any positive length marks it live)
         # u is live from now on: `length` is not on the bitmasked node, so a store to a field
         # that is sets the voxel's bit (its time keeps its value; a free cell holds 0). Not
         # ti.activate: in taichi 1.7.4 it leaves the bit clear when it has to allocate the block
@@ -137,8 +157,14 @@ def mark_near(m: ti.template(), i, stamp, reach_blk):
                 m.near[nx, ny, nz] = stamp
 
 
-def assign_lengths(m: MapFields, s: ArgPack, blocks: np.ndarray, voxel: np.ndarray,
-                   hist: np.ndarray, kernel_length: str) -> None:
+def assign_lengths(
+    m: MapFields,
+    s: ArgPack,
+    blocks: np.ndarray,
+    voxel: np.ndarray,
+    hist: np.ndarray,
+    kernel_length: str,
+) -> None:
     """Steps 4-5 for every voxel the scan's training rows fall in: its kernel length under
     `kernel_length` (kernels/params.py), and the map blocks within kernel reach of it marked for
     the update. `voxel`, `hist`: the training rows' voxel indices and evidence."""

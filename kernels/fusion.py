@@ -6,10 +6,10 @@ need to decay.
 
 Also the whole update of csm (counting, no kernel): each training voxel's own histogram.
 """
+
 import numpy as np
 import taichi as ti
 from taichi.lang.argpack import ArgPack
-
 from tisem.kernels.layout import MapFields
 from tisem.kernels.params import EXPONENTIAL, FORGET, PER_CLASS
 from tisem.kernels.training import visit_training_voxels
@@ -43,7 +43,7 @@ def fuse_voxel(m: ti.template(), u, delta, t_rel, inv_tau, decay: ti.template())
     for c in ti.static(range(m.C)):
         m.counts[u, c] = class_decay(m, alpha, dt, c, decay) * m.counts[u, c] + delta[c]
     if ti.static(m.free_space):
-        m.occupancy[u] *= alpha      # the occupancy evidence fades with the static tau
+        m.occupancy[u] *= alpha  # the occupancy evidence fades with the static tau
     m.t_last_rel[u] = t_rel
 
 
@@ -69,8 +69,9 @@ def _fuse_histogram(m: ti.template(), s: ti.template(), u, row, hist: ti.templat
     fuse_voxel(m, u, h, s.time_rel_s, 0.0, EXPONENTIAL)
 
 
-def fuse_histograms(m: MapFields, s: ArgPack, blocks: np.ndarray, voxel: np.ndarray,
-                    hist: np.ndarray) -> None:
+def fuse_histograms(
+    m: MapFields, s: ArgPack, blocks: np.ndarray, voxel: np.ndarray, hist: np.ndarray
+) -> None:
     """csm's update (steps 6-8 without a kernel): every training voxel adds its own histogram
     (row `hist` of the scan's training rows, kernels/training.py) to its counters."""
     visit_training_voxels(m, s, blocks, voxel, hist, _no_block_work, _fuse_histogram)

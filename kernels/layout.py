@@ -22,25 +22,26 @@ u = w & (N - 1). The mapper keeps every live block inside a window smaller than 
 sensor, so two live world voxels never share a storage cell, and a storage index is turned back
 into its world index by unwrapping around the window centre (`unwrap`).
 """
+
 import taichi as ti
 
 LEAF_BITS = 2
-LEAF = 1 << LEAF_BITS   # voxels per leaf block edge
-MID = 8    # leaf blocks per top cell edge
+LEAF = 1 << LEAF_BITS  # voxels per leaf block edge
+MID = 8  # leaf blocks per top cell edge
 TOP = LEAF * MID
-KERNEL_TABLE = 4096   # samples of the sparse kernel over r^2 in [0, 1]
-NEAR = 2   # table cells (leaf blocks) per edge of a cell of the coarse `near` table
-LAYER_BITS = 8       # per z layer of a block in b_layers: up to 64 rows (LEAF^3 voxels)
-EMPTY_LO = 1 << 30   # col_lo of a column without points (any z cell is below it)
+KERNEL_TABLE = 4096  # samples of the sparse kernel over r^2 in [0, 1]
+NEAR = 2  # table cells (leaf blocks) per edge of a cell of the coarse `near` table
+LAYER_BITS = 8  # per z layer of a block in b_layers: up to 64 rows (LEAF^3 voxels)
+EMPTY_LO = 1 << 30  # col_lo of a column without points (any z cell is below it)
 
 # The scan's table (MapFields below) is dense: 16 B per cell in four int32 fields, plus the coarse
 # `near` table (an eighth of an int32 per cell) and the per-column z-range, under 18 B in all.
 TABLE_BYTES_PER_CELL = 18
-MAX_TABLE_CELLS = 2 ** 28   # cell ids are int32
-MAX_REACH_BLK = 2           # the longest kernel, in leaf blocks, the table's margin is sized for
+MAX_TABLE_CELLS = 2**28  # cell ids are int32
+MAX_REACH_BLK = 2  # the longest kernel, in leaf blocks, the table's margin is sized for
 # A voxel's training row travels through float32 in its pending-length mark (exact below 2^24),
 # and a scan has at most as many training voxels as points.
-MAX_SCAN_POINTS = 2 ** 24
+MAX_SCAN_POINTS = 2**24
 
 
 def table_half_blocks(limit_vox, reach_blk: int) -> tuple[int, int, int]:
@@ -120,17 +121,23 @@ def storage_extent(window_half_vox: tuple[int, int, int]) -> tuple[int, int, int
 class MapFields:
     """The Taichi fields of one map. Create after `ti.init`; never share across inits."""
 
-    def __init__(self, num_classes: int, extent: tuple[int, int, int],
-                 table_half: tuple[int, int, int], free_space: bool = False,
-                 empty_evidence: float = 2.0, occupancy_cap: float = 4.0):
+    def __init__(
+        self,
+        num_classes: int,
+        extent: tuple[int, int, int],
+        table_half: tuple[int, int, int],
+        free_space: bool = False,
+        empty_evidence: float = 2.0,
+        occupancy_cap: float = 4.0,
+    ):
         for n in extent:
             if n % TOP or n & (n - 1):
                 raise ValueError(f"storage extent {extent} must be powers of two >= {TOP}")
         self.C = int(num_classes)
         self.N = tuple(int(n) for n in extent)
         self.mask = tuple(n - 1 for n in self.N)
-        self.N_blk = tuple(n // LEAF for n in self.N)    # extent in leaf blocks
-        self.N_top = tuple(n // TOP for n in self.N)     # extent in top cells
+        self.N_blk = tuple(n // LEAF for n in self.N)  # extent in leaf blocks
+        self.N_top = tuple(n // TOP for n in self.N)  # extent in top cells
         # one SNode tree per map, built and finalised here
         fb = ti.FieldsBuilder()
 
@@ -152,7 +159,7 @@ class MapFields:
         # the counters to t_last_rel and clamped (kernels/raycast.py), and the last scan whose
         # rays or hits changed it (one change per voxel and scan, whatever the rays crossing it)
         self.free_space = bool(free_space)
-        self.empty_evidence = float(empty_evidence)   # (constants the kernels compile in)
+        self.empty_evidence = float(empty_evidence)  # (constants the kernels compile in)
         self.occupancy_cap = float(occupancy_cap)
         if self.free_space:
             self.occupancy = ti.field(ti.f32)
@@ -181,8 +188,9 @@ class MapFields:
         # block's row count), and the kernel update reads a column's z-range to the voxel layer
         self.b_start = ti.field(ti.i32)
         self.b_layers = ti.field(ti.i32)
-        fb.dense(ti.ijk, self.table_shape).place(self.p_count, self.p_start, self.b_start,
-                                                 self.b_layers)
+        fb.dense(ti.ijk, self.table_shape).place(
+            self.p_count, self.p_start, self.b_start, self.b_layers
+        )
         # per (x, y) column of the table: the z-range of cells holding points (empty: lo > hi).
         # Each column's blocks are laid out one after another in z, so the kernel update reads
         # a column's z-range of blocks as one contiguous slice.
@@ -214,8 +222,11 @@ class MapFields:
 
     @ti.func
     def in_table(self, i):
-        return (0 <= i[0] <= 2 * self.table_half[0] and 0 <= i[1] <= 2 * self.table_half[1]
-                and 0 <= i[2] <= 2 * self.table_half[2])
+        return (
+            0 <= i[0] <= 2 * self.table_half[0]
+            and 0 <= i[1] <= 2 * self.table_half[1]
+            and 0 <= i[2] <= 2 * self.table_half[2]
+        )
 
     @ti.func
     def cell_id(self, i):

@@ -12,6 +12,7 @@ that pick code paths are not arguments at all: the kernel factories (`functools.
 over a `KernelSettings` and branch with `ti.static`, so every mode compiles to kernels without
 the branches of the other modes.
 """
+
 from dataclasses import dataclass
 
 import taichi as ti
@@ -21,36 +22,36 @@ vec3f = ti.types.vector(3, ti.f32)
 
 ScanParams = ti.types.argpack(
     # the sensor pose in the map's local frame (local metres: world minus the map origin)
-    rotation=ti.types.matrix(3, 3, ti.f32),     # R_local_sensor
-    translation_m=vec3f,                         # the sensor's position, local metres
-    center_vox=vec3i,      # the sensor's voxel: the centre of the live window and the scan table
-    limit_vox=vec3i,       # a kept point's voxel lies within this of center_vox on every axis
+    rotation=ti.types.matrix(3, 3, ti.f32),  # R_local_sensor
+    translation_m=vec3f,  # the sensor's position, local metres
+    center_vox=vec3i,  # the sensor's voxel: the centre of the live window and the scan table
+    limit_vox=vec3i,  # a kept point's voxel lies within this of center_vox on every axis
     min_range2_m2=ti.f32,  # the range band, squared (points outside it are dropped)
     max_range2_m2=ti.f32,
-    min_z_m=ti.f32,        # the height band, sensor frame
+    min_z_m=ti.f32,  # the height band, sensor frame
     max_z_m=ti.f32,
     resolution_m=ti.f32,
     inv_resolution=ti.f32,  # 1 / resolution_m, rounded once on the host
-    time_rel_s=ti.f32,     # the scan's time, seconds since the map's first scan
-    stamp=ti.i32,          # the scan's number from 1 on (marks of the coarse `near` table)
-    min_points=ti.i32,     # the redundant-voxel filter: fewer points and a voxel is dropped
-    reach_blk=ti.i32,      # the longest kernel, in leaf blocks
+    time_rel_s=ti.f32,  # the scan's time, seconds since the map's first scan
+    stamp=ti.i32,  # the scan's number from 1 on (marks of the coarse `near` table)
+    min_points=ti.i32,  # the redundant-voxel filter: fewer points and a voxel is dropped
+    reach_blk=ti.i32,  # the longest kernel, in leaf blocks
     fixed_length_m=ti.f32,  # the kernel length of every voxel (fixed-length modes; csm: any > 0)
-    length_min_m=ti.f32,   # the adaptive length's range: L = min + (max - min) * entropy
+    length_min_m=ti.f32,  # the adaptive length's range: L = min + (max - min) * entropy
     length_max_m=ti.f32,
-    prior=ti.f32,          # pseudo-count of every class in the entropy's p(c|v)
-    sigma0=ti.f32,         # the sparse kernel's scale
-    inv_tau=ti.f32,        # 1 / tau of the decay (0 for tau = inf: plain accumulation)
+    prior=ti.f32,  # pseudo-count of every class in the entropy's p(c|v)
+    sigma0=ti.f32,  # the sparse kernel's scale
+    inv_tau=ti.f32,  # 1 / tau of the decay (0 for tau = inf: plain accumulation)
 )
 
 # KernelSettings.kernel_length
-NO_KERNEL = "none"          # csm: a voxel's own histogram is its update
-FIXED_LENGTH = "fixed"      # bki: one length for every voxel
+NO_KERNEL = "none"  # csm: a voxel's own histogram is its update
+FIXED_LENGTH = "fixed"  # bki: one length for every voxel
 ADAPTIVE_LENGTH = "adaptive"  # the length from the entropy of the voxel's class distribution
 # KernelSettings.decay
 EXPONENTIAL = "exponential"  # alpha = exp(-dt / tau); tau = inf (1 / tau = 0) gives alpha = 1
-FORGET = "forget"            # tau = 0: every update replaces the voxel's history (alpha = 0)
-PER_CLASS = "per_class"      # alpha_c = exp(-dt / tau_c): movable classes fade faster
+FORGET = "forget"  # tau = 0: every update replaces the voxel's history (alpha = 0)
+PER_CLASS = "per_class"  # alpha_c = exp(-dt / tau_c): movable classes fade faster
 
 
 @dataclass(frozen=True)
@@ -59,11 +60,11 @@ class KernelSettings:
 
     kernel_length: str = ADAPTIVE_LENGTH
     decay: str = EXPONENTIAL
-    unit_weight: bool = False   # a training voxel weighs once, not by its point count
+    unit_weight: bool = False  # a training voxel weighs once, not by its point count
     # some classes' evidence reaches less far than the receiver's length: the update reads a
     # per-class table (kernels/bki.py); off, the update never reads it
     evidence_caps: bool = False
-    per_voxel: bool = False     # the update's parallel loop: per voxel (GPUs), per block (CPUs)
+    per_voxel: bool = False  # the update's parallel loop: per voxel (GPUs), per block (CPUs)
 
     def __post_init__(self):
         if self.kernel_length not in (NO_KERNEL, FIXED_LENGTH, ADAPTIVE_LENGTH):

@@ -1,8 +1,8 @@
 """Step 9 and the map's host interface: query, count, export, import."""
+
 import functools
 
 import taichi as ti
-
 from tisem.kernels.bki import sparse_kernel
 
 
@@ -38,8 +38,9 @@ def blended_posterior(m: ti.template(), w, x, center, half, radius_m, inv_res):
 
 
 @ti.func
-def answer(m: ti.template(), values, p, out_label: ti.template(), out_prob: ti.template(),
-           with_prob):
+def answer(
+    m: ti.template(), values, p, out_label: ti.template(), out_prob: ti.template(), with_prob
+):
     """Point p's label (the argmax of values, 0 when all are 0) and, with_prob, the values
     normalised."""
     best = 0
@@ -58,8 +59,17 @@ def answer(m: ti.template(), values, p, out_label: ti.template(), out_prob: ti.t
 
 
 @ti.func
-def lookup(m: ti.template(), w, center, half, p, out_label: ti.template(),
-           out_inside: ti.template(), out_prob: ti.template(), with_prob):
+def lookup(
+    m: ti.template(),
+    w,
+    center,
+    half,
+    p,
+    out_label: ti.template(),
+    out_inside: ti.template(),
+    out_prob: ti.template(),
+    with_prob,
+):
     """Answer query point p, whose world voxel is w: argmax and normalised counters."""
     best = 0
     inside = 0
@@ -74,7 +84,7 @@ def lookup(m: ti.template(), w, center, half, p, out_label: ti.template(),
             if v > best_v:
                 best_v = v
                 best = c
-        if m.is_empty(u):   # seen through (free space): it answers as no voxel does
+        if m.is_empty(u):  # seen through (free space): it answers as no voxel does
             best = 0
             total = 0.0
         if with_prob:
@@ -90,15 +100,18 @@ def query_kernel(blend: bool):
     points in the window whose voxel holds no evidence."""
 
     @ti.kernel
-    def query(m: ti.template(),
-              pts: ti.types.ndarray(dtype=ti.f32, ndim=2),        # (N, 3) local coordinates, m
-              center: ti.types.vector(3, ti.i32), half: ti.types.vector(3, ti.i32),
-              inv_res: ti.f32,
-              with_prob: ti.i32,                                  # 1: write out_prob
-              radius_m: ti.f32,                                   # blend: the query radius
-              out_label: ti.types.ndarray(dtype=ti.i32, ndim=1),  # (N,) train id, 0: no evidence
-              out_inside: ti.types.ndarray(dtype=ti.i32, ndim=1),  # (N,) 1: the window covers it
-              out_prob: ti.types.ndarray(dtype=ti.f32, ndim=2)):  # (N, C), or (0, C): unused
+    def query(
+        m: ti.template(),
+        pts: ti.types.ndarray(dtype=ti.f32, ndim=2),  # (N, 3) local coordinates, m
+        center: ti.types.vector(3, ti.i32),
+        half: ti.types.vector(3, ti.i32),
+        inv_res: ti.f32,
+        with_prob: ti.i32,  # 1: write out_prob
+        radius_m: ti.f32,  # blend: the query radius
+        out_label: ti.types.ndarray(dtype=ti.i32, ndim=1),  # (N,) train id, 0: no evidence
+        out_inside: ti.types.ndarray(dtype=ti.i32, ndim=1),  # (N,) 1: the window covers it
+        out_prob: ti.types.ndarray(dtype=ti.f32, ndim=2),
+    ):  # (N, C), or (0, C): unused
         """Labels (and probabilities) of the points whose voxel the live window holds, the
         window being the box |w - center| <= half.
 
@@ -114,8 +127,14 @@ def query_kernel(blend: bool):
                 # a point in the window whose voxel has no evidence (label 0: class 0 is never
                 # evidence): the voxels around it
                 if out_inside[p] == 1 and out_label[p] == 0:
-                    answer(m, blended_posterior(m, w, x, center, half, radius_m, inv_res), p,
-                           out_label, out_prob, with_prob)
+                    answer(
+                        m,
+                        blended_posterior(m, w, x, center, half, radius_m, inv_res),
+                        p,
+                        out_label,
+                        out_prob,
+                        with_prob,
+                    )
 
     return query
 
@@ -130,8 +149,16 @@ def count_active(cells: ti.template()) -> ti.i32:
 
 
 @ti.func
-def copy_voxel_out(m: ti.template(), u, w, idx, keys: ti.template(), counts: ti.template(),
-                   t_last_rel: ti.template(), length_m: ti.template()):
+def copy_voxel_out(
+    m: ti.template(),
+    u,
+    w,
+    idx,
+    keys: ti.template(),
+    counts: ti.template(),
+    t_last_rel: ti.template(),
+    length_m: ti.template(),
+):
     """Copy map voxel u (world index w) into row idx of the host arrays."""
     for a in ti.static(range(3)):
         keys[idx, a] = w[a]
@@ -142,12 +169,14 @@ def copy_voxel_out(m: ti.template(), u, w, idx, keys: ti.template(), counts: ti.
 
 
 @ti.kernel
-def export_voxels(m: ti.template(), center: ti.types.vector(3, ti.i32),
-                  keys: ti.types.ndarray(dtype=ti.i32, ndim=2),        # (M, 3) out: world voxel
-                  counts: ti.types.ndarray(dtype=ti.f32, ndim=2),      # (M, C) out
-                  t_last_rel: ti.types.ndarray(dtype=ti.f32, ndim=1),  # (M,) out
-                  length_m: ti.types.ndarray(dtype=ti.f32, ndim=1)     # (M,) out
-                  ) -> ti.i32:
+def export_voxels(
+    m: ti.template(),
+    center: ti.types.vector(3, ti.i32),
+    keys: ti.types.ndarray(dtype=ti.i32, ndim=2),  # (M, 3) out: world voxel
+    counts: ti.types.ndarray(dtype=ti.f32, ndim=2),  # (M, C) out
+    t_last_rel: ti.types.ndarray(dtype=ti.f32, ndim=1),  # (M,) out
+    length_m: ti.types.ndarray(dtype=ti.f32, ndim=1),  # (M,) out
+) -> ti.i32:
     """Every live voxel (world keys unwrapped at the window centre), in no particular order;
     returns how many there are (only the first M are written)."""
     m.counter[None] = 0
@@ -159,11 +188,13 @@ def export_voxels(m: ti.template(), center: ti.types.vector(3, ti.i32),
 
 
 @ti.kernel
-def import_voxels(m: ti.template(),
-                  keys: ti.types.ndarray(dtype=ti.i32, ndim=2),        # (M, 3) world voxel
-                  counts: ti.types.ndarray(dtype=ti.f32, ndim=2),      # (M, C)
-                  t_last_rel: ti.types.ndarray(dtype=ti.f32, ndim=1),  # (M,)
-                  length_m: ti.types.ndarray(dtype=ti.f32, ndim=1)):   # (M,)
+def import_voxels(
+    m: ti.template(),
+    keys: ti.types.ndarray(dtype=ti.i32, ndim=2),  # (M, 3) world voxel
+    counts: ti.types.ndarray(dtype=ti.f32, ndim=2),  # (M, C)
+    t_last_rel: ti.types.ndarray(dtype=ti.f32, ndim=1),  # (M,)
+    length_m: ti.types.ndarray(dtype=ti.f32, ndim=1),
+):  # (M,)
     """Write voxels into the field (they become live), values as given."""
     for i in range(keys.shape[0]):
         u = m.wrap(ti.Vector([keys[i, 0], keys[i, 1], keys[i, 2]]))

@@ -13,19 +13,19 @@ every voxel after the scan.
 Non-finite points never get here: the mapper moves them out of range first (fast math makes
 NaN tests unreliable).
 """
+
 import functools
 
 import taichi as ti
-
 from tisem.kernels.layout import LEAF, block_and_local
 from tisem.kernels.params import ScanParams
 
 # what happened to a point (locate), and the slots of the counts the locate kernel returns (the
 # last one: how many leaf blocks the kept points fall in)
 USED, OUT_OF_RANGE, OUT_OF_WINDOW, IMPLAUSIBLY_FAR, OUT_OF_BAND, BLOCKS = 0, 1, 2, 3, 4, 5
-CORRUPT_RANGE_M = 1000.0   # no LiDAR returns from this far: such points are corrupt data
-EVIDENCE = LEAF ** 3   # bit of a point's voxel code: the point carries class evidence
-DROPPED = -1           # a point's cell when it is not used
+CORRUPT_RANGE_M = 1000.0  # no LiDAR returns from this far: such points are corrupt data
+EVIDENCE = LEAF**3  # bit of a point's voxel code: the point carries class evidence
+DROPPED = -1  # a point's cell when it is not used
 
 
 def evidence_array(use_probs: bool):
@@ -65,8 +65,7 @@ def locate(p, s: ti.template()):
 
 
 @ti.func
-def has_evidence(num_classes: ti.template(), evidence: ti.template(), n,
-                 use_probs: ti.template()):
+def has_evidence(num_classes: ti.template(), evidence: ti.template(), n, use_probs: ti.template()):
     """Whether point n adds class evidence (train id 0 / class 0 never does)."""
     ev = 0
     if ti.static(use_probs):
@@ -83,13 +82,15 @@ def locate_kernel(use_probs: bool):
     """The kernel that locates a scan's points, for labels or probabilities as evidence."""
 
     @ti.kernel
-    def locate_points(m: ti.template(), s: ScanParams,
-                      pts: ti.types.ndarray(dtype=ti.f32, ndim=2),     # (N, 3) sensor frame
-                      evidence: evidence_array(use_probs),             # (N,) or (N, C)
-                      cell: ti.types.ndarray(dtype=ti.i32, ndim=1),    # (N,) out: table cell id
-                      code: ti.types.ndarray(dtype=ti.i32, ndim=1),    # (N,) out: voxel in block
-                      blocks: ti.types.ndarray(dtype=ti.i32, ndim=1)   # (N,) out: occupied cells
-                      ) -> ti.types.vector(6, ti.i32):
+    def locate_points(
+        m: ti.template(),
+        s: ScanParams,
+        pts: ti.types.ndarray(dtype=ti.f32, ndim=2),  # (N, 3) sensor frame
+        evidence: evidence_array(use_probs),  # (N,) or (N, C)
+        cell: ti.types.ndarray(dtype=ti.i32, ndim=1),  # (N,) out: table cell id
+        code: ti.types.ndarray(dtype=ti.i32, ndim=1),  # (N,) out: voxel in block
+        blocks: ti.types.ndarray(dtype=ti.i32, ndim=1),  # (N,) out: occupied cells
+    ) -> ti.types.vector(6, ti.i32):
         """Count every kept point in its block's cell (p_count), list the cells that get points
         (`blocks`, in no particular order) and widen their columns' z-ranges.
 
@@ -125,19 +126,30 @@ def locate_kernel(use_probs: bool):
                 i, _ = m.table_index(blk, center_blk)
                 cell[n] = m.cell_id(i)
                 code[n] = q + EVIDENCE * has_evidence(m.C, evidence, n, use_probs)
-                if ti.atomic_add(m.p_count[i], 1) == 0:     # the block's first point
+                if ti.atomic_add(m.p_count[i], 1) == 0:  # the block's first point
                     blocks[ti.atomic_add(m.counter[None], 1)] = cell[n]
                     ti.atomic_min(m.col_lo[i[0], i[1]], i[2])
                     ti.atomic_max(m.col_hi[i[0], i[1]], i[2])
-        return ti.Vector([pts.shape[0] - out_of_range - out_of_band - out_of_window,
-                          out_of_range, out_of_window, far, out_of_band, m.counter[None]])
+        return ti.Vector(
+            [
+                pts.shape[0] - out_of_range - out_of_band - out_of_window,
+                out_of_range,
+                out_of_window,
+                far,
+                out_of_band,
+                m.counter[None],
+            ]
+        )
 
     return locate_points
 
 
 @ti.kernel
-def scatter_points(m: ti.template(), cell: ti.types.ndarray(dtype=ti.i32, ndim=1),
-                   perm: ti.types.ndarray(dtype=ti.i32, ndim=1)):   # (N,) out: points by block
+def scatter_points(
+    m: ti.template(),
+    cell: ti.types.ndarray(dtype=ti.i32, ndim=1),
+    perm: ti.types.ndarray(dtype=ti.i32, ndim=1),
+):  # (N,) out: points by block
     """List every kept point in its block's slice (table.column_slots gave the slices, and
     restarted p_count as the fill cursor that this counts back up)."""
     for n in range(cell.shape[0]):

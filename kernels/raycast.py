@@ -3,7 +3,8 @@
 A ray runs from the sensor's position to a training point (the centroid of a hit voxel; one
 ray per `free_ray_stride` of them) and stops a margin before it,
 `max(margin_m, margin_fraction * range)`: the last stretch of a ray grazing the ground runs
-within a voxel of the surface it hits, and counting it as free would erase the road. One thread per ray walks the voxels the ray crosses
+within a voxel of the surface it hits, and counting it as free would erase the road. One
+thread per ray walks the voxels the ray crosses
 (a 3-D DDA, Amanatides & Woo 1987): from the sensor's voxel, step along the axis whose next
 voxel face the ray reaches first; axes that reach a face at the same parameter (a ray through
 an edge or a corner) step together, so no voxel the ray only touches is visited.
@@ -15,10 +16,10 @@ through space the map holds no voxel in changes nothing. Each voxel changes at m
 scan (`free_stamp`), whatever the number of rays through it, and a voxel hit by the scan is not
 made free by it (a ray grazing a surface it also hits).
 """
+
 import functools
 
 import taichi as ti
-
 from tisem.kernels.fusion import decay_voxel_to
 from tisem.kernels.params import ScanParams
 from tisem.kernels.rasterize import to_local
@@ -26,7 +27,7 @@ from tisem.kernels.rasterize import to_local
 # parameters of one ray's faces closer than this (fractions of the ray) count as one: a ray
 # through a voxel edge or corner steps every axis at once
 TIE_T = 1.0e-6
-NEVER = 1.0e30   # the parameter at which a ray parallel to an axis reaches its next face
+NEVER = 1.0e30  # the parameter at which a ray parallel to an axis reaches its next face
 
 
 @ti.func
@@ -45,7 +46,7 @@ def traverse(o, e, t_stop, visit: ti.template(), a0: ti.template(), a1: ti.templ
     d = e - o
     v = ti.floor(o, ti.i32)
     step = ti.Vector([0, 0, 0])
-    ahead = ti.Vector([0, 0, 0])     # 1: the next face along the axis is the voxel's upper one
+    ahead = ti.Vector([0, 0, 0])  # 1: the next face along the axis is the voxel's upper one
     t_max = ti.Vector([NEVER, NEVER, NEVER])
     for a in ti.static(range(3)):
         if d[a] > 0:
@@ -53,7 +54,7 @@ def traverse(o, e, t_stop, visit: ti.template(), a0: ti.template(), a1: ti.templ
             ahead[a] = 1
         elif d[a] < 0:
             step[a] = -1
-            if v[a] == o[a]:    # (starting on a face, going down: the voxel below it)
+            if v[a] == o[a]:  # (starting on a face, going down: the voxel below it)
                 v[a] -= 1
         if d[a] != 0:
             t_max[a] = (v[a] + ahead[a] - o[a]) / d[a]
@@ -87,11 +88,15 @@ def _record(out_voxels: ti.template(), out_count: ti.template(), r, v):
 
 
 @ti.kernel
-def trace_rays(origins: ti.types.ndarray(dtype=ti.f32, ndim=2),   # (R, 3) metres
-               ends: ti.types.ndarray(dtype=ti.f32, ndim=2),      # (R, 3) metres
-               inv_res: ti.f32, margin_m: ti.f32, margin_fraction: ti.f32,
-               out_voxels: ti.types.ndarray(dtype=ti.i32, ndim=3),  # (R, K, 3) out: in order
-               out_count: ti.types.ndarray(dtype=ti.i32, ndim=1)):  # (R,) out: voxels crossed
+def trace_rays(
+    origins: ti.types.ndarray(dtype=ti.f32, ndim=2),  # (R, 3) metres
+    ends: ti.types.ndarray(dtype=ti.f32, ndim=2),  # (R, 3) metres
+    inv_res: ti.f32,
+    margin_m: ti.f32,
+    margin_fraction: ti.f32,
+    out_voxels: ti.types.ndarray(dtype=ti.i32, ndim=3),  # (R, K, 3) out: in order
+    out_count: ti.types.ndarray(dtype=ti.i32, ndim=1),
+):  # (R,) out: voxels crossed
     """The voxels each ray crosses (the first K of them), as the map's free-space pass walks
     them: what tests compare with an exact reference."""
     for r in range(origins.shape[0]):
@@ -117,24 +122,33 @@ def free_space_kernels(decay: str):
                 ti.atomic_add(m.counter[None], 1)
 
     @ti.kernel
-    def mark_hits(m: ti.template(), s: ScanParams,
-                  xyz: ti.types.ndarray(dtype=ti.f32, ndim=2),   # (K, 3) training points, local
-                  n_rows: ti.i32):
+    def mark_hits(
+        m: ti.template(),
+        s: ScanParams,
+        xyz: ti.types.ndarray(dtype=ti.f32, ndim=2),  # (K, 3) training points, local
+        n_rows: ti.i32,
+    ):
         """Every voxel holding a training point of the scan gains a hit (and is not made free
         by the scan's rays)."""
         for r in range(n_rows):
-            u = m.wrap(ti.floor(ti.Vector([xyz[r, 0], xyz[r, 1], xyz[r, 2]])
-                                * s.inv_resolution, ti.i32))
+            u = m.wrap(
+                ti.floor(ti.Vector([xyz[r, 0], xyz[r, 1], xyz[r, 2]]) * s.inv_resolution, ti.i32)
+            )
             if ti.is_active(m.vox, u):
                 decay_voxel_to(m, u, s.time_rel_s, s.inv_tau, decay)
                 m.occupancy[u] = ti.min(m.occupancy[u] + 1.0, m.occupancy_cap)
                 m.free_stamp[u] = s.stamp
 
     @ti.kernel
-    def cast_free(m: ti.template(), s: ScanParams,
-                  xyz: ti.types.ndarray(dtype=ti.f32, ndim=2),   # (K, 3) ray ends, local
-                  n_rows: ti.i32, stride: ti.i32, margin_m: ti.f32,
-                  margin_fraction: ti.f32) -> ti.i32:
+    def cast_free(
+        m: ti.template(),
+        s: ScanParams,
+        xyz: ti.types.ndarray(dtype=ti.f32, ndim=2),  # (K, 3) ray ends, local
+        n_rows: ti.i32,
+        stride: ti.i32,
+        margin_m: ti.f32,
+        margin_fraction: ti.f32,
+    ) -> ti.i32:
         """One ray per `stride` training points (their rows are sorted by leaf block, so every
         stride-th is spread over the scan); returns how many voxels lost occupancy evidence."""
         m.counter[None] = 0
@@ -150,10 +164,13 @@ def free_space_kernels(decay: str):
 
 
 @ti.kernel
-def flag_dynamic(m: ti.template(), s: ScanParams,
-                 pts: ti.types.ndarray(dtype=ti.f32, ndim=2),   # (N, 3) sensor frame
-                 half: ti.types.vector(3, ti.i32),              # the live window's half-size
-                 out: ti.types.ndarray(dtype=ti.i8, ndim=1)) -> ti.i32:   # (N,) out: 1 dynamic
+def flag_dynamic(
+    m: ti.template(),
+    s: ScanParams,
+    pts: ti.types.ndarray(dtype=ti.f32, ndim=2),  # (N, 3) sensor frame
+    half: ti.types.vector(3, ti.i32),  # the live window's half-size
+    out: ti.types.ndarray(dtype=ti.i8, ndim=1),
+) -> ti.i32:  # (N,) out: 1 dynamic
     """Flag the points that land in a live voxel observed empty (before this scan's evidence);
     returns how many."""
     n = 0
@@ -174,18 +191,22 @@ def flag_dynamic(m: ti.template(), s: ScanParams,
 
 
 @ti.kernel
-def gather_occupancy(m: ti.template(),
-                     keys: ti.types.ndarray(dtype=ti.i32, ndim=2),    # (M, 3) live voxels
-                     out: ti.types.ndarray(dtype=ti.f32, ndim=1)):    # (M,) out
+def gather_occupancy(
+    m: ti.template(),
+    keys: ti.types.ndarray(dtype=ti.i32, ndim=2),  # (M, 3) live voxels
+    out: ti.types.ndarray(dtype=ti.f32, ndim=1),
+):  # (M,) out
     """The occupancy evidence of the given live voxels."""
     for i in range(keys.shape[0]):
         out[i] = m.occupancy[m.wrap(ti.Vector([keys[i, 0], keys[i, 1], keys[i, 2]]))]
 
 
 @ti.kernel
-def scatter_occupancy(m: ti.template(),
-                      keys: ti.types.ndarray(dtype=ti.i32, ndim=2),   # (M, 3) live voxels
-                      occupancy: ti.types.ndarray(dtype=ti.f32, ndim=1)):
+def scatter_occupancy(
+    m: ti.template(),
+    keys: ti.types.ndarray(dtype=ti.i32, ndim=2),  # (M, 3) live voxels
+    occupancy: ti.types.ndarray(dtype=ti.f32, ndim=1),
+):
     """Write the occupancy evidence of voxels just imported into the window."""
     for i in range(keys.shape[0]):
         u = m.wrap(ti.Vector([keys[i, 0], keys[i, 1], keys[i, 2]]))

@@ -5,8 +5,8 @@ Both of a scan's sorted orders, its points by block and its training rows by blo
 the blocks of each (x, y) column of the table one after another in z, so that any z-range of a
 column is one contiguous slice. One kernel does that for both, given how to count a block.
 """
-import taichi as ti
 
+import taichi as ti
 from tisem.kernels.layout import EMPTY_LO, LEAF, rows_to
 
 
@@ -23,8 +23,9 @@ def rows_in(m: ti.template(), i):
 
 
 @ti.kernel
-def column_slots(m: ti.template(), count: ti.template(), start: ti.template(),
-                 restart_count: ti.template()) -> ti.i32:
+def column_slots(
+    m: ti.template(), count: ti.template(), start: ti.template(), restart_count: ti.template()
+) -> ti.i32:
     """Give every cell of every used column's z-range its first slot, empty cells too, the
     column's cells one after another in z and the columns in any order; returns the total.
 
@@ -35,7 +36,7 @@ def column_slots(m: ti.template(), count: ti.template(), start: ti.template(),
     for cx, cy in m.col_lo:
         lo, hi = m.col_lo[cx, cy], m.col_hi[cx, cy]
         total = 0
-        for cz in range(lo, hi + 1):      # (none for an empty column: lo > hi)
+        for cz in range(lo, hi + 1):  # (none for an empty column: lo > hi)
             total += count(m, ti.Vector([cx, cy, cz]))
         if total > 0:
             slot = ti.atomic_add(m.counter[None], total)

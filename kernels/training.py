@@ -13,15 +13,15 @@ keep thousands of them busy on a GPU.
 None of this touches the map: the next steps find each row's map voxel from the row's block and
 its voxel index in the block (`visit_training_voxels`).
 """
+
 import functools
 
 import taichi as ti
-
 from tisem.kernels.layout import LAYER_BITS, LEAF, local_of_index, rows_to
 from tisem.kernels.params import ScanParams
 from tisem.kernels.rasterize import EVIDENCE, evidence_array, to_local
 
-VOXELS = LEAF ** 3
+VOXELS = LEAF**3
 
 
 @ti.func
@@ -35,8 +35,9 @@ def voxel_kept(n_points, evidence, min_points):
 
 
 @ti.func
-def sort_block(m: ti.template(), i, min_points, code: ti.template(), perm: ti.template(),
-               perm2: ti.template()):
+def sort_block(
+    m: ti.template(), i, min_points, code: ti.template(), perm: ti.template(), perm2: ti.template()
+):
     """Counting-sort block i's points by voxel (perm -> perm2, same slice); returns, packed as
     in b_layers, how many of its voxels pass the filter in each z layer and those below."""
     s = m.p_start[i]
@@ -51,7 +52,7 @@ def sort_block(m: ti.template(), i, min_points, code: ti.template(), perm: ti.te
     kept = 0
     layers = 0
     offset = s
-    for v in range(VOXELS):       # (voxel index: z slowest, LEAF^2 voxels per layer)
+    for v in range(VOXELS):  # (voxel index: z slowest, LEAF^2 voxels per layer)
         n_v = cnt[v]
         kept += voxel_kept(n_v, evidence[v], min_points)
         if v % (LEAF * LEAF) == LEAF * LEAF - 1:
@@ -67,11 +68,14 @@ def sort_block(m: ti.template(), i, min_points, code: ti.template(), perm: ti.te
 
 
 @ti.kernel
-def sort_blocks(m: ti.template(), min_points: ti.i32,
-                blocks: ti.types.ndarray(dtype=ti.i32, ndim=1),    # (B,) occupied cells
-                code: ti.types.ndarray(dtype=ti.i32, ndim=1),      # (N,) rasterize's codes
-                perm: ti.types.ndarray(dtype=ti.i32, ndim=1),      # (N,) points by block
-                perm2: ti.types.ndarray(dtype=ti.i32, ndim=1)):    # (N,) out: by voxel
+def sort_blocks(
+    m: ti.template(),
+    min_points: ti.i32,
+    blocks: ti.types.ndarray(dtype=ti.i32, ndim=1),  # (B,) occupied cells
+    code: ti.types.ndarray(dtype=ti.i32, ndim=1),  # (N,) rasterize's codes
+    perm: ti.types.ndarray(dtype=ti.i32, ndim=1),  # (N,) points by block
+    perm2: ti.types.ndarray(dtype=ti.i32, ndim=1),
+):  # (N,) out: by voxel
     """Sort every occupied block's points by voxel and count its training rows (b_layers)."""
     for b in range(blocks.shape[0]):
         i = m.cell_of_id(blocks[b])
@@ -83,30 +87,56 @@ def training_kernel(unit_weight: bool, use_probs: bool):
     """The kernel that writes the training rows, for a point weighting and a kind of evidence."""
 
     @ti.kernel
-    def write_training(m: ti.template(), s: ScanParams,
-                       pts: ti.types.ndarray(dtype=ti.f32, ndim=2),       # (N, 3) sensor frame
-                       evidence: evidence_array(use_probs),               # (N,) or (N, C)
-                       blocks: ti.types.ndarray(dtype=ti.i32, ndim=1),    # (B,) occupied cells
-                       code: ti.types.ndarray(dtype=ti.i32, ndim=1),      # (N,) voxel codes
-                       perm2: ti.types.ndarray(dtype=ti.i32, ndim=1),     # (N,) points by voxel
-                       out_xyz: ti.types.ndarray(dtype=ti.f32, ndim=2),   # (K, 3) centroid, local
-                       out_hist: ti.types.ndarray(dtype=ti.f32, ndim=2),  # (K, C) class evidence
-                       out_classes: ti.types.ndarray(dtype=ti.i32, ndim=1),  # (K,) bit c: evidence
-                       out_single: ti.types.ndarray(dtype=ti.i32, ndim=1),   # (K,) the class or 0
-                       out_voxel: ti.types.ndarray(dtype=ti.i32, ndim=1)):   # (K,) voxel in block
+    def write_training(
+        m: ti.template(),
+        s: ScanParams,
+        pts: ti.types.ndarray(dtype=ti.f32, ndim=2),  # (N, 3) sensor frame
+        evidence: evidence_array(use_probs),  # (N,) or (N, C)
+        blocks: ti.types.ndarray(dtype=ti.i32, ndim=1),  # (B,) occupied cells
+        code: ti.types.ndarray(dtype=ti.i32, ndim=1),  # (N,) voxel codes
+        perm2: ti.types.ndarray(dtype=ti.i32, ndim=1),  # (N,) points by voxel
+        out_xyz: ti.types.ndarray(dtype=ti.f32, ndim=2),  # (K, 3) centroid, local
+        out_hist: ti.types.ndarray(dtype=ti.f32, ndim=2),  # (K, C) class evidence
+        out_classes: ti.types.ndarray(dtype=ti.i32, ndim=1),  # (K,) bit c: evidence
+        out_single: ti.types.ndarray(dtype=ti.i32, ndim=1),  # (K,) the class or 0
+        out_voxel: ti.types.ndarray(dtype=ti.i32, ndim=1),
+    ):  # (K,) voxel in block
         """Write every occupied block's training rows into its slice."""
         for b in range(blocks.shape[0]):
             i = m.cell_of_id(blocks[b])
             if rows_to(m.b_layers[i], LEAF - 1) > 0:
-                write_block(m, s, i, m.b_start[i], pts, evidence, code, perm2, out_xyz,
-                            out_hist, out_classes, out_single, out_voxel)
+                write_block(
+                    m,
+                    s,
+                    i,
+                    m.b_start[i],
+                    pts,
+                    evidence,
+                    code,
+                    perm2,
+                    out_xyz,
+                    out_hist,
+                    out_classes,
+                    out_single,
+                    out_voxel,
+                )
 
     @ti.func
-    def write_block(m: ti.template(), s: ti.template(), i, slot, pts: ti.template(),
-                    evidence: ti.template(), code: ti.template(), perm2: ti.template(),
-                    out_xyz: ti.template(), out_hist: ti.template(),
-                    out_classes: ti.template(), out_single: ti.template(),
-                    out_voxel: ti.template()):
+    def write_block(
+        m: ti.template(),
+        s: ti.template(),
+        i,
+        slot,
+        pts: ti.template(),
+        evidence: ti.template(),
+        code: ti.template(),
+        perm2: ti.template(),
+        out_xyz: ti.template(),
+        out_hist: ti.template(),
+        out_classes: ti.template(),
+        out_single: ti.template(),
+        out_voxel: ti.template(),
+    ):
         """Sum each voxel's run of points (perm2, sorted by voxel) and write the kept ones' rows
         from `slot` on."""
         # the pose copied once per block, outside the loop over points: where the compiler finds
@@ -136,15 +166,25 @@ def training_kernel(unit_weight: bool, use_probs: bool):
             if ti.static(use_probs):
                 for k in ti.static(range(1, m.C)):
                     h[k] += evidence[n, k]
-            elif evidence[n] > 0:   # train id 0 (unlabeled) counts as a point, adds no evidence
+            elif evidence[n] > 0:  # train id 0 (unlabeled) counts as a point, adds no evidence
                 h[evidence[n]] += 1.0
             next_q = -1
             if j + 1 < end:
                 next_q = code[perm2[j + 1]] % EVIDENCE
-            if next_q != q:        # the voxel's last point
+            if next_q != q:  # the voxel's last point
                 if voxel_kept(npts, has_evidence, s.min_points):
-                    write_training_row(m, slot, q, first + xyz_sum / ti.cast(npts, ti.f32), h,
-                                       out_xyz, out_hist, out_classes, out_single, out_voxel)
+                    write_training_row(
+                        m,
+                        slot,
+                        q,
+                        first + xyz_sum / ti.cast(npts, ti.f32),
+                        h,
+                        out_xyz,
+                        out_hist,
+                        out_classes,
+                        out_single,
+                        out_voxel,
+                    )
                     slot += 1
                 npts = 0
                 has_evidence = 0
@@ -152,10 +192,18 @@ def training_kernel(unit_weight: bool, use_probs: bool):
                 h = ti.Vector([0.0] * m.C)
 
     @ti.func
-    def write_training_row(m: ti.template(), slot, voxel, centroid, hist,
-                           out_xyz: ti.template(), out_hist: ti.template(),
-                           out_classes: ti.template(), out_single: ti.template(),
-                           out_voxel: ti.template()):
+    def write_training_row(
+        m: ti.template(),
+        slot,
+        voxel,
+        centroid,
+        hist,
+        out_xyz: ti.template(),
+        out_hist: ti.template(),
+        out_classes: ti.template(),
+        out_single: ti.template(),
+        out_voxel: ti.template(),
+    ):
         """Training row `slot`: the voxel's centroid, its (weighted) class evidence, which
         classes that has, and the voxel's index in its block."""
         h = hist
@@ -181,11 +229,15 @@ def training_kernel(unit_weight: bool, use_probs: bool):
 
 
 @ti.kernel
-def visit_training_voxels(m: ti.template(), s: ScanParams,
-                          blocks: ti.types.ndarray(dtype=ti.i32, ndim=1),   # (B,) occupied cells
-                          voxel: ti.types.ndarray(dtype=ti.i32, ndim=1),    # (K,) voxel in block
-                          hist: ti.types.ndarray(dtype=ti.f32, ndim=2),     # (K, C) evidence
-                          visit_block: ti.template(), visit_row: ti.template()):
+def visit_training_voxels(
+    m: ti.template(),
+    s: ScanParams,
+    blocks: ti.types.ndarray(dtype=ti.i32, ndim=1),  # (B,) occupied cells
+    voxel: ti.types.ndarray(dtype=ti.i32, ndim=1),  # (K,) voxel in block
+    hist: ti.types.ndarray(dtype=ti.f32, ndim=2),  # (K, C) evidence
+    visit_block: ti.template(),
+    visit_row: ti.template(),
+):
     """For every occupied block with training rows, visit_block(m, s, i) with its table cell i,
     then visit_row(m, s, u, row, hist) for each of its rows with the row's map voxel u
     (storage index). One task per block: a block's rows are distinct voxels."""

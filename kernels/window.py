@@ -10,8 +10,8 @@ and a query never looks in the wrong place.
 Block indices here are storage leaf-block indices (voxel // LEAF), as struct-fors over the
 block SNode yield them; they are unwrapped around a centre (in blocks) like voxels.
 """
-import taichi as ti
 
+import taichi as ti
 from tisem.kernels.layout import LEAF, TOP, rows_to
 from tisem.kernels.params import ScanParams
 from tisem.kernels.query import copy_voxel_out
@@ -28,11 +28,13 @@ def outside(lo, hi, center, half):
 
 
 @ti.kernel
-def find_leaving_blocks(m: ti.template(),
-                        old_center_blk: ti.types.vector(3, ti.i32),   # unwraps storage blocks
-                        center: ti.types.vector(3, ti.i32),           # the new box, voxels
-                        half: ti.types.vector(3, ti.i32),
-                        out_blocks: ti.types.ndarray(dtype=ti.i32, ndim=2)) -> ti.i32:   # (K, 3)
+def find_leaving_blocks(
+    m: ti.template(),
+    old_center_blk: ti.types.vector(3, ti.i32),  # unwraps storage blocks
+    center: ti.types.vector(3, ti.i32),  # the new box, voxels
+    half: ti.types.vector(3, ti.i32),
+    out_blocks: ti.types.ndarray(dtype=ti.i32, ndim=2),
+) -> ti.i32:  # (K, 3)
     """Live leaf blocks not wholly inside the box (storage indices); returns how many."""
     m.counter[None] = 0
     for B in ti.grouped(m.blk):
@@ -46,15 +48,20 @@ def find_leaving_blocks(m: ti.template(),
 
 
 @ti.kernel
-def export_leaving(m: ti.template(), old_center: ti.types.vector(3, ti.i32),
-                   center: ti.types.vector(3, ti.i32), half: ti.types.vector(3, ti.i32),
-                   blocks: ti.types.ndarray(dtype=ti.i32, ndim=2), n_blocks: ti.i32,
-                   keys: ti.types.ndarray(dtype=ti.i32, ndim=2),        # (M, 3) out: world voxel
-                   counts: ti.types.ndarray(dtype=ti.f32, ndim=2),      # (M, C) out
-                   t_last_rel: ti.types.ndarray(dtype=ti.f32, ndim=1),  # (M,) out
-                   length_m: ti.types.ndarray(dtype=ti.f32, ndim=1),    # (M,) out
-                   occupancy: ti.types.ndarray(dtype=ti.f32, ndim=1),   # (M,) out (free space)
-                   left: ti.types.ndarray(dtype=ti.i32, ndim=1)) -> ti.i32:   # (n_blocks,) out
+def export_leaving(
+    m: ti.template(),
+    old_center: ti.types.vector(3, ti.i32),
+    center: ti.types.vector(3, ti.i32),
+    half: ti.types.vector(3, ti.i32),
+    blocks: ti.types.ndarray(dtype=ti.i32, ndim=2),
+    n_blocks: ti.i32,
+    keys: ti.types.ndarray(dtype=ti.i32, ndim=2),  # (M, 3) out: world voxel
+    counts: ti.types.ndarray(dtype=ti.f32, ndim=2),  # (M, C) out
+    t_last_rel: ti.types.ndarray(dtype=ti.f32, ndim=1),  # (M,) out
+    length_m: ti.types.ndarray(dtype=ti.f32, ndim=1),  # (M,) out
+    occupancy: ti.types.ndarray(dtype=ti.f32, ndim=1),  # (M,) out (free space)
+    left: ti.types.ndarray(dtype=ti.i32, ndim=1),
+) -> ti.i32:  # (n_blocks,) out
     """Move the live voxels of the listed blocks that lie outside the box out of the field.
 
     Each leaving voxel is written to the outputs (world keys unwrapped at `old_center`; its
@@ -87,8 +94,12 @@ def export_leaving(m: ti.template(), old_center: ti.types.vector(3, ti.i32),
 
 
 @ti.kernel
-def free_empty_blocks(m: ti.template(), blocks: ti.types.ndarray(dtype=ti.i32, ndim=2),
-                      n_blocks: ti.i32, left: ti.types.ndarray(dtype=ti.i32, ndim=1)) -> ti.i32:
+def free_empty_blocks(
+    m: ti.template(),
+    blocks: ti.types.ndarray(dtype=ti.i32, ndim=2),
+    n_blocks: ti.i32,
+    left: ti.types.ndarray(dtype=ti.i32, ndim=1),
+) -> ti.i32:
     """Free the listed blocks that have no voxel left (their memory is recycled zero-filled)."""
     n = 0
     for b in range(n_blocks):
@@ -99,8 +110,12 @@ def free_empty_blocks(m: ti.template(), blocks: ti.types.ndarray(dtype=ti.i32, n
 
 
 @ti.kernel
-def free_far_top_cells(m: ti.template(), old_center_top: ti.types.vector(3, ti.i32),
-                       center: ti.types.vector(3, ti.i32), half: ti.types.vector(3, ti.i32)):
+def free_far_top_cells(
+    m: ti.template(),
+    old_center_top: ti.types.vector(3, ti.i32),
+    center: ti.types.vector(3, ti.i32),
+    half: ti.types.vector(3, ti.i32),
+):
     """Free top cells that lie wholly outside the box (their blocks were freed just before)."""
     for T in ti.grouped(m.top):
         lo = m.unwrap_cells(T, old_center_top, m.N_top) * TOP
@@ -114,9 +129,13 @@ def free_far_top_cells(m: ti.template(), old_center_top: ti.types.vector(3, ti.i
 
 
 @ti.kernel
-def blocks_by_ring(m: ti.template(), old_center_blk: ti.types.vector(3, ti.i32),
-                   center_blk: ti.types.vector(3, ti.i32), half_blk: ti.types.vector(3, ti.i32),
-                   rings: ti.types.ndarray(dtype=ti.i32, ndim=1)):   # (half_blk.x + 1,)
+def blocks_by_ring(
+    m: ti.template(),
+    old_center_blk: ti.types.vector(3, ti.i32),
+    center_blk: ti.types.vector(3, ti.i32),
+    half_blk: ti.types.vector(3, ti.i32),
+    rings: ti.types.ndarray(dtype=ti.i32, ndim=1),
+):  # (half_blk.x + 1,)
     """Live blocks within the block box around center_blk, by Chebyshev x/y distance."""
     for B in ti.grouped(m.blk):
         off = ti.abs(m.unwrap_blk(B, old_center_blk) - center_blk)
@@ -126,14 +145,16 @@ def blocks_by_ring(m: ti.template(), old_center_blk: ti.types.vector(3, ti.i32),
 
 
 @ti.kernel
-def flag_new_blocks(m: ti.template(), s: ScanParams,
-                    blocks: ti.types.ndarray(dtype=ti.i32, ndim=1),   # (B,) occupied cells
-                    new: ti.types.ndarray(dtype=ti.i32, ndim=1)       # (B,) out: 1 = new block
-                    ) -> ti.i32:
+def flag_new_blocks(
+    m: ti.template(),
+    s: ScanParams,
+    blocks: ti.types.ndarray(dtype=ti.i32, ndim=1),  # (B,) occupied cells
+    new: ti.types.ndarray(dtype=ti.i32, ndim=1),  # (B,) out: 1 = new block
+) -> ti.i32:
     """Which occupied cells of the scan's table would make a map leaf block live: 1 for a cell
     with training rows (training.sort_blocks counted them) whose map block is not live yet,
     else 0. Returns how many; reads the tree, activates nothing."""
-    base = ti.floor(s.center_vox / LEAF, ti.i32) - ti.Vector(m.table_half)   # cell 0's block
+    base = ti.floor(s.center_vox / LEAF, ti.i32) - ti.Vector(m.table_half)  # cell 0's block
     n = 0
     for b in range(blocks.shape[0]):
         i = m.cell_of_id(blocks[b])

@@ -1,23 +1,27 @@
 """Shared pytest fixtures."""
+
 from __future__ import annotations
 
 from pathlib import Path
 
 import pytest
 import taichi as ti
-
 from helpers import fresh_runtime
 
 # The real data lives beside the repository (licence: never copied into it).
-KITTI_MINI = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "semantickitti_08_mini"
+KITTI_MINI = (
+    Path(__file__).resolve().parents[1].parent / "shared" / "data" / "semantickitti_08_mini"
+)
 
 
 @pytest.fixture(scope="session")
 def kitti_mini() -> Path:
     """Path to the SemanticKITTI 08 mini sequence (frames 0-4), or skip when it is absent."""
     if not (KITTI_MINI / "velodyne").is_dir():
-        pytest.skip(f"real data not found at {KITTI_MINI} (SemanticKITTI 08 mini; kept out of "
-                    f"the repository for licence reasons)")
+        pytest.skip(
+            f"real data not found at {KITTI_MINI} (SemanticKITTI 08 mini; kept out of "
+            f"the repository for licence reasons)"
+        )
     return KITTI_MINI
 
 

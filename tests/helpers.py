@@ -8,6 +8,7 @@ an earlier runtime aborts the process; no Taichi object outlives its runtime; an
 kernels below live in this real source file (Taichi reads kernel source from disk). With 2
 threads float atomics are not bitwise reproducible, so comparisons carry named tolerances.
 """
+
 # (no `from __future__ import annotations`: Taichi reads the kernels' annotations)
 import math
 from types import SimpleNamespace
@@ -15,9 +16,9 @@ from types import SimpleNamespace
 import numpy as np
 import taichi as ti
 from scipy.spatial import cKDTree
-
 from tisem.kernels import bki, entropy
 from tisem.kernels.layout import TOP, MapFields
+
 from tisem.backend import init_taichi
 from tisem.config import MapperConfig
 from tisem.reference import voxel_histograms
@@ -27,11 +28,12 @@ C = 20
 ROAD, SIDEWALK, BUILDING, VEGETATION, POLE = 9, 11, 13, 15, 18
 # the analytic scenes (below, for tests/test_mapper.py)
 RES = 0.2
-SHIFT_M = 64.0            # region spacing: a whole number of voxels and of top cells
-A_CLASS, B_CLASS = ROAD, BUILDING    # A < B: at an exact tie the map keeps A
+SHIFT_M = 64.0  # region spacing: a whole number of voxels and of top cells
+A_CLASS, B_CLASS = ROAD, BUILDING  # A < B: at an exact tie the map keeps A
 
 
 # --------------------------------------------------------------------------- runtimes
+
 
 def fresh_runtime(debug: bool = False) -> None:
     """A new Taichi runtime (every map built before it is gone: never touch it again)."""
@@ -48,10 +50,17 @@ def small_config(**kw) -> MapperConfig:
 
 # --------------------------------------------------------------------------- geometry
 
+
 def pose(x=0.0, y=0.0, z=0.0, yaw=0.0, pitch=0.0, roll=0.0) -> np.ndarray:
     """T_world_sensor from a position and ZYX Euler angles (radians)."""
-    cz, sz, cy, sy, cx, sx = (math.cos(yaw), math.sin(yaw), math.cos(pitch), math.sin(pitch),
-                              math.cos(roll), math.sin(roll))
+    cz, sz, cy, sy, cx, sx = (
+        math.cos(yaw),
+        math.sin(yaw),
+        math.cos(pitch),
+        math.sin(pitch),
+        math.cos(roll),
+        math.sin(roll),
+    )
     Rz = np.array([[cz, -sz, 0], [sz, cz, 0], [0, 0, 1]])
     Ry = np.array([[cy, 0, sy], [0, 1, 0], [-sy, 0, cy]])
     Rx = np.array([[1, 0, 0], [0, cx, -sx], [0, sx, cx]])
@@ -61,13 +70,22 @@ def pose(x=0.0, y=0.0, z=0.0, yaw=0.0, pitch=0.0, roll=0.0) -> np.ndarray:
     return T
 
 
-def scan_from_world(world_xyz, T, stamp_s, labels=None, probs=None, gt=None, index=0,
-                    name="") -> Scan:
+def scan_from_world(
+    world_xyz, T, stamp_s, labels=None, probs=None, gt=None, index=0, name=""
+) -> Scan:
     """A `Scan` whose sensor-frame points are the given world points seen from pose T."""
     world_xyz = np.asarray(world_xyz, np.float64)
     sensor = (world_xyz - T[:3, 3]) @ T[:3, :3]
-    return Scan(points_sensor=sensor.astype(np.float32), T_world_sensor=T, stamp_s=stamp_s,
-                labels=labels, probs=probs, gt_labels=gt, index=index, name=name)
+    return Scan(
+        points_sensor=sensor.astype(np.float32),
+        T_world_sensor=T,
+        stamp_s=stamp_s,
+        labels=labels,
+        probs=probs,
+        gt_labels=gt,
+        index=index,
+        name=name,
+    )
 
 
 def away_from_faces(world_xyz, res, margin=0.02) -> np.ndarray:
@@ -103,18 +121,22 @@ def flip_labels(labels, fraction, rng) -> np.ndarray:
     """Replace a random `fraction` of the labels by other classes in 1..19."""
     out = np.asarray(labels, np.int32).copy()
     flip = rng.random(len(out)) < fraction
-    new = rng.integers(1, C - 1, flip.sum())           # 1..18
-    new = np.where(new >= out[flip], new + 1, new)     # never the point's own class
+    new = rng.integers(1, C - 1, flip.sum())  # 1..18
+    new = np.where(new >= out[flip], new + 1, new)  # never the point's own class
     out[flip] = new
     return out
 
 
 # --------------------------------------------------------------------------- test kernels
 
+
 @ti.kernel
-def _sample_kernel(m: ti.template(), r2: ti.types.ndarray(dtype=ti.f32, ndim=1),
-                   lut: ti.types.ndarray(dtype=ti.f32, ndim=1),
-                   exact: ti.types.ndarray(dtype=ti.f32, ndim=1)):
+def _sample_kernel(
+    m: ti.template(),
+    r2: ti.types.ndarray(dtype=ti.f32, ndim=1),
+    lut: ti.types.ndarray(dtype=ti.f32, ndim=1),
+    exact: ti.types.ndarray(dtype=ti.f32, ndim=1),
+):
     for i in range(r2.shape[0]):
         lut[i] = bki.sparse_kernel_of_r2(m, r2[i])
         exact[i] = bki.sparse_kernel(ti.sqrt(r2[i]))
@@ -136,18 +158,24 @@ def sample_kernel(fields, r2):
 
 
 @ti.kernel
-def _entropy(p: ti.types.ndarray(dtype=ti.f32, ndim=2), ell_min: ti.f32, ell_max: ti.f32,
-             common: ti.f32, h: ti.types.ndarray(dtype=ti.f32, ndim=1),
-             ell: ti.types.ndarray(dtype=ti.f32, ndim=1),
-             h_common: ti.types.ndarray(dtype=ti.f32, ndim=1)):
+def _entropy(
+    p: ti.types.ndarray(dtype=ti.f32, ndim=2),
+    ell_min: ti.f32,
+    ell_max: ti.f32,
+    common: ti.f32,
+    h: ti.types.ndarray(dtype=ti.f32, ndim=1),
+    ell: ti.types.ndarray(dtype=ti.f32, ndim=1),
+    h_common: ti.types.ndarray(dtype=ti.f32, ndim=1),
+):
     for i in range(p.shape[0]):
         v = ti.Vector([0.0] * C)
         for c in ti.static(range(C)):
             v[c] = p[i, c]
         h[i] = entropy.normalized_entropy(v, C - 1)
         ell[i] = entropy.adaptive_length(v, ell_min, ell_max, C - 1)
-        h_common[i] = entropy.entropy_with_common(v, C - 1, common,
-                                                  common * entropy.fast_log(common))
+        h_common[i] = entropy.entropy_with_common(
+            v, C - 1, common, common * entropy.fast_log(common)
+        )
 
 
 def engine_entropy(p, ell_min, ell_max, common=1.0):
@@ -171,17 +199,20 @@ def located_voxels(step) -> dict:
     sort lists every kept point once, block by block."""
     kept = step.kept
     listed = step.occupied_cells
-    assert np.array_equal(np.sort(listed), np.unique(step.point_cell[kept])), \
+    assert np.array_equal(np.sort(listed), np.unique(step.point_cell[kept])), (
         "the list of occupied blocks differs from the points' blocks"
+    )
     order = step.block_order
-    assert np.array_equal(np.sort(order), np.flatnonzero(kept)), \
+    assert np.array_equal(np.sort(order), np.flatnonzero(kept)), (
         "the block sort lost or repeated a point"
+    )
     runs = step.point_cell[order]
     # every block's points in one run: a cell id never comes back after another
     starts = np.r_[True, runs[1:] != runs[:-1]]
     assert len(np.unique(runs)) == starts.sum(), "a block's points are split"
-    keys, inv, npts = np.unique(step.point_voxel[kept], axis=0, return_inverse=True,
-                                return_counts=True)
+    keys, inv, npts = np.unique(
+        step.point_voxel[kept], axis=0, return_inverse=True, return_counts=True
+    )
     labelled = np.bincount(inv.reshape(-1), step.point_has_evidence[kept], len(keys))
     return dict(keys=keys, npts=npts, labelled=labelled.astype(np.int64), used=int(kept.sum()))
 
@@ -190,13 +221,15 @@ def training_points(step) -> dict:
     """Step 3 of a traced scan: the training points found through the scan's table (global keys
     of their voxels, centroids in world metres, class evidence), sorted by key. Checks on the way
     that every slot of every block's slice is a training point, each once."""
-    ends = step.layer_rows        # per cell: the rows up to the end of each z layer
+    ends = step.layer_rows  # per cell: the rows up to the end of each z layer
     # each layer's count includes the layers below it: non-decreasing up the block
     assert np.all(np.diff(ends, axis=1) >= 0), "a block's layer ends go down"
-    count = ends[:, -1]           # (the last layer's: all the block's rows)
+    count = ends[:, -1]  # (the last layer's: all the block's rows)
     used = count > 0
-    rows = np.concatenate([np.arange(s, s + c) for s, c in zip(step.row_start[used], count[used])]
-                          or [np.zeros(0, np.int64)])
+    rows = np.concatenate(
+        [np.arange(s, s + c) for s, c in zip(step.row_start[used], count[used])]
+        or [np.zeros(0, np.int64)]
+    )
     n = step.training_rows
     assert len(np.unique(rows)) == len(rows), "two blocks' slices overlap"
     assert len(rows) == n, f"column_slots handed out {n} rows, the table holds {len(rows)}"
@@ -213,6 +246,7 @@ def hand_rasterize(scan: Scan, cfg: MapperConfig):
     """Steps 1-2 by hand in float64: (keys, npts, centroid, hist) of every voxel the kept
     points hit (world frame, global keys), sorted by key. Class 0 adds no evidence."""
     from tisem.preprocess import select_points
+
     sel = select_points(scan, cfg)
     T = scan.T_world_sensor
     world = sel.points_sensor.astype(np.float64) @ T[:3, :3].T + T[:3, 3]
@@ -220,6 +254,7 @@ def hand_rasterize(scan: Scan, cfg: MapperConfig):
 
 
 # --------------------------------------------------------------------------- analytic scenes
+
 
 def street_scene(rng):
     """World points and ground-truth labels: a 14 m x 14 m road plane around the sensor
@@ -236,11 +271,18 @@ def street_scene(rng):
     wall = np.column_stack([np.full(Y.size, 13.1), Y.ravel(), Z.ravel()])
     wall[:, 1:] += rng.uniform(-0.025, 0.025, (len(wall), 2))
     a = rng.uniform(0, 2 * math.pi, 2500)
-    pole = np.column_stack([10.5 + 0.1 * np.cos(a), 2.0 + 0.1 * np.sin(a),
-                            rng.uniform(0.15, 4.0, 2500)])
+    pole = np.column_stack(
+        [10.5 + 0.1 * np.cos(a), 2.0 + 0.1 * np.sin(a), rng.uniform(0.15, 4.0, 2500)]
+    )
     xyz = np.concatenate([road, side, wall, pole])
-    gt = np.concatenate([np.full(len(road), ROAD), np.full(len(side), SIDEWALK),
-                         np.full(len(wall), BUILDING), np.full(len(pole), POLE)]).astype(np.int32)
+    gt = np.concatenate(
+        [
+            np.full(len(road), ROAD),
+            np.full(len(side), SIDEWALK),
+            np.full(len(wall), BUILDING),
+            np.full(len(pole), POLE),
+        ]
+    ).astype(np.int32)
     return xyz, gt
 
 
@@ -252,13 +294,18 @@ def plane_story(mapper, rng, t0):
     scans = []
     for i, T in enumerate(poses):
         xyz, gt = street_scene(rng)
-        scans.append(scan_from_world(xyz, T, t0 + 0.1 * i, labels=flip_labels(gt, 0.2, rng),
-                                     gt=gt, index=i))
+        scans.append(
+            scan_from_world(xyz, T, t0 + 0.1 * i, labels=flip_labels(gt, 0.2, rng), gt=gt, index=i)
+        )
         mapper.integrate(scans[-1])
     xyz = np.concatenate([s.points_world() for s in scans])
     pred, _ = mapper.query(xyz, with_probs=False)
-    return SimpleNamespace(xyz=xyz, pred=pred, gt=np.concatenate([s.gt_labels for s in scans]),
-                           noisy=np.concatenate([s.labels for s in scans]))
+    return SimpleNamespace(
+        xyz=xyz,
+        pred=pred,
+        gt=np.concatenate([s.gt_labels for s in scans]),
+        noisy=np.concatenate([s.labels for s in scans]),
+    )
 
 
 def probe_scan(cls, t, origin, index=0) -> Scan:
@@ -302,8 +349,9 @@ def switch_story(mapper, t0, origin, k, n_b):
         labels.append(probe_labels(mapper, origin))
         if n == k:
             tie = counters()
-    return SimpleNamespace(first=first, after_a=after_a, label_a=label_a, labels=labels,
-                           tie=tie, end=counters(), k=k)
+    return SimpleNamespace(
+        first=first, after_a=after_a, label_a=label_a, labels=labels, tie=tie, end=counters(), k=k
+    )
 
 
 def mixed_scene(rng):
@@ -356,7 +404,7 @@ def voxel_scans(rng, n_scans=3, n_voxels=300):
         k = np.repeat(sub, per, axis=0)
         world = (k + rng.uniform(0.05, 0.95, (len(k), 3))) * RES
         labels = rng.integers(0, C, len(k)).astype(np.int32)
-        main = rng.integers(1, C, len(sub))          # most voxels lean to one class
+        main = rng.integers(1, C, len(sub))  # most voxels lean to one class
         lean = rng.random(len(k)) < 0.6
         labels[lean] = np.repeat(main, per)[lean]
         T = pose(rng.uniform(-1, 1), rng.uniform(-1, 1), 0.0, yaw=rng.uniform(-3, 3))
@@ -375,13 +423,13 @@ def predicted_switch(alpha: float, k: int) -> int:
     """Smallest n with sigma_B(n) > sigma_A(n), for sigma_t = alpha sigma_{t-1} + Delta:
     after k A scans sigma_A = Delta (1 - alpha^k) / (1 - alpha); n B scans later
     sigma_A = alpha^n that, sigma_B = Delta (1 - alpha^n) / (1 - alpha)."""
-    before = (1 - alpha ** k) / (1 - alpha)
+    before = (1 - alpha**k) / (1 - alpha)
     n = 1
-    while (1 - alpha ** n) / (1 - alpha) <= alpha ** n * before:
+    while (1 - alpha**n) / (1 - alpha) <= alpha**n * before:
         n += 1
     # the test would be meaningless if float32 rounding could move the switch: keep a margin
     for m in (n - 1, n):
-        b, a = (1 - alpha ** m) / (1 - alpha), alpha ** m * before
+        b, a = (1 - alpha**m) / (1 - alpha), alpha**m * before
         assert abs(b - a) > 0.01 * a, f"switch too close to call at n = {m}"
     return n
 

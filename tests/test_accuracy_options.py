@@ -1,13 +1,25 @@
 """The accuracy options on analytic scenes: the height band keeps a road going downhill, the
 thin-class evidence caps keep a pole beside a wall (and change nothing when no thin class is
 seen), and the continuous query answers between voxels as the numpy formula does."""
+
 from __future__ import annotations
 
 import numpy as np
 import pytest
+from helpers import (
+    BUILDING,
+    POLE,
+    ROAD,
+    VEGETATION,
+    away_from_faces,
+    fresh_runtime,
+    grid_plane,
+    pose,
+    scan_from_world,
+    small_config,
+    voxel_keys,
+)
 
-from helpers import (BUILDING, POLE, ROAD, VEGETATION, away_from_faces, fresh_runtime,
-                     grid_plane, pose, scan_from_world, small_config, voxel_keys)
 from tisem.config import ConfigError, MapperConfig, load_config
 from tisem.mapper import Mapper
 from tisem.preprocess import select_points
@@ -19,6 +31,7 @@ RES = 0.2
 
 
 # --------------------------------------------------------------------------- height band
+
 
 def downhill_road(rng):
     """A road 8 m wide falling 10 m over 40 m ahead of a sensor at height 0, and one point
@@ -36,12 +49,17 @@ def test_a_road_going_downhill_stays_mapped(taichi_cpu):
     rng = np.random.default_rng(3)
     road, high = downhill_road(rng)
     defaults = MapperConfig()
-    cfg = small_config(max_range_m=45.0, window_xy_m=50.0, window_z_m=24.0,
-                       min_z_m=defaults.min_z_m, max_z_m=defaults.max_z_m)
+    cfg = small_config(
+        max_range_m=45.0,
+        window_xy_m=50.0,
+        window_z_m=24.0,
+        min_z_m=defaults.min_z_m,
+        max_z_m=defaults.max_z_m,
+    )
     labels = np.concatenate([np.full(len(road), ROAD), [BUILDING]]).astype(np.int32)
     scan = scan_from_world(np.concatenate([road, high]), pose(), 0.0, labels=labels)
     old_band = select_points(scan, small_config(max_range_m=45.0, window_xy_m=50.0))
-    assert old_band.dropped_range > len(road) // 2      # the scene needs the wider band
+    assert old_band.dropped_range > len(road) // 2  # the scene needs the wider band
 
     mapper = Mapper(cfg)
     report = mapper.integrate(scan)
@@ -49,14 +67,21 @@ def test_a_road_going_downhill_stays_mapped(taichi_cpu):
     lab, _ = mapper.query(road)
     assert np.all(lab == ROAD), f"{np.count_nonzero(lab != ROAD)} road points not road"
 
-    table = results_table({"evaluated": False, "scans": 1, "skipped": [],
-                           "seconds_per_scan": 0.05, "active_voxels": len(mapper.snapshot()),
-                           "dropped": {"dropped_band": report.dropped_band,
-                                       "dropped_range": report.dropped_range}})
+    table = results_table(
+        {
+            "evaluated": False,
+            "scans": 1,
+            "skipped": [],
+            "seconds_per_scan": 0.05,
+            "active_voxels": len(mapper.snapshot()),
+            "dropped": {"dropped_band": report.dropped_band, "dropped_range": report.dropped_range},
+        }
+    )
     assert "1 outside the height band, 0 outside the range band" in table
 
 
 # --------------------------------------------------------------------------- evidence caps
+
 
 def pole_beside_wall(rng):
     """A wall (x in [0, 0.2)) labelled building, fence or vegetation at random: an uncertain
@@ -67,8 +92,13 @@ def pole_beside_wall(rng):
     wall += rng.uniform(-0.05, 0.05, wall.shape)
     wall_labels = rng.choice([BUILDING, BUILDING, FENCE, VEGETATION], len(wall))
     angle = rng.uniform(0, 2 * np.pi, 2400)
-    pole = np.column_stack([0.55 + 0.03 * np.cos(angle), 0.1 + 0.03 * np.sin(angle),
-                            rng.uniform(-1.5, 1.5, len(angle))])
+    pole = np.column_stack(
+        [
+            0.55 + 0.03 * np.cos(angle),
+            0.1 + 0.03 * np.sin(angle),
+            rng.uniform(-1.5, 1.5, len(angle)),
+        ]
+    )
     xyz = away_from_faces(np.concatenate([wall, pole]), RES)
     labels = np.concatenate([wall_labels, np.full(len(pole), POLE)]).astype(np.int32)
     return xyz, labels, len(wall)
@@ -76,8 +106,14 @@ def pole_beside_wall(rng):
 
 def pole_scans(rng):
     xyz, labels, n_wall = pole_beside_wall(rng)
-    return [scan_from_world(xyz, pose(5.0, 0.0, 0.2, yaw=np.pi), 0.1 * i, labels=labels,
-                            index=i) for i in range(3)], xyz, n_wall
+    return (
+        [
+            scan_from_world(xyz, pose(5.0, 0.0, 0.2, yaw=np.pi), 0.1 * i, labels=labels, index=i)
+            for i in range(3)
+        ],
+        xyz,
+        n_wall,
+    )
 
 
 @pytest.fixture(scope="module")
@@ -87,14 +123,22 @@ def pole_maps():
     scans, xyz, n_wall = pole_scans(np.random.default_rng(5))
     cfg = small_config(mode="st")
     mapper = Mapper(cfg)
-    capped, uncapped = ReferenceMapper(small_config(mode="st")), \
-        ReferenceMapper(small_config(mode="st", thin_classes=[]))
+    capped, uncapped = (
+        ReferenceMapper(small_config(mode="st")),
+        ReferenceMapper(small_config(mode="st", thin_classes=[])),
+    )
     for scan in scans:
         mapper.integrate(scan)
         capped.integrate(scan)
         uncapped.integrate(scan)
-    return dict(snap=mapper.snapshot(), capped=capped.voxels(), uncapped=uncapped.voxels(),
-                xyz=xyz, n_wall=n_wall, labels=mapper.query(xyz, with_probs=False)[0])
+    return dict(
+        snap=mapper.snapshot(),
+        capped=capped.voxels(),
+        uncapped=uncapped.voxels(),
+        xyz=xyz,
+        n_wall=n_wall,
+        labels=mapper.query(xyz, with_probs=False)[0],
+    )
 
 
 @pytest.mark.slow
@@ -138,28 +182,30 @@ def test_no_thin_class_seen_is_the_uncapped_map_bit_for_bit(taichi_cpu):
 
 # --------------------------------------------------------------------------- query
 
+
 def test_continuous_query_blends_the_voxels_within_reach(taichi_cpu):
     """csm voxels of known counts; points in empty voxels between them get sum g(d / R)
     times each voxel's posterior (normalised), 0 with none within R or with query_blend off;
     a point in a voxel with evidence keeps that voxel's answer."""
     cfg = small_config(mode="csm", query_radius_m=0.4)
     mapper = Mapper(cfg)
-    a, b = np.array([20, 0, 0]), np.array([22, 0, 1])           # voxel keys
-    pts = np.concatenate([np.repeat([(a + 0.5) * RES], 3, axis=0),
-                          np.repeat([(b + 0.5) * RES], 3, axis=0)])
+    a, b = np.array([20, 0, 0]), np.array([22, 0, 1])  # voxel keys
+    pts = np.concatenate(
+        [np.repeat([(a + 0.5) * RES], 3, axis=0), np.repeat([(b + 0.5) * RES], 3, axis=0)]
+    )
     labels = np.array([ROAD, ROAD, ROAD, BUILDING, BUILDING, ROAD], np.int32)
     mapper.integrate(scan_from_world(pts, pose(), 0.0, labels=labels))
-    post = {tuple(a): np.eye(20)[ROAD], tuple(b): (2 * np.eye(20)[BUILDING]
-                                                  + np.eye(20)[ROAD]) / 3}
-    q = np.array([[4.3, 0.1, 0.1], [4.25, 0.06, 0.14], [4.41, 0.1, 0.19], [5.5, 0.1, 0.1],
-                  (a + 0.5) * RES])
+    post = {tuple(a): np.eye(20)[ROAD], tuple(b): (2 * np.eye(20)[BUILDING] + np.eye(20)[ROAD]) / 3}
+    q = np.array(
+        [[4.3, 0.1, 0.1], [4.25, 0.06, 0.14], [4.41, 0.1, 0.19], [5.5, 0.1, 0.1], (a + 0.5) * RES]
+    )
     want = np.zeros((len(q), 20))
     for i, x in enumerate(q[:4]):
         for key, p in post.items():
             want[i] += sparse_kernel(np.linalg.norm(x - (np.array(key) + 0.5) * RES) / 0.4) * p
     want[:4] /= np.maximum(want[:4].sum(axis=1, keepdims=True), 1e-300)
     want[4] = post[tuple(a)]
-    assert want[:3].sum(axis=1).min() > 0.99 and not want[3].any()   # three blends, one empty
+    assert want[:3].sum(axis=1).min() > 0.99 and not want[3].any()  # three blends, one empty
     lab, prob = mapper.query(q)
     np.testing.assert_allclose(prob, want, atol=1e-5)
     np.testing.assert_array_equal(lab, np.where(want.sum(axis=1) > 0, want.argmax(axis=1), 0))
@@ -170,13 +216,17 @@ def test_continuous_query_blends_the_voxels_within_reach(taichi_cpu):
 
 # --------------------------------------------------------------------------- config
 
-@pytest.mark.parametrize("assignment,said", [
-    ("thin_classes=[pole,tree]", "unknown class 'tree'"),
-    ("thin_classes=pole", "expected a list of class names"),
-    ("thin_classes=[pole,pole]", "named twice"),
-    ("query_blend=all", "expected one of missing, off"),
-    ("query_radius_m=0", "query_radius_m = 0: out of range"),
-])
+
+@pytest.mark.parametrize(
+    "assignment,said",
+    [
+        ("thin_classes=[pole,tree]", "unknown class 'tree'"),
+        ("thin_classes=pole", "expected a list of class names"),
+        ("thin_classes=[pole,pole]", "named twice"),
+        ("query_blend=all", "expected one of missing, off"),
+        ("query_radius_m=0", "query_radius_m = 0: out of range"),
+    ],
+)
 def test_bad_accuracy_options_are_one_line(assignment, said):
     with pytest.raises(ConfigError) as e:
         load_config(overrides=[assignment])
@@ -186,16 +236,21 @@ def test_bad_accuracy_options_are_one_line(assignment, said):
 def test_accuracy_option_defaults():
     cfg = load_config(overrides=["thin_classes=[]", "query_blend=off"]).mapper
     assert cfg.thin_classes == [] and np.isinf(cfg.evidence_caps_m).all()
-    assert cfg.query_blend == "off"         # (YAML reads an unquoted off as false)
+    assert cfg.query_blend == "off"  # (YAML reads an unquoted off as false)
     cfg = MapperConfig()
-    assert (cfg.min_z_m, cfg.max_z_m, cfg.query_blend, cfg.query_radius_m) == \
-        (-20.0, 20.0, "missing", 0.4)
+    assert (cfg.min_z_m, cfg.max_z_m, cfg.query_blend, cfg.query_radius_m) == (
+        -20.0,
+        20.0,
+        "missing",
+        0.4,
+    )
     caps = cfg.evidence_caps_m
     assert caps[POLE] == cfg.ell_min_m and np.isinf(caps[ROAD])
     assert np.isinf(MapperConfig(mode="csm").evidence_caps_m).all()
 
 
 # --------------------------------------------------------------------------- real frames
+
 
 @pytest.mark.slow
 def test_defaults_beat_the_network_on_real_frames(kitti_mini, tmp_path):
@@ -211,8 +266,15 @@ def test_defaults_beat_the_network_on_real_frames(kitti_mini, tmp_path):
     cfg.online_eval = False
     seq = SemanticKittiSequence(kitti_mini, first=0, last=2)
     init_taichi("cpu", threads=2)
-    m = run_pipeline(seq, cfg, tmp_path, sequence_name=seq.sequence_name, total=len(seq),
-                     progress=False, write_outputs=False).metrics
+    m = run_pipeline(
+        seq,
+        cfg,
+        tmp_path,
+        sequence_name=seq.sequence_name,
+        total=len(seq),
+        progress=False,
+        write_outputs=False,
+    ).metrics
     final, net = m["final"], m["input"]
     assert final["miou"] > net["miou"] + 0.025, (final["miou"], net["miou"])
     assert final["accuracy"] > net["accuracy"] + 0.015, (final["accuracy"], net["accuracy"])

@@ -2,6 +2,7 @@
 
 Each maps a four-scan synthetic sequence written by apps/make_synthetic.py (the benchmarks start
 their own Taichi runtimes, one map each)."""
+
 from __future__ import annotations
 
 import json
@@ -20,32 +21,77 @@ REPO = Path(__file__).resolve().parents[1]
 @pytest.fixture(scope="module")
 def tiny_sequence(tmp_path_factory) -> Path:
     out = tmp_path_factory.mktemp("bench") / "street"
-    subprocess.run([sys.executable, str(REPO / "apps" / "make_synthetic.py"), "--out", str(out),
-                    "--scans", "4", "--points-per-ring", "128", "--no-progress"],
-                   check=True, capture_output=True)
+    subprocess.run(
+        [
+            sys.executable,
+            str(REPO / "apps" / "make_synthetic.py"),
+            "--out",
+            str(out),
+            "--scans",
+            "4",
+            "--points-per-ring",
+            "128",
+            "--no-progress",
+        ],
+        check=True,
+        capture_output=True,
+    )
     return out
 
 
 def test_throughput_benchmark_runs(tiny_sequence, tmp_path, capsys):
     out = tmp_path / "t.json"
-    assert throughput.main(["--data", str(tiny_sequence), "--scans", "3",
-                            "--reference-scans", "1", "--json", str(out)]) == 0
+    assert (
+        throughput.main(
+            [
+                "--data",
+                str(tiny_sequence),
+                "--scans",
+                "3",
+                "--reference-scans",
+                "1",
+                "--json",
+                str(out),
+            ]
+        )
+        == 0
+    )
     r = json.loads(out.read_text())
     assert set(r["stages"]) == {*STAGES, "query"}
     assert r["scans"] == 3 and r["seconds_per_scan"] > 0 and r["active_voxels"] > 0
     assert r["arch"] == "cpu" and r["threads"] == 2 and r["peak_rss_mb"] > 0
     assert r["speedup_vs_numpy"] == pytest.approx(
-        r["reference_seconds_per_scan"] / r["seconds_per_scan"])
+        r["reference_seconds_per_scan"] / r["seconds_per_scan"]
+    )
     assert "| **mapping, end to end** |" in capsys.readouterr().out
 
 
 def test_kernel_length_benchmark_runs(tiny_sequence, tmp_path, capsys):
     out = tmp_path / "k.json"
-    assert kernel_length.main(["--data", str(tiny_sequence), "--synthetic-scans", "0",
-                               "--repeats", "2", "--json", str(out)]) == 0
+    assert (
+        kernel_length.main(
+            [
+                "--data",
+                str(tiny_sequence),
+                "--synthetic-scans",
+                "0",
+                "--repeats",
+                "2",
+                "--json",
+                str(out),
+            ]
+        )
+        == 0
+    )
     rows = json.loads(out.read_text())["rows"]
-    assert [r["kernel"] for r in rows] == ["fixed 1 vox", "fixed 2 vox", "fixed 4 vox",
-                                          "fixed 6 vox", "adaptive", "adaptive + decay (st)"]
+    assert [r["kernel"] for r in rows] == [
+        "fixed 1 vox",
+        "fixed 2 vox",
+        "fixed 4 vox",
+        "fixed 6 vox",
+        "adaptive",
+        "adaptive + decay (st)",
+    ]
     for r in rows:
         assert r["rounds"] == 2 and r["seconds_per_scan"] > 0
         assert 0.5 < r["accuracy"] <= 1 and 0 < r["miou"] <= r["accuracy"] + 0.5
@@ -54,8 +100,22 @@ def test_kernel_length_benchmark_runs(tiny_sequence, tmp_path, capsys):
 
 def test_modes_benchmark_runs(tiny_sequence, tmp_path, capsys):
     out = tmp_path / "m.json"
-    assert modes.main(["--data", str(tiny_sequence), "--modes", "csm", "st",
-                       "--out", str(tmp_path / "runs"), "--json", str(out)]) == 0
+    assert (
+        modes.main(
+            [
+                "--data",
+                str(tiny_sequence),
+                "--modes",
+                "csm",
+                "st",
+                "--out",
+                str(tmp_path / "runs"),
+                "--json",
+                str(out),
+            ]
+        )
+        == 0
+    )
     rows = json.loads(out.read_text())["rows"]
     assert [r["row"] for r in rows][-2:] == ["csm", "st"]
     assert all(0.5 < r["accuracy"] <= 1 for r in rows)
@@ -66,12 +126,31 @@ def test_modes_benchmark_runs(tiny_sequence, tmp_path, capsys):
 def test_peers_benchmark_runs_tisem(tiny_sequence, tmp_path, capsys):
     """tisem's rows on two held-out splits, each mapped alone; S-BKI's need its driver."""
     out = tmp_path / "p.json"
-    assert peers.main(["--data", str(tiny_sequence), "--splits", "0-1", "2-3", "--methods", "st",
-                       "bki4", "--rounds", "1", "--out", str(tmp_path / "runs"),
-                       "--json", str(out)]) == 0
+    assert (
+        peers.main(
+            [
+                "--data",
+                str(tiny_sequence),
+                "--splits",
+                "0-1",
+                "2-3",
+                "--methods",
+                "st",
+                "bki4",
+                "--rounds",
+                "1",
+                "--out",
+                str(tmp_path / "runs"),
+                "--json",
+                str(out),
+            ]
+        )
+        == 0
+    )
     rows = json.loads(out.read_text())["rows"]
     assert [(r["split"], r["method"]) for r in rows] == [
-        (s, m) for s in ("0-1", "2-3") for m in ("network input", "st", "bki4")]
+        (s, m) for s in ("0-1", "2-3") for m in ("network input", "st", "bki4")
+    ]
     for r in rows:
         assert 0.5 < r["accuracy"] <= 1 and r["per_class_iou"] and r["present_classes"]
         assert r["method"] == "network input" or r["seconds_per_scan"] > 0
@@ -83,9 +162,26 @@ def test_peers_benchmark_runs_sbki(tiny_sequence, tmp_path, capsys):
     if not peers.SBKI_BIN.is_file():
         pytest.skip(f"S-BKI is not built ({peers.SBKI_BIN}): bash ../shared/peers/sbki/build.sh")
     out = tmp_path / "p.json"
-    assert peers.main(["--data", str(tiny_sequence), "--splits", "0-3", "--methods", "csm",
-                       "sbki-upstream", "--rounds", "1", "--out", str(tmp_path / "runs"),
-                       "--json", str(out)]) == 0
+    assert (
+        peers.main(
+            [
+                "--data",
+                str(tiny_sequence),
+                "--splits",
+                "0-3",
+                "--methods",
+                "csm",
+                "sbki-upstream",
+                "--rounds",
+                "1",
+                "--out",
+                str(tmp_path / "runs"),
+                "--json",
+                str(out),
+            ]
+        )
+        == 0
+    )
     rows = {r["method"]: r for r in json.loads(out.read_text())["rows"]}
     assert rows["sbki-upstream"]["seconds_per_scan"] > 0
     assert 0.5 < rows["sbki-upstream"]["accuracy"] <= 1
@@ -94,9 +190,28 @@ def test_peers_benchmark_runs_sbki(tiny_sequence, tmp_path, capsys):
 
 def test_peers_benchmark_skips_an_unbuilt_peer(tiny_sequence, tmp_path, capsys):
     out = tmp_path / "p.json"
-    assert peers.main(["--data", str(tiny_sequence), "--splits", "0-3", "--methods", "csm",
-                       "sbki-tuned", "--rounds", "1", "--sbki-bin", str(tmp_path / "none"),
-                       "--out", str(tmp_path / "runs"), "--json", str(out)]) == 0
+    assert (
+        peers.main(
+            [
+                "--data",
+                str(tiny_sequence),
+                "--splits",
+                "0-3",
+                "--methods",
+                "csm",
+                "sbki-tuned",
+                "--rounds",
+                "1",
+                "--sbki-bin",
+                str(tmp_path / "none"),
+                "--out",
+                str(tmp_path / "runs"),
+                "--json",
+                str(out),
+            ]
+        )
+        == 0
+    )
     r = json.loads(out.read_text())
     assert [x["method"] for x in r["rows"]] == ["network input", "csm"]
     assert "sbki-tuned" in r["skipped"]

@@ -9,6 +9,7 @@ that compares two maps keeps the first one's results as numpy arrays and starts 
 runtime (`fresh_runtime()`, as a resumed run in a new process would) before building the next.
 Scans are small synthetic streets built here with numpy (a few thousand labelled points each).
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -19,9 +20,9 @@ import sys
 
 import numpy as np
 import pytest
+from helpers import fresh_runtime, small_config
 
 import tisem
-from helpers import fresh_runtime, small_config
 from tisem.checkpoint import checkpoint_file, load_checkpoint, save_checkpoint
 from tisem.config import RunConfig
 from tisem.errors import SkippedScan
@@ -40,24 +41,46 @@ def run_config(**kw) -> RunConfig:
 
 # --------------------------------------------------------------------------- synthetic scans
 
+
 def street_points(center_xy, rng, n=3000, reach=18.0):
     """World points of a straight street around `center_xy`: road/sidewalk ground, a building
     facade on one side, vegetation on the other, and a row of poles. Returns xyz, labels."""
     cx, cy = center_xy
     k = rng.multinomial(n, [0.5, 0.2, 0.2, 0.1])
-    g = np.column_stack([cx + rng.uniform(-reach, reach, k[0]), cy + rng.uniform(-7.5, 7.5, k[0]),
-                         rng.normal(0, 0.02, k[0])])
+    g = np.column_stack(
+        [
+            cx + rng.uniform(-reach, reach, k[0]),
+            cy + rng.uniform(-7.5, 7.5, k[0]),
+            rng.normal(0, 0.02, k[0]),
+        ]
+    )
     g_lab = np.where(np.abs(g[:, 1] - cy) < 4, ROAD, SIDEWALK)
-    b = np.column_stack([cx + rng.uniform(-reach, reach, k[1]), np.full(k[1], cy + 8.0)
-                         + rng.normal(0, 0.03, k[1]), rng.uniform(0, 3.5, k[1])])
-    v = np.column_stack([cx + rng.uniform(-reach, reach, k[2]), cy - 8.0
-                         + rng.uniform(-0.5, 0.5, k[2]), rng.uniform(0, 2.5, k[2])])
+    b = np.column_stack(
+        [
+            cx + rng.uniform(-reach, reach, k[1]),
+            np.full(k[1], cy + 8.0) + rng.normal(0, 0.03, k[1]),
+            rng.uniform(0, 3.5, k[1]),
+        ]
+    )
+    v = np.column_stack(
+        [
+            cx + rng.uniform(-reach, reach, k[2]),
+            cy - 8.0 + rng.uniform(-0.5, 0.5, k[2]),
+            rng.uniform(0, 2.5, k[2]),
+        ]
+    )
     px = np.round((cx + rng.uniform(-reach, reach, k[3])) / 5.0) * 5.0
-    p = np.column_stack([px + rng.normal(0, 0.05, k[3]), cy + 5.0 + rng.normal(0, 0.05, k[3]),
-                         rng.uniform(0, 3.0, k[3])])
+    p = np.column_stack(
+        [
+            px + rng.normal(0, 0.05, k[3]),
+            cy + 5.0 + rng.normal(0, 0.05, k[3]),
+            rng.uniform(0, 3.0, k[3]),
+        ]
+    )
     xyz = np.concatenate([g, b, v, p])
-    labels = np.concatenate([g_lab, np.full(k[1], BUILDING), np.full(k[2], VEGETATION),
-                             np.full(k[3], POLE)]).astype(np.int32)
+    labels = np.concatenate(
+        [g_lab, np.full(k[1], BUILDING), np.full(k[2], VEGETATION), np.full(k[3], POLE)]
+    ).astype(np.int32)
     return xyz, labels
 
 
@@ -77,12 +100,22 @@ def make_scans(n=6, step_m=1.0, seed=0, points=3000, noise=0.1):
         lab = gt.copy()
         flip = rng.random(len(lab)) < noise
         lab[flip] = rng.integers(1, 20, flip.sum())
-        scans.append(Scan(points_sensor=pts_sensor, T_world_sensor=T, stamp_s=100.0 + 0.1 * i,
-                          labels=lab, gt_labels=gt, index=i, name=f"synthetic {i}"))
+        scans.append(
+            Scan(
+                points_sensor=pts_sensor,
+                T_world_sensor=T,
+                stamp_s=100.0 + 0.1 * i,
+                labels=lab,
+                gt_labels=gt,
+                index=i,
+                name=f"synthetic {i}",
+            )
+        )
     return scans
 
 
 # --------------------------------------------------------------------------- comparisons
+
 
 def assert_same_map(a, b, rtol=1e-5):
     """Same voxels and labels; counters equal within float tolerance (2-thread atomics)."""
@@ -120,17 +153,20 @@ def reference_run(scans, cfg, out, q=None):
 
 # --------------------------------------------------------------------------- tests
 
+
 def test_resume_equals_uninterrupted(taichi_cpu, tmp_path):
     scans = make_scans(6)
     cfg = run_config()
     q = query_points(scans, np.random.default_rng(1))
     full_snap, full_metrics, full_traj, (full_labels, full_probs) = reference_run(
-        scans, cfg, tmp_path / "full", q)
+        scans, cfg, tmp_path / "full", q
+    )
 
     fresh_runtime()
     out = tmp_path / "split"
-    first = run_pipeline(scans[:3], cfg, out, progress=False, write_outputs=False,
-                         checkpoint_every=3)
+    first = run_pipeline(
+        scans[:3], cfg, out, progress=False, write_outputs=False, checkpoint_every=3
+    )
     assert first.metrics["scans"] == 3
     first_snap = first.mapper.snapshot()
     ckpt = load_checkpoint(out)
@@ -145,8 +181,15 @@ def test_resume_equals_uninterrupted(taichi_cpu, tmp_path):
     # passes over what the checkpoint holds
     fresh_runtime()
     integrated = []
-    resumed = run_pipeline(scans, ckpt.run_config(), out, progress=False, write_outputs=False,
-                           resume=out, on_scan=lambda m, s, k: integrated.append(s.index))
+    resumed = run_pipeline(
+        scans,
+        ckpt.run_config(),
+        out,
+        progress=False,
+        write_outputs=False,
+        resume=out,
+        on_scan=lambda m, s, k: integrated.append(s.index),
+    )
     assert integrated == [3, 4, 5]
     assert resumed.mapper.scans == 6
     assert_same_map(resumed.mapper.snapshot(), full_snap)
@@ -163,13 +206,15 @@ def test_resume_equals_uninterrupted(taichi_cpu, tmp_path):
     fresh_runtime()
     # (the library's own resume: config, sequence name and cadence from the checkpoint)
     gen = MappingRun.resume((s for s in scans), ckpt, out_dir=tmp_path / "gen").run(
-        show_progress=False, write_map_files=False)
+        show_progress=False, write_map_files=False
+    )
     assert comparable_metrics(gen.metrics) == comparable_metrics(full_metrics)
 
 
 def test_progress_saves_and_restores_itself():
     """RunProgress.to_dict() is plain JSON and from_dict() gives back every accumulator."""
     from tisem.mapper import IntegrationReport
+
     progress = RunProgress.start(20)
     for scan in make_scans(3, points=200):
         report = IntegrationReport(points=200, dropped_nonfinite=scan.index, dropped_range=7)
@@ -186,18 +231,25 @@ def test_progress_saves_and_restores_itself():
     np.testing.assert_array_equal(back.trajectory_array(), progress.trajectory_array())
     assert back.drops.totals["dropped_nonfinite"] == 0 + 1 + 2
     assert back.drops.totals["dropped_range"] == 21
-    assert [s["index"] for s in back.drops.scans] == [1, 2]      # scan 0 lost nothing odd
+    assert [s["index"] for s in back.drops.scans] == [1, 2]  # scan 0 lost nothing odd
     with pytest.raises(ValueError, match="expected 5 classes"):
         RunProgress.from_dict(saved, 5)
 
 
 def test_resume_refuses_another_mapper_config(taichi_cpu, tmp_path):
     scans = make_scans(2, points=1000)
-    run_pipeline(scans, run_config(), tmp_path, progress=False, write_outputs=False,
-                 checkpoint_every=1)
-    with pytest.raises(ValueError, match="tau_s"):   # refused before any map is built
-        run_pipeline(scans, run_config(tau_s=1.0), tmp_path, progress=False,
-                     write_outputs=False, resume=tmp_path)
+    run_pipeline(
+        scans, run_config(), tmp_path, progress=False, write_outputs=False, checkpoint_every=1
+    )
+    with pytest.raises(ValueError, match="tau_s"):  # refused before any map is built
+        run_pipeline(
+            scans,
+            run_config(tau_s=1.0),
+            tmp_path,
+            progress=False,
+            write_outputs=False,
+            resume=tmp_path,
+        )
     with pytest.raises(FileNotFoundError, match="no checkpoint"):
         load_checkpoint(tmp_path / "nowhere")
 
@@ -218,6 +270,7 @@ def test_interrupted_checkpoint_write_keeps_the_previous_one(taichi_cpu, tmp_pat
         if len(calls) < 2:
             return real_savez(f, **arrays)
         import io
+
         buf = io.BytesIO()
         real_savez(buf, **arrays)
         f.write(buf.getvalue()[: buf.tell() // 2])
@@ -229,25 +282,37 @@ def test_interrupted_checkpoint_write_keeps_the_previous_one(taichi_cpu, tmp_pat
     monkeypatch.undo()
     assert len(calls) == 2
     ckdir = out / "checkpoint"
-    assert sorted(os.listdir(ckdir)) == [mapfile.CHECKPOINT_NAME]   # no torn temp file left
-    ckpt = load_checkpoint(ckdir)                                     # the first one, intact
+    assert sorted(os.listdir(ckdir)) == [mapfile.CHECKPOINT_NAME]  # no torn temp file left
+    ckpt = load_checkpoint(ckdir)  # the first one, intact
     assert ckpt.last_index == 1 and len(ckpt.meta["progress"]["seconds"]) == 2
 
     fresh_runtime()
-    resumed = run_pipeline(scans, ckpt.run_config(), out, progress=False, write_outputs=False,
-                           resume=ckdir, checkpoint_every=2)
+    resumed = run_pipeline(
+        scans,
+        ckpt.run_config(),
+        out,
+        progress=False,
+        write_outputs=False,
+        resume=ckdir,
+        checkpoint_every=2,
+    )
     assert_same_map(resumed.mapper.snapshot(), full_snap)
     assert comparable_metrics(resumed.metrics) == comparable_metrics(full_metrics)
-    assert load_checkpoint(out).last_index == 5                      # checkpoints went on
+    assert load_checkpoint(out).last_index == 5  # checkpoints went on
 
 
 def test_skipped_scans_survive_a_resume(taichi_cpu, tmp_path):
     scans = make_scans(5, points=1500, seed=4)
     far = scans[3]
     T = far.T_world_sensor.copy()
-    T[:3, 3] += 1e6   # the mapper refuses a pose this far from the origin
-    items = scans[:1] + [SkippedScan(1, "bad.bin", "truncated")] + scans[2:3] + [
-        Scan(far.points_sensor, T, far.stamp_s, labels=far.labels, index=3, name="far")] + scans[4:]
+    T[:3, 3] += 1e6  # the mapper refuses a pose this far from the origin
+    items = (
+        scans[:1]
+        + [SkippedScan(1, "bad.bin", "truncated")]
+        + scans[2:3]
+        + [Scan(far.points_sensor, T, far.stamp_s, labels=far.labels, index=3, name="far")]
+        + scans[4:]
+    )
     cfg = run_config()
     full_snap, full_metrics, _, _ = reference_run(items, cfg, tmp_path / "full")
     assert [s["index"] for s in full_metrics["skipped"]] == [1, 3]
@@ -266,7 +331,7 @@ def test_skipped_scans_survive_a_resume(taichi_cpu, tmp_path):
 
 def test_load_map_round_trip(taichi_cpu, tmp_path):
     scans = make_scans(4, seed=1)
-    result = run_pipeline(scans, run_config(), tmp_path, progress=False)   # writes map.npz
+    result = run_pipeline(scans, run_config(), tmp_path, progress=False)  # writes map.npz
     q = query_points(scans, np.random.default_rng(2))
     want_labels, want_probs = result.mapper.query(q)
     want_snap, want_config = result.mapper.snapshot(), result.mapper.config
@@ -331,7 +396,7 @@ def test_checkpoint_restores_evicted_blocks(taichi_cpu, tmp_path):
     assert_same_map(restored.snapshot(), snap, rtol=0)
     for a, b in zip(restored.query(q), answer):
         np.testing.assert_array_equal(a, b)
-    far_behind = scans[0].points_world()          # 240 m behind: answered by the store
+    far_behind = scans[0].points_world()  # 240 m behind: answered by the store
     assert (restored.query(far_behind)[0] > 0).mean() > 0.5
     # and it goes on as the original did
     restored.integrate(scans[5])
@@ -339,9 +404,11 @@ def test_checkpoint_restores_evicted_blocks(taichi_cpu, tmp_path):
 
 
 def test_import_tisem_is_cheap():
-    code = ("import sys, tisem; assert 'taichi' not in sys.modules; "
-            "tisem.MapperConfig, tisem.RunConfig, tisem.load_config, tisem.Scan, "
-            "tisem.MapSnapshot, tisem.load_map; assert 'taichi' not in sys.modules; "
-            "tisem.init_taichi, tisem.Mapper; assert 'taichi' in sys.modules; "
-            "assert set(tisem.__all__) >= {'Mapper', 'load_map', 'init_taichi'}")
+    code = (
+        "import sys, tisem; assert 'taichi' not in sys.modules; "
+        "tisem.MapperConfig, tisem.RunConfig, tisem.load_config, tisem.Scan, "
+        "tisem.MapSnapshot, tisem.load_map; assert 'taichi' not in sys.modules; "
+        "tisem.init_taichi, tisem.Mapper; assert 'taichi' in sys.modules; "
+        "assert set(tisem.__all__) >= {'Mapper', 'load_map', 'init_taichi'}"
+    )
     subprocess.run([sys.executable, "-c", code], check=True, timeout=120)

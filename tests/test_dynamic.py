@@ -5,21 +5,21 @@ whose rays cross it, both after the decay exp(-dt / tau) since its last change, 
 +-occupancy_cap; the voxel is empty at or below -empty_evidence. `scans_to_clear` computes
 from it how many scans an object that has left takes to clear, and the map must agree exactly.
 """
+
 import math
 
 import numpy as np
 import pytest
+from helpers import BUILDING, C, away_from_faces, fresh_runtime, pose, scan_from_world, small_config
 
-from helpers import (BUILDING, C, away_from_faces, fresh_runtime, pose, scan_from_world,
-                     small_config)
 from tisem.mapper import Mapper
 
-pytestmark = pytest.mark.slow   # (each test builds and drives its own maps: 10-40 s)
+pytestmark = pytest.mark.slow  # (each test builds and drives its own maps: 10-40 s)
 
 CAR = 1
 RES = 0.2
-DT = 0.1                       # 10 Hz
-WALL_X, CAR_X = 10.1, 5.1      # (not on a voxel face)
+DT = 0.1  # 10 Hz
+WALL_X, CAR_X = 10.1, 5.1  # (not on a voxel face)
 SPACING = 0.05
 
 
@@ -30,7 +30,7 @@ def plane_x(x, y_range, z_range):
     return away_from_faces(np.column_stack([np.full(Y.size, x), Y.ravel(), Z.ravel()]), RES)
 
 
-WALL = plane_x(WALL_X, (-6.0, 6.0), (-1.0, 1.0))   # rays to it cross |y| < 3 at CAR_X
+WALL = plane_x(WALL_X, (-6.0, 6.0), (-1.0, 1.0))  # rays to it cross |y| < 3 at CAR_X
 
 
 def car_at(y):
@@ -45,8 +45,10 @@ def scene(car_y=None):
     s = CAR_X / WALL_X
     hidden = (np.abs(WALL[:, 1] * s - car_y) < 0.5) & (np.abs(WALL[:, 2] * s) < 0.5)
     car = car_at(car_y)
-    return (np.vstack([WALL[~hidden], car]),
-            np.r_[np.full(int((~hidden).sum()), BUILDING), np.full(len(car), CAR)])
+    return (
+        np.vstack([WALL[~hidden], car]),
+        np.r_[np.full(int((~hidden).sum()), BUILDING), np.full(len(car), CAR)],
+    )
 
 
 def integrate(mapper, k, car_y=None):
@@ -78,7 +80,7 @@ def car_labels(mapper, y=0.0):
     return np.bincount(labels, minlength=C)
 
 
-@pytest.mark.parametrize("hit_scans", [3, 40])   # moved away soon; parked, then gone
+@pytest.mark.parametrize("hit_scans", [3, 40])  # moved away soon; parked, then gone
 def test_a_car_that_leaves_clears_after_the_predicted_scans(taichi_cpu, hit_scans):
     cfg = free_config()
     mapper = Mapper(cfg)
@@ -86,7 +88,7 @@ def test_a_car_that_leaves_clears_after_the_predicted_scans(taichi_cpu, hit_scan
         integrate(mapper, k, car_y=0.0)
     assert car_labels(mapper)[CAR] == len(car_at(0.0))
     n = scans_to_clear(hit_scans, cfg)
-    assert n <= cfg.occupancy_cap + cfg.empty_evidence + 1   # bounded, however long it stood
+    assert n <= cfg.occupancy_cap + cfg.empty_evidence + 1  # bounded, however long it stood
     for j in range(n):
         report = integrate(mapper, hit_scans + j)
         assert report.freed_voxels > 0
@@ -108,12 +110,12 @@ def test_a_wall_behind_a_passing_car_is_kept(taichi_cpu):
     for k in range(len(ys), len(ys) + 8):
         integrate(mapper, k)
     labels, _ = mapper.query(WALL)
-    assert (labels == BUILDING).all()                  # every wall voxel, never seen through
+    assert (labels == BUILDING).all()  # every wall voxel, never seen through
     snap = mapper.snapshot()
     assert not snap.empty()[snap.labels() == BUILDING].any()
     trail = snap.dynamic_layer()
     assert len(trail) and (trail.labels() == CAR).all()
-    assert not (snap.static_map().labels() == CAR).any()   # no ghost trail left
+    assert not (snap.static_map().labels() == CAR).any()  # no ghost trail left
 
 
 def test_points_in_space_seen_empty_are_dynamic(taichi_cpu):
@@ -125,7 +127,7 @@ def test_points_in_space_seen_empty_are_dynamic(taichi_cpu):
     for _ in range(scans_to_clear(3, cfg)):
         integrate(mapper, k)
         k += 1
-    report = integrate(mapper, k, car_y=0.0)          # something comes back where it was empty
+    report = integrate(mapper, k, car_y=0.0)  # something comes back where it was empty
     pts, labels = scene(0.0)
     assert report.dynamic.shape == (len(pts),)
     assert report.dynamic[labels == CAR].all()
@@ -160,7 +162,7 @@ def test_without_rays_through_the_map_free_space_changes_nothing(taichi_cpu):
     for name in ("keys", "counts", "t_last", "ell_m"):
         assert np.array_equal(getattr(off, name), getattr(on, name)), name
     alpha = math.exp(-DT / small_config().tau_s)
-    assert np.allclose(on.occupancy, 1 + alpha + alpha ** 2 + alpha ** 3)   # hit every scan
+    assert np.allclose(on.occupancy, 1 + alpha + alpha**2 + alpha**3)  # hit every scan
 
 
 def test_occupancy_travels_through_the_store_and_a_restore(taichi_cpu):
@@ -174,13 +176,15 @@ def test_occupancy_travels_through_the_store_and_a_restore(taichi_cpu):
     assert before.empty().any()
     # drive away (the window leaves the car and the wall behind), then come back
     far = pose(x=-80.0)
-    mapper.integrate(scan_from_world(np.array([[-75.1, 0.1, 0.1]]), far, 10.0,
-                                     labels=np.array([BUILDING])))
+    mapper.integrate(
+        scan_from_world(np.array([[-75.1, 0.1, 0.1]]), far, 10.0, labels=np.array([BUILDING]))
+    )
     assert mapper.stored_voxels >= len(before)
     labels, _ = mapper.query(car_at(0.0))
-    assert (labels == 0).all()                           # empty, from the store too
-    mapper.integrate(scan_from_world(np.array([[4.1, 2.9, 0.1]]), pose(), 10.1,
-                                     labels=np.array([BUILDING])))
+    assert (labels == 0).all()  # empty, from the store too
+    mapper.integrate(
+        scan_from_world(np.array([[4.1, 2.9, 0.1]]), pose(), 10.1, labels=np.array([BUILDING]))
+    )
     after = mapper.snapshot()
     keep = np.isin(after.keys.view("i8,i8,i8"), before.keys.view("i8,i8,i8")).ravel()
     assert np.array_equal(after.subset(keep).empty(), before.empty())
@@ -203,7 +207,8 @@ def test_movable_classes_fade_with_their_own_tau(taichi_cpu):
         voxel = away_from_faces(np.array([[5.1, 0.1, 0.1]]), RES)
         many = np.repeat(voxel, 20, axis=0)
         mapper.integrate(scan_from_world(many, pose(), 0.0, labels=np.full(20, CAR)))
-        mapper.integrate(scan_from_world(many[:4], pose(), 2.0, labels=np.full(4, BUILDING),
-                                         index=1))
+        mapper.integrate(
+            scan_from_world(many[:4], pose(), 2.0, labels=np.full(4, BUILDING), index=1)
+        )
         winners.append(int(mapper.query(voxel)[0][0]))
     assert winners == [CAR, BUILDING]

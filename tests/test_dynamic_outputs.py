@@ -1,6 +1,7 @@
 """What free space writes and what the synthetic movers know: the static map and the dynamic
 layer of a snapshot, the occupancy in map files, the per-point flag files, the movers' ground
 truth, and the benchmark end to end."""
+
 import json
 import subprocess
 import sys
@@ -24,9 +25,15 @@ def snapshot_with_a_trail() -> MapSnapshot:
     counts[0, ROAD] = 5.0
     counts[1, CAR] = 3.0
     counts[2, CAR] = 4.0
-    return MapSnapshot(np.array([[0, 0, 0], [0, 0, 1], [5, 0, 1]]), counts, np.zeros(3),
-                       np.full(3, 0.4, np.float32), 0.2,
-                       occupancy=np.array([4.0, -2.5, 1.0], np.float32), empty_evidence=2.0)
+    return MapSnapshot(
+        np.array([[0, 0, 0], [0, 0, 1], [5, 0, 1]]),
+        counts,
+        np.zeros(3),
+        np.full(3, 0.4, np.float32),
+        0.2,
+        occupancy=np.array([4.0, -2.5, 1.0], np.float32),
+        empty_evidence=2.0,
+    )
 
 
 def test_empty_voxels_leave_labels_probabilities_and_the_static_map():
@@ -61,9 +68,9 @@ def test_movers_ground_truth_knows_who_is_where_at_the_end():
     parks = Mover("car", -5.25, 5.0, 7.0, t_start=0.0, t_stop=5.0)
     leaves = Mover("car", -5.25, 28.0, 6.0, t_start=3.0)
     t_end = 12.0
-    assert abs(parks.s(6.0) - parks.s(t_end)) <= STILL_M      # parked: static from then on
-    assert abs(parks.s(1.0) - parks.s(t_end)) > STILL_M       # still driving in
-    assert abs(leaves.s(0.0) - leaves.s(t_end)) > STILL_M     # parked, but gone by the end
+    assert abs(parks.s(6.0) - parks.s(t_end)) <= STILL_M  # parked: static from then on
+    assert abs(parks.s(1.0) - parks.s(t_end)) > STILL_M  # still driving in
+    assert abs(leaves.s(0.0) - leaves.s(t_end)) > STILL_M  # parked, but gone by the end
     kinds = {m.kind for m in street_movers()}
     speeds = [m.speed for m in street_movers() if m.kind == "car"]
     assert kinds == {"car", "cyclist", "person"} and min(speeds) < 0 < max(speeds)
@@ -72,9 +79,22 @@ def test_movers_ground_truth_knows_who_is_where_at_the_end():
 @pytest.mark.slow
 def test_the_benchmark_scores_free_space_on_the_synthetic_street(tmp_path):
     out = tmp_path / "dynamic.json"
-    subprocess.run([sys.executable, str(ROOT / "benchmarks" / "dynamic.py"), "--synthetic",
-                    "--scans", "12", "--methods", "tisem,tisem+free_space", "--json", str(out)],
-                   check=True, cwd=ROOT, capture_output=True)
+    subprocess.run(
+        [
+            sys.executable,
+            str(ROOT / "benchmarks" / "dynamic.py"),
+            "--synthetic",
+            "--scans",
+            "12",
+            "--methods",
+            "tisem,tisem+free_space",
+            "--json",
+            str(out),
+        ],
+        check=True,
+        cwd=ROOT,
+        capture_output=True,
+    )
     rows = {r["method"]: r for r in json.loads(out.read_text())["rows"]}
     plain, free = rows["tisem"], rows["tisem+free_space"]
     assert plain["da"] < free["da"] and free["trail_voxels"] < plain["trail_voxels"]

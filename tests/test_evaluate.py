@@ -1,4 +1,5 @@
 """tisem.evaluate: a hand-computed example, a numpy-only reference, tables, and the real data."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -55,16 +56,20 @@ def test_hand_example_metrics():
     assert met["miou_all"] == pytest.approx((0.4 + 0.25) / 19, abs=1e-15)
     assert met["accuracy"] == pytest.approx(3 / 8, abs=1e-15)
     assert met["wiou"] == pytest.approx((4 * 0.4 + 3 * 0.25 + 1 * 0.0) / 8, abs=1e-15)
-    assert met["oa_paper"] == pytest.approx((2 + 1 + 0 + 0) / ((2 + 1 + 2) + (1 + 1 + 2) + 1 + 1),
-                                            abs=1e-15)
+    assert met["oa_paper"] == pytest.approx(
+        (2 + 1 + 0 + 0) / ((2 + 1 + 2) + (1 + 1 + 2) + 1 + 1), abs=1e-15
+    )
     pc = met["per_class_iou"]
     assert list(pc) == list(CLASS_NAMES[1:])
     assert pc["car"] == pytest.approx(0.4)
     assert pc["bicycle"] == pytest.approx(0.25)
     assert pc["motorcycle"] == 0.0
-    assert pc["other-vehicle"] == 0.0          # predicted, absent from GT: 0, not None
-    assert all(pc[n] is None for n in CLASS_NAMES[1:]
-               if n not in ("car", "bicycle", "motorcycle", "other-vehicle"))
+    assert pc["other-vehicle"] == 0.0  # predicted, absent from GT: 0, not None
+    assert all(
+        pc[n] is None
+        for n in CLASS_NAMES[1:]
+        if n not in ("car", "bicycle", "motorcycle", "other-vehicle")
+    )
     assert not any(isinstance(v, float) and np.isnan(v) for v in pc.values())
 
 
@@ -95,7 +100,7 @@ def _reference_metrics(gt: np.ndarray, pred: np.ndarray, C: int = 20) -> dict:
 
 def test_matches_numpy_reference_on_random_labels():
     rng = np.random.default_rng(0)
-    gt = rng.integers(0, 12, 5000)              # classes 12..19 absent from GT
+    gt = rng.integers(0, 12, 5000)  # classes 12..19 absent from GT
     pred = np.where(rng.random(5000) < 0.6, gt, rng.integers(0, 15, 5000))
     ref = _reference_metrics(gt, pred)
     # pool in two chunks + merge: same as one add
@@ -118,7 +123,7 @@ def test_empty_and_invalid():
     assert met["points"] == 0
     assert met["miou"] is None and met["accuracy"] is None and met["oa_paper"] is None
     assert all(v is None for v in met["per_class_iou"].values())
-    c = Confusion().add([0, 0], [3, 4])        # only GT 0: nothing evaluated
+    c = Confusion().add([0, 0], [3, 4])  # only GT 0: nothing evaluated
     assert c.metrics()["points"] == 0
     with pytest.raises(ValueError, match="3 ground-truth labels but 2"):
         Confusion().add([1, 2, 3], [1, 2])
@@ -146,18 +151,18 @@ def test_format_table_and_per_class():
     rows = {line.split(" | ")[0].lstrip("| "): line for line in pc.splitlines()}
     assert rows["car"] == "| car | 0.4000 | 0.4000 |"
     assert rows["motorcycle"] == "| motorcycle | 0.0000 | 0.0000 |"
-    assert "other-vehicle *" in rows                  # predicted only: marked
-    assert "truck" not in rows                        # absent everywhere: left out
+    assert "other-vehicle *" in rows  # predicted only: marked
+    assert "truck" not in rows  # absent everywhere: left out
     assert "| **mIoU (GT-present)** | 0.2167 | 0.2167 |" in pc
     assert "absent from the ground truth" in pc
 
 
 def test_confusion_rebuilt_from_its_matrix():
     conf = Confusion(4).add(np.array([1, 1, 2, 3, 0]), np.array([1, 2, 2, 0, 3]))
-    again = Confusion.from_matrix(conf.matrix.tolist())        # e.g. read back from JSON
+    again = Confusion.from_matrix(conf.matrix.tolist())  # e.g. read back from JSON
     np.testing.assert_array_equal(again.matrix, conf.matrix)
     assert again.num_classes == 4 and again.metrics() == conf.metrics()
-    again.add(np.array([3]), np.array([3]))                      # and it goes on counting
+    again.add(np.array([3]), np.array([3]))  # and it goes on counting
     assert again.matrix[3, 3] == 1 and conf.matrix[3, 3] == 0
     for bad in (np.zeros((3, 4), np.int64), -np.ones((3, 3), np.int64), np.full((3, 3), 0.5)):
         with pytest.raises(ValueError):
@@ -167,13 +172,13 @@ def test_confusion_rebuilt_from_its_matrix():
 def test_score_scan_ignores_non_finite_points_and_reads_probabilities():
     points = np.array([[1, 0, 0], [np.nan, 0, 0], [0, 2, 0], [0, 0, np.inf]], np.float32)
     probs = np.zeros((4, 4), np.float32)
-    probs[[0, 1, 2], [1, 2, 3]] = 1.0                        # point 3: no probability at all
+    probs[[0, 1, 2], [1, 2, 3]] = 1.0  # point 3: no probability at all
     scan = Scan(points, np.eye(4), 0.0, probs=probs, gt_labels=np.array([1, 1, 2, 3]))
     labels = network_labels(scan)
     assert labels.tolist() == [1, 2, 3, 0]
     conf = Confusion(4)
     score_scan(conf, scan, labels)
-    assert conf.metrics()["points"] == 2                     # the NaN and the inf point: not scored
+    assert conf.metrics()["points"] == 2  # the NaN and the inf point: not scored
     assert conf.matrix[1, 1] == 1 and conf.matrix[2, 3] == 1
 
 
@@ -188,8 +193,22 @@ def test_network_predictions_on_real_data(kitti_mini):
     assert met["accuracy"] == pytest.approx(0.8497, abs=5e-4)
     assert len(met["present_classes"]) == 15
     assert set(met["present_classes"]) == {
-        "car", "road", "sidewalk", "building", "vegetation", "trunk", "terrain", "fence", "pole",
-        "traffic-sign", "person", "parking", "bicycle", "other-ground", "bicyclist"}
+        "car",
+        "road",
+        "sidewalk",
+        "building",
+        "vegetation",
+        "trunk",
+        "terrain",
+        "fence",
+        "pole",
+        "traffic-sign",
+        "person",
+        "parking",
+        "bicycle",
+        "other-ground",
+        "bicyclist",
+    }
     # GT as input scores perfectly (GT 0 is ignored, every other point is its own label)
     conf_gt = Confusion()
     for scan in SemanticKittiSequence(kitti_mini, input="labels"):

@@ -5,6 +5,7 @@ Every mistake goes through `apps/map_kitti.py main(argv)` (or map_mcap's for its
 in a folder of its own, so that a default results/ folder would show; the rules themselves
 are checked on `load_config` too.
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -14,10 +15,9 @@ import os
 
 import pytest
 import taichi as ti
-
 from test_pipeline import Records, load_app, run_app, tiny_sequence
-from tisem.config import (MAPPER_RULES, RUN_RULES, ConfigError, MapperConfig, RunConfig,
-                          load_config)
+
+from tisem.config import MAPPER_RULES, RUN_RULES, ConfigError, MapperConfig, RunConfig, load_config
 
 
 @pytest.fixture(scope="module")
@@ -88,8 +88,11 @@ def test_a_set_mistake_is_one_line_and_creates_nothing(one_scan, workdir, assign
 CONFIG_FILES = [
     ("quoted", 'resolution_m: "0.2"\n', ("resolution_m = '0.2'", "quoted string")),
     ("syntax", "resolution_m: [0.2\n", ("not valid YAML", "line 2")),
-    ("python tag", "mapper: !!python/object/apply:os.system ['true']\n",
-     ("not valid YAML", "python/object/apply")),
+    (
+        "python tag",
+        "mapper: !!python/object/apply:os.system ['true']\n",
+        ("not valid YAML", "python/object/apply"),
+    ),
     ("not a mapping", "- 1\n- 2\n", ("expected a mapping", "list")),
     ("section", "mapper: 3\n", ("mapper must be a mapping",)),
     ("nan", "prior: .nan\n", ("prior = nan", "not a finite number")),
@@ -97,10 +100,12 @@ CONFIG_FILES = [
 ]
 
 
-@pytest.mark.parametrize("text,words", [c[1:] for c in CONFIG_FILES],
-                         ids=[c[0] for c in CONFIG_FILES])
-def test_a_config_file_mistake_is_one_line_and_creates_nothing(one_scan, workdir, tmp_path_factory,
-                                                               text, words):
+@pytest.mark.parametrize(
+    "text,words", [c[1:] for c in CONFIG_FILES], ids=[c[0] for c in CONFIG_FILES]
+)
+def test_a_config_file_mistake_is_one_line_and_creates_nothing(
+    one_scan, workdir, tmp_path_factory, text, words
+):
     config = tmp_path_factory.mktemp("config") / "bad.yaml"
     config.write_text(text)
     rc, rec = run_app(["--data", one_scan, "--no-progress", "--config", config])
@@ -108,13 +113,17 @@ def test_a_config_file_mistake_is_one_line_and_creates_nothing(one_scan, workdir
     assert "bad.yaml" in message
 
 
-@pytest.mark.parametrize("argv,words", [
-    (["--threads", "0"], ("--threads 0", ">= 1")),
-    (["--threads", "-1"], ("--threads -1", ">= 1")),
-    (["--checkpoint-every", "0"], ("--checkpoint-every 0", ">= 1")),
-    (["--first", "3", "--last", "1"], ("last = 1", "before first = 3")),
-    (["--config", "missing.yaml"], ("missing.yaml", "cannot read the config file")),
-], ids=["threads 0", "threads -1", "checkpoint-every 0", "last before first", "no config"])
+@pytest.mark.parametrize(
+    "argv,words",
+    [
+        (["--threads", "0"], ("--threads 0", ">= 1")),
+        (["--threads", "-1"], ("--threads -1", ">= 1")),
+        (["--checkpoint-every", "0"], ("--checkpoint-every 0", ">= 1")),
+        (["--first", "3", "--last", "1"], ("last = 1", "before first = 3")),
+        (["--config", "missing.yaml"], ("missing.yaml", "cannot read the config file")),
+    ],
+    ids=["threads 0", "threads -1", "checkpoint-every 0", "last before first", "no config"],
+)
 def test_a_command_line_mistake_is_one_line_and_creates_nothing(one_scan, workdir, argv, words):
     rc, rec = run_app(["--data", one_scan, "--no-progress", *argv])
     assert_refused(rc, rec, workdir, *words)
@@ -122,8 +131,9 @@ def test_a_command_line_mistake_is_one_line_and_creates_nothing(one_scan, workdi
 
 def test_out_naming_a_file_is_refused(one_scan, workdir):
     (workdir / "results" / "old" / "notes.txt").write_text("mine")
-    rc, rec = run_app(["--data", one_scan, "--no-progress", "--out",
-                       workdir / "results" / "old" / "notes.txt"])
+    rc, rec = run_app(
+        ["--data", one_scan, "--no-progress", "--out", workdir / "results" / "old" / "notes.txt"]
+    )
     assert_refused(rc, rec, workdir, "notes.txt: is a file, not a folder")
     assert (workdir / "results" / "old" / "notes.txt").read_text() == "mine"
 
@@ -155,18 +165,21 @@ def run_app_named(name, argv):
 def test_threads_above_the_cores_are_capped_with_one_line(tmp_path):
     """--threads 100000 starts as many threads as there are cores, and says so once."""
     from tisem.backend import available_cores
+
     seq = tiny_sequence(tmp_path / "08", 2)
     out = tmp_path / "out"
     rc, rec = run_app(["--data", seq, "--out", out, "--no-progress", "--threads", "100000"])
     assert rc == 0, rec.text()
     cores = available_cores()
     said = [t for t in rec.text(logging.WARNING) if "--threads 100000" in t]
-    assert said == [f"--threads 100000: this machine has {cores} cores available; using "
-                    f"{cores} threads"]
+    assert said == [
+        f"--threads 100000: this machine has {cores} cores available; using {cores} threads"
+    ]
     assert json.loads((out / "run.json").read_text())["threads"] == cores
 
 
 # --------------------------------------------------------------------------- the rules
+
 
 def test_every_config_field_has_one_rule():
     assert set(MAPPER_RULES) == {f.name for f in dataclasses.fields(MapperConfig)}

@@ -6,6 +6,7 @@ Dense scans (the block cap within one scan), poses (a bad first pose costs one s
 (the map's clock), ids and probabilities of any dtype, query points, saved states, and a full
 disk under the host store. Small hand-built scenes only.
 """
+
 from __future__ import annotations
 
 import logging
@@ -15,8 +16,8 @@ import signal
 
 import numpy as np
 import pytest
-
 from helpers import ROAD, fresh_runtime, pose, scan_from_world, small_config
+
 from tisem.errors import ScanError
 from tisem.map_clock import MAX_MAP_SECONDS, ClockState, MapClock, max_step_for
 from tisem.mapper import Mapper
@@ -25,7 +26,7 @@ from tisem.snapshot import MapSnapshot
 from tisem.spill import SpillError
 from tisem.store import BlockStore
 
-CAP = 4000    # live leaf blocks: a dense 20 m scan needs ~15,000
+CAP = 4000  # live leaf blocks: a dense 20 m scan needs ~15,000
 
 
 def dense_cylinder(n, rng, radius=19.0, z=(-3.5, 3.5)):
@@ -38,10 +39,12 @@ def dense_cylinder(n, rng, radius=19.0, z=(-3.5, 3.5)):
 def ground_scan(x, stamp, index, rng, n=3000):
     """A normal scan: a labelled road plane around a sensor at (x, 0, 1.7)."""
     T = pose(x, 0.0, 1.7)
-    world = np.column_stack([x + rng.uniform(-15, 15, n), rng.uniform(-6, 6, n),
-                             rng.normal(0, 0.02, n)])
-    return scan_from_world(world, T, stamp, labels=np.full(n, ROAD, np.int32), index=index,
-                           name=f"road {index}")
+    world = np.column_stack(
+        [x + rng.uniform(-15, 15, n), rng.uniform(-6, 6, n), rng.normal(0, 0.02, n)]
+    )
+    return scan_from_world(
+        world, T, stamp, labels=np.full(n, ROAD, np.int32), index=index, name=f"road {index}"
+    )
 
 
 def assert_same_map(a: MapSnapshot, b: MapSnapshot, rtol: float = 0.0):
@@ -55,14 +58,17 @@ def assert_same_map(a: MapSnapshot, b: MapSnapshot, rtol: float = 0.0):
 
 # --------------------------------------------------------------------------- 1. dense scans
 
+
 @pytest.mark.slow
 def test_a_dense_scan_is_cut_to_the_block_cap_and_later_scans_still_map(taichi_cpu, caplog):
     rng = np.random.default_rng(0)
     mapper = Mapper(small_config(max_live_blocks=CAP))
     pts = dense_cylinder(60_000, rng)
-    dense = Scan(pts, pose(0, 0, 1.7), 10.0, labels=rng.integers(1, 20, len(pts)), index=0,
-                 name="dense")
+    dense = Scan(
+        pts, pose(0, 0, 1.7), 10.0, labels=rng.integers(1, 20, len(pts)), index=0, name="dense"
+    )
     from tisem.trace import IntegrationTrace
+
     trace = IntegrationTrace()
     with caplog.at_level(logging.WARNING, logger="tisem.mapper"):
         rep = mapper.integrate(dense, trace=trace)
@@ -70,12 +76,14 @@ def test_a_dense_scan_is_cut_to_the_block_cap_and_later_scans_still_map(taichi_c
     assert len(line) == 1
     assert line[0].startswith("scan 0 (dense): too dense for the block cap: its ")
     assert f"4,000 of max_live_blocks={CAP:,} are free" in line[0]
-    assert "in the 2,000 nearest new blocks" in line[0]        # half the room: 4000 // 2
+    assert "in the 2,000 nearest new blocks" in line[0]  # half the room: 4000 // 2
     assert 0 < mapper.live_blocks <= CAP // 2
     kept = trace.scans[-1].cut_points
     assert rep.used == len(kept) and rep.dropped_dense > 0
-    assert rep.used + rep.dropped_dense + rep.dropped_range + rep.dropped_band \
-        + rep.dropped_window == len(pts)
+    assert (
+        rep.used + rep.dropped_dense + rep.dropped_range + rep.dropped_band + rep.dropped_window
+        == len(pts)
+    )
     assert f"{rep.used:,} points mapped, {rep.dropped_dense:,} dropped" in line[0]
     # the nearest blocks: every kept point lies closer to the sensor than the ones dropped
     r = np.linalg.norm(pts, axis=1)
@@ -102,12 +110,15 @@ def test_a_dense_scan_with_no_room_left_is_refused_and_the_map_kept(taichi_cpu):
     mapper = Mapper(small_config(max_live_blocks=2))
     first = dense_cylinder(2000, rng)
     mapper.integrate(Scan(first, pose(0, 0, 1.7), 0.0, labels=np.full(2000, ROAD), index=0))
-    assert mapper.live_blocks == 1                # 2 free: half of it
+    assert mapper.live_blocks == 1  # 2 free: half of it
     before = mapper.snapshot()
-    far = dense_cylinder(2000, rng, radius=19.0, z=(2.5, 3.5))   # above every live block
-    with pytest.raises(ValueError, match=r"^scan 1: too dense for the block cap: .* only 1 of "
-                                         r"max_live_blocks=2 are free, none of them in a live "
-                                         r"block; skipped$"):
+    far = dense_cylinder(2000, rng, radius=19.0, z=(2.5, 3.5))  # above every live block
+    with pytest.raises(
+        ValueError,
+        match=r"^scan 1: too dense for the block cap: .* only 1 of "
+        r"max_live_blocks=2 are free, none of them in a live "
+        r"block; skipped$",
+    ):
         mapper.integrate(Scan(far, pose(0, 0, 1.7), 0.1, labels=np.full(2000, ROAD), index=1))
     assert_same_map(mapper.snapshot(), before)
     # a scan over the live block still maps there
@@ -126,6 +137,7 @@ def test_the_first_scan_refused_by_the_cap_leaves_no_origin(taichi_cpu):
 
 # --------------------------------------------------------------------------- 4-5. poses
 
+
 def _rot(kind):
     R = np.eye(3)
     if kind == "singular":
@@ -137,16 +149,20 @@ def _rot(kind):
     return R
 
 
-@pytest.mark.parametrize("kind, message", [
-    ("far 1e30", r"position is 1e\+30 m from the origin"),
-    ("far 1e9", r"position is 1e\+09 m from the origin"),
-    ("singular", r"not a rotation \(singular"),
-    ("scaled", r"not a rotation \(scaled by 1000"),
-    ("mirrored", r"not a rotation \(mirrored"),
-    ("nan", "NaN/inf entries"),
-])
-def test_a_bad_pose_is_refused_and_the_origin_comes_from_the_first_good_one(taichi_cpu, kind,
-                                                                            message):
+@pytest.mark.parametrize(
+    "kind, message",
+    [
+        ("far 1e30", r"position is 1e\+30 m from the origin"),
+        ("far 1e9", r"position is 1e\+09 m from the origin"),
+        ("singular", r"not a rotation \(singular"),
+        ("scaled", r"not a rotation \(scaled by 1000"),
+        ("mirrored", r"not a rotation \(mirrored"),
+        ("nan", "NaN/inf entries"),
+    ],
+)
+def test_a_bad_pose_is_refused_and_the_origin_comes_from_the_first_good_one(
+    taichi_cpu, kind, message
+):
     rng = np.random.default_rng(3)
     good = [ground_scan(0.5 * i, 0.1 * i, i, rng) for i in range(1, 3)]
     T = pose(0, 0, 1.7)
@@ -169,18 +185,20 @@ def test_a_bad_pose_is_refused_and_the_origin_comes_from_the_first_good_one(taic
     for s in good:
         mapper.integrate(s)
     assert mapper.scans == 2
-    assert np.abs(mapper.origin_vox * 0.2).max() < 10        # the good scans' origin
+    assert np.abs(mapper.origin_vox * 0.2).max() < 10  # the good scans' origin
     labels, _ = mapper.query(good[1].points_world())
     assert (labels == ROAD).mean() > 0.9
 
 
 # --------------------------------------------------------------------------- 6. stamps
 
+
 @pytest.mark.parametrize("stamp", [math.nan, math.inf, -math.inf, 1e30, 1e300, "12.5", True])
 def test_a_stamp_that_is_not_a_time_is_refused(stamp):
     # a ScanError (a ValueError): a reader that builds the Scan reports it as a skipped scan
-    with pytest.raises(ScanError, match=r"^scan 4: stamp_s .*(not a time|number of seconds)") \
-            as refused:
+    with pytest.raises(
+        ScanError, match=r"^scan 4: stamp_s .*(not a time|number of seconds)"
+    ) as refused:
         Scan(np.zeros((2, 3)), np.eye(4), stamp, labels=[1, 1], index=4)
     assert refused.value.index == 4
 
@@ -193,14 +211,17 @@ def test_one_bad_stamp_costs_one_scan_and_leaves_every_time_finite(taichi_cpu):
     for s in scans[:2]:
         mapper.integrate(s)
     before = mapper.snapshot()
-    jump = ground_scan(0.6, 100.0 + 1e6, 2, rng)          # a glitch a million seconds ahead
-    with pytest.raises(ValueError, match=r"^scan 2 \(road 2\): stamp .* jumps 1e\+06 s after "
-                                         r"the previous scan's; a jump over 23.03 s is taken "
-                                         r"only when the next scan confirms it"):
+    jump = ground_scan(0.6, 100.0 + 1e6, 2, rng)  # a glitch a million seconds ahead
+    with pytest.raises(
+        ValueError,
+        match=r"^scan 2 \(road 2\): stamp .* jumps 1e\+06 s after "
+        r"the previous scan's; a jump over 23.03 s is taken "
+        r"only when the next scan confirms it",
+    ):
         mapper.integrate(jump)
     assert_same_map(mapper.snapshot(), before)
-    mapper.integrate(scans[2])                            # back on time: mapped
-    back = ground_scan(0.9, 100.0 - 1e6, 3, rng)          # and one a million seconds behind
+    mapper.integrate(scans[2])  # back on time: mapped
+    back = ground_scan(0.9, 100.0 - 1e6, 3, rng)  # and one a million seconds behind
     with pytest.raises(ValueError, match="jumps 1e\\+06 s before the previous scan's"):
         mapper.integrate(back)
     mapper.integrate(scans[3])
@@ -216,7 +237,7 @@ def test_a_real_gap_is_taken_once_the_next_scan_confirms_it(taichi_cpu):
     mapper.integrate(ground_scan(0.0, 10.0, 0, rng))
     with pytest.raises(ValueError, match="jumps 3600 s after"):
         mapper.integrate(ground_scan(0.0, 3610.0, 1, rng))
-    mapper.integrate(ground_scan(0.0, 3610.1, 2, rng))    # the gap was real: time goes on
+    mapper.integrate(ground_scan(0.0, 3610.1, 2, rng))  # the gap was real: time goes on
     assert mapper.snapshot().t_last.max() == pytest.approx(3610.1)
     # a clock reset (back by an hour, twice): no time passes, times stay in order
     with pytest.raises(ValueError, match="before the previous scan's"):
@@ -236,18 +257,18 @@ def test_the_map_clock_rules():
         t = clock.time_of(stamp, "s")
         clock.advance(stamp, t)
     assert clock.state.latest_s == pytest.approx(0.2)
-    assert clock.time_of(50.05, "s") == pytest.approx(0.2)        # behind: no time passes
+    assert clock.time_of(50.05, "s") == pytest.approx(0.2)  # behind: no time passes
     with pytest.raises(ValueError, match="jumps"):
         clock.time_of(900.0, "s")
     with pytest.raises(ValueError, match="jumps"):
-        clock.time_of(900.0, "s")                                # the same scan again
+        clock.time_of(900.0, "s")  # the same scan again
     late = 50.0 + MAX_MAP_SECONDS + 10
     with pytest.raises(ValueError, match="jumps"):
         clock.time_of(late, "s")
     with pytest.raises(ValueError, match="a map spans at most 1048576 s"):
         clock.time_of(late + 1, "s")
     assert max_step_for(0.0) == max_step_for(math.inf) == math.inf
-    assert MapClock(math.inf).time_of(1e9, "s") == 0.0            # not started
+    assert MapClock(math.inf).time_of(1e9, "s") == 0.0  # not started
     with pytest.raises(ValueError, match="latest_s must be a finite number, got nan"):
         MapClock.from_dict(5.0, {"t0": 1.0, "latest_s": math.nan})
     assert MapClock.from_dict(5.0, {"t0": 1.0}).state == ClockState(t0=1.0)
@@ -255,15 +276,19 @@ def test_the_map_clock_rules():
 
 # --------------------------------------------------------------------------- 6. ids, probs
 
-@pytest.mark.parametrize("labels, message", [
-    (np.array([1, 2**32 + 9, 3], np.int64), r"got 4294967305 at point 1"),
-    (np.array([1, 2**63, 3], np.uint64), r"got 9223372036854775808 at point 1"),
-    (np.array([1, -1, 3], np.int8), r"got -1 at point 1"),
-    (np.array([1.0, 1e300, 3.0]), r"got 1e\+300 at point 1"),
-    (np.array([1.0, 2.5, 3.0]), r"got 2.5 at point 1"),
-    (np.array([1.0, np.nan, 3.0]), r"got nan at point 1"),
-    (np.array(["1", "2", "3"]), r"must be numbers, got an array of dtype <U1"),
-])
+
+@pytest.mark.parametrize(
+    "labels, message",
+    [
+        (np.array([1, 2**32 + 9, 3], np.int64), r"got 4294967305 at point 1"),
+        (np.array([1, 2**63, 3], np.uint64), r"got 9223372036854775808 at point 1"),
+        (np.array([1, -1, 3], np.int8), r"got -1 at point 1"),
+        (np.array([1.0, 1e300, 3.0]), r"got 1e\+300 at point 1"),
+        (np.array([1.0, 2.5, 3.0]), r"got 2.5 at point 1"),
+        (np.array([1.0, np.nan, 3.0]), r"got nan at point 1"),
+        (np.array(["1", "2", "3"]), r"must be numbers, got an array of dtype <U1"),
+    ],
+)
 def test_ids_are_checked_before_any_cast(labels, message):
     with pytest.raises(ValueError, match=rf"^scan 7: train ids .*{message}"):
         Scan(np.zeros((3, 3)), np.eye(4), 0.0, labels=labels, index=7)
@@ -280,8 +305,11 @@ def test_ids_of_any_integer_dtype_or_whole_floats_are_taken(taichi_cpu):
     mapper = Mapper(small_config())
     # ids past the map's classes, put in after the Scan was built, never wrap either
     ref.labels = np.where(np.arange(len(ref.labels)) == 5, 2**32 + ROAD, ROAD).astype(np.uint64)
-    with pytest.raises(ValueError, match=r"^scan 0 \(road 0\): train ids must be whole numbers "
-                                         r"in \[0, 20\), got 4294967305 at point 5"):
+    with pytest.raises(
+        ValueError,
+        match=r"^scan 0 \(road 0\): train ids must be whole numbers "
+        r"in \[0, 20\), got 4294967305 at point 5",
+    ):
         mapper.integrate(ref)
     ref.labels = np.full(len(ref.labels), 20, np.int32)
     with pytest.raises(ValueError, match=r"in \[0, 20\), got 20 at point 0"):
@@ -289,17 +317,23 @@ def test_ids_of_any_integer_dtype_or_whole_floats_are_taken(taichi_cpu):
     assert mapper.live_voxels == 0 and mapper.origin_vox is None
 
 
-@pytest.mark.parametrize("value, message", [
-    (3e38, r"got 3e\+38 at point 2, class 4"),
-    (1.5, r"got 1.5 at point 2, class 4"),
-    (-0.25, r"got -0.25 at point 2, class 4"),
-    (np.nan, r"got nan at point 2, class 4"),
-])
+@pytest.mark.parametrize(
+    "value, message",
+    [
+        (3e38, r"got 3e\+38 at point 2, class 4"),
+        (1.5, r"got 1.5 at point 2, class 4"),
+        (-0.25, r"got -0.25 at point 2, class 4"),
+        (np.nan, r"got nan at point 2, class 4"),
+    ],
+)
 def test_probabilities_are_finite_and_within_0_and_1(value, message):
     probs = np.full((4, 20), 0.05)
     probs[2, 4] = value
-    with pytest.raises(ValueError, match=rf"^scan 1: probabilities must be finite and in "
-                                         rf"\[0, 1\], {message}"):
+    with pytest.raises(
+        ValueError,
+        match=rf"^scan 1: probabilities must be finite and in "
+        rf"\[0, 1\], {message}",
+    ):
         Scan(np.ones((4, 3)), np.eye(4), 0.0, probs=probs, index=1)
     # a non-finite point's row is never used: anything there is taken
     pts = np.ones((4, 3))
@@ -314,7 +348,7 @@ def test_probabilities_map_without_overflow(taichi_cpu):
     s = ground_scan(0.0, 0.0, 0, rng)
     probs = np.zeros((s.num_points, 20), np.float16)
     probs[:, 1:] = 0.5
-    probs[:, ROAD] = np.float16(1.0) + np.float16(2 ** -10)
+    probs[:, ROAD] = np.float16(1.0) + np.float16(2**-10)
     mapper = Mapper(small_config(mode="adaptive"))
     for k in range(3):
         mapper.integrate(Scan(s.points_sensor, s.T_world_sensor, 0.1 * k, probs=probs, index=k))
@@ -324,6 +358,7 @@ def test_probabilities_map_without_overflow(taichi_cpu):
 
 
 # --------------------------------------------------------------------------- 6. queries
+
 
 def test_query_points_of_any_numeric_dtype(taichi_cpu):
     rng = np.random.default_rng(8)
@@ -347,6 +382,7 @@ def test_query_points_of_any_numeric_dtype(taichi_cpu):
 
 # --------------------------------------------------------------------------- saved states
 
+
 def test_a_saved_state_that_no_mapper_wrote_is_refused(taichi_cpu):
     rng = np.random.default_rng(9)
     mapper = Mapper(small_config())
@@ -355,39 +391,56 @@ def test_a_saved_state_that_no_mapper_wrote_is_refused(taichi_cpu):
     snap, state = mapper.snapshot(), mapper.state()
     fresh_runtime()
     fresh = Mapper(small_config())
-    bad_states = [({"scans": "abc"}, "scans must be a whole number"),
-                  ({"scans": -3}, "scans must be a whole number"),
-                  ({"t0": math.nan}, "t0 must be a finite number"),
-                  ({"origin_vox": [0, 0]}, "origin_vox must be 3 whole numbers"),
-                  ({"center_vox": [0, 0, 1e12]}, r"center_vox\[2\] must be a whole number"),
-                  ({"clock": {"t0": 0.0, "offset_s": "x"}}, "offset_s must be a finite"),
-                  ({"last_stamp_s": math.inf}, "last_stamp_s must be a finite number")]
+    bad_states = [
+        ({"scans": "abc"}, "scans must be a whole number"),
+        ({"scans": -3}, "scans must be a whole number"),
+        ({"t0": math.nan}, "t0 must be a finite number"),
+        ({"origin_vox": [0, 0]}, "origin_vox must be 3 whole numbers"),
+        ({"center_vox": [0, 0, 1e12]}, r"center_vox\[2\] must be a whole number"),
+        ({"clock": {"t0": 0.0, "offset_s": "x"}}, "offset_s must be a finite"),
+        ({"last_stamp_s": math.inf}, "last_stamp_s must be a finite number"),
+    ]
     for change, message in bad_states:
         with pytest.raises(ValueError, match=message):
             fresh.restore(snap, {**state, **change})
     counts = snap.counts.copy()
     counts[3, 2] = np.nan
-    bad_snaps = [(MapSnapshot(snap.keys, counts, snap.t_last, snap.ell_m, 0.2),
-                  r"counts holds nan at \(3, 2\)"),
-                 (MapSnapshot(snap.keys, -snap.counts, snap.t_last, snap.ell_m, 0.2),
-                  "counters must be finite and >= 0"),
-                 (MapSnapshot(snap.keys, snap.counts, snap.t_last + 1e300, snap.ell_m, 0.2),
-                  "a map spans at most"),
-                 (MapSnapshot(snap.keys + 2**22, snap.counts, snap.t_last, snap.ell_m, 0.2),
-                  "a map holds at most"),
-                 (MapSnapshot(snap.keys, snap.counts[:, :5], snap.t_last, snap.ell_m, 0.2),
-                  "the mapper has 20 classes"),
-                 (MapSnapshot(snap.keys, snap.counts, snap.t_last, snap.ell_m, 0.3),
-                  "snapshot resolution 0.3 m != mapper 0.2 m")]
+    bad_snaps = [
+        (
+            MapSnapshot(snap.keys, counts, snap.t_last, snap.ell_m, 0.2),
+            r"counts holds nan at \(3, 2\)",
+        ),
+        (
+            MapSnapshot(snap.keys, -snap.counts, snap.t_last, snap.ell_m, 0.2),
+            "counters must be finite and >= 0",
+        ),
+        (
+            MapSnapshot(snap.keys, snap.counts, snap.t_last + 1e300, snap.ell_m, 0.2),
+            "a map spans at most",
+        ),
+        (
+            MapSnapshot(snap.keys + 2**22, snap.counts, snap.t_last, snap.ell_m, 0.2),
+            "a map holds at most",
+        ),
+        (
+            MapSnapshot(snap.keys, snap.counts[:, :5], snap.t_last, snap.ell_m, 0.2),
+            "the mapper has 20 classes",
+        ),
+        (
+            MapSnapshot(snap.keys, snap.counts, snap.t_last, snap.ell_m, 0.3),
+            "snapshot resolution 0.3 m != mapper 0.2 m",
+        ),
+    ]
     for bad, message in bad_snaps:
         with pytest.raises(ValueError, match=message):
             fresh.restore(bad, state)
     assert fresh.origin_vox is None and fresh.stored_voxels == 0 and fresh.live_voxels == 0
-    fresh.restore(snap, state)                     # and the real one still loads, exactly
+    fresh.restore(snap, state)  # and the real one still loads, exactly
     assert_same_map(fresh.snapshot(), snap)
 
 
 # --------------------------------------------------------------------------- a full disk
+
 
 class FileSizeLimit:
     """While active, no file of this process may grow past `limit` bytes: writes beyond fail
@@ -415,8 +468,11 @@ def test_a_full_disk_under_the_store_raises_one_error_and_keeps_the_store(tmp_pa
     store.put(keys, counts, np.zeros(len(keys)), np.full(len(keys), 0.4))
     before = store.arrays()
     with FileSizeLimit(store.spill_file_bytes):
-        with pytest.raises(SpillError, match=rf"host store: could not write its spill file in "
-                                             rf"{tmp_path} \(.*\); set store_dir"):
+        with pytest.raises(
+            SpillError,
+            match=rf"host store: could not write its spill file in "
+            rf"{tmp_path} \(.*\); set store_dir",
+        ):
             store.put(keys + 2000, counts, np.zeros(len(keys)), np.full(len(keys), 0.4))
     after = store.arrays()
     assert len(store) == len(before[0])
@@ -432,7 +488,7 @@ def test_a_full_disk_while_the_window_evicts_leaves_the_map_whole(taichi_cpu, tm
     scans = [ground_scan(12.0 * i, 0.1 * i, i, rng) for i in range(5)]
     cfg = small_config(window_xy_m=22.0, store_dir=str(tmp_path))
     mapper = Mapper(cfg)
-    for s in scans[:3]:                      # (the eviction kernels compile here)
+    for s in scans[:3]:  # (the eviction kernels compile here)
         mapper.integrate(s)
     assert mapper.stored_voxels > 0
     before = mapper.snapshot()

@@ -5,6 +5,7 @@ a pose line that is not a pose, or a time that is not plausible, costs its own s
 (ScanError naming poses.txt:LINE / times.txt:LINE), and the others are read as before.
 Folders are the small generated ones of test_semantickitti.py.
 """
+
 from __future__ import annotations
 
 import json
@@ -12,9 +13,9 @@ import logging
 
 import numpy as np
 import pytest
-
 from test_pipeline import run_app, tiny_sequence
 from test_semantickitti import IDENTITY_ROWS, TR_ROWS, _fmt, _kinds, make_sequence
+
 from tisem.errors import DatasetError, ScanError
 from tisem.io.semantickitti import MAX_TIME_S, SemanticKittiSequence, read_calib_tr
 
@@ -47,16 +48,23 @@ def test_a_pose_that_is_not_a_rotation_costs_its_scan(tmp_path, kind):
     items = list(seq)
     assert _kinds(items) == ["Scan", "Scan", "SkippedScan", "Scan"]
     assert items[2].reason == message
-    assert np.allclose(items[3].T_world_sensor[:3, :3] @ items[3].T_world_sensor[:3, :3].T,
-                       np.eye(3))
+    assert np.allclose(
+        items[3].T_world_sensor[:3, :3] @ items[3].T_world_sensor[:3, :3].T, np.eye(3)
+    )
 
 
-@pytest.mark.parametrize("calib,problem", [
-    ("Tr: " + _fmt(np.multiply(TR_ROWS, 0.5)) + "\n", "scaled by 0.5"),
-    ("Tr: " + _fmt(TR_ROWS) + "\nTr: " + _fmt(IDENTITY_ROWS) + "\n",
-     "calib.txt:3: a second 'Tr:' line (the first is line 2)"),
-    ("Tr: " + _fmt(pose_row(np.diag([1.0, 1.0, -1.0]))) + "\n", "mirrored"),
-], ids=["scaled by 0.5", "two Tr lines", "mirrored"])
+@pytest.mark.parametrize(
+    "calib,problem",
+    [
+        ("Tr: " + _fmt(np.multiply(TR_ROWS, 0.5)) + "\n", "scaled by 0.5"),
+        (
+            "Tr: " + _fmt(TR_ROWS) + "\nTr: " + _fmt(IDENTITY_ROWS) + "\n",
+            "calib.txt:3: a second 'Tr:' line (the first is line 2)",
+        ),
+        ("Tr: " + _fmt(pose_row(np.diag([1.0, 1.0, -1.0]))) + "\n", "mirrored"),
+    ],
+    ids=["scaled by 0.5", "two Tr lines", "mirrored"],
+)
 def test_a_bad_calibration_refuses_the_sequence(tmp_path, calib, problem):
     d = make_sequence(tmp_path / "seq")
     (d / "calib.txt").write_text("P0: " + _fmt(range(12)) + "\n" + calib)
@@ -72,23 +80,30 @@ def test_a_bad_calibration_refuses_the_sequence(tmp_path, calib, problem):
 def test_two_files_for_one_scan_number_refuse_the_sequence(tmp_path):
     d = make_sequence(tmp_path / "seq")
     (d / "velodyne" / "000001.bin").rename(d / "velodyne" / "1.bin")
-    assert len(SemanticKittiSequence(d)) == 3        # a short name alone is scan 1
+    assert len(SemanticKittiSequence(d)) == 3  # a short name alone is scan 1
     make_sequence(tmp_path / "again")
     (tmp_path / "again" / "velodyne" / "000001.bin").replace(d / "velodyne" / "000001.bin")
     with pytest.raises(DatasetError, match=r"velodyne: 000001\.bin and 1\.bin are both scan 1"):
         SemanticKittiSequence(d)
 
 
-@pytest.mark.parametrize("times,bad,words", [
-    (["0.0", "0.1", "1e300", "0.3", "0.4"], 2, "time 1e+300 s is not a plausible time"),
-    (["0.0", "0.1", "nan", "0.3", "0.4"], 2, "time nan s is not a plausible time"),
-    (["0.0", "0.1", "-5", "0.3", "0.4"], 2, "time -5 s is not a plausible time"),
-    # one wild but finite time: the map's clock would jump ahead and run back
-    (["0.0", "0.1", "1e5", "0.3", "0.4"], 2, "time 100000 s is out of order (scan 1 at 0.1 s "
-                                             "and scan 3 at 0.3 s)"),
-    # a time earlier than the scans around it
-    (["0.0", "0.1", "0.2", "0.05", "0.4"], 3, "time 0.05 s is out of order"),
-], ids=["1e300", "nan", "negative", "wild", "backwards"])
+@pytest.mark.parametrize(
+    "times,bad,words",
+    [
+        (["0.0", "0.1", "1e300", "0.3", "0.4"], 2, "time 1e+300 s is not a plausible time"),
+        (["0.0", "0.1", "nan", "0.3", "0.4"], 2, "time nan s is not a plausible time"),
+        (["0.0", "0.1", "-5", "0.3", "0.4"], 2, "time -5 s is not a plausible time"),
+        # one wild but finite time: the map's clock would jump ahead and run back
+        (
+            ["0.0", "0.1", "1e5", "0.3", "0.4"],
+            2,
+            "time 100000 s is out of order (scan 1 at 0.1 s and scan 3 at 0.3 s)",
+        ),
+        # a time earlier than the scans around it
+        (["0.0", "0.1", "0.2", "0.05", "0.4"], 3, "time 0.05 s is out of order"),
+    ],
+    ids=["1e300", "nan", "negative", "wild", "backwards"],
+)
 def test_a_bad_time_costs_its_scan(tmp_path, times, bad, words):
     d = make_sequence(tmp_path / "seq", n_scans=5)
     (d / "times.txt").write_text("\n".join(times) + "\n")
@@ -129,6 +144,7 @@ def test_bad_poses_and_times_through_the_app_cost_their_scans(tmp_path):
     predictions = sorted(p.name for p in (out / "sequences" / "08" / "predictions").iterdir())
     assert predictions == ["000000.label", "000002.label", "000004.label"]
     from tisem.io.mapfile import load_map_file
+
     snapshot, _, _ = load_map_file(out / "map.npz")
     assert np.isfinite(snapshot.t_last).all() and snapshot.t_last.max() < 10.0
     assert not [r for r in rec.records if r.levelno >= logging.ERROR]
@@ -138,6 +154,7 @@ def test_a_blank_line_among_the_poses_is_skipped_and_later_lines_keep_their_numb
     """An editor's stray newline is not a pose: the poses after it stay with their own scans,
     and a bad line after it is still named by its place in the file."""
     from tisem.io.kitti_files import read_pose_lines
+
     row = "1 0 0 0 0 1 0 0 0 0 1 0\n"
     (tmp_path / "poses.txt").write_text(row + "\n" + row.replace(" 0\n", " 5\n") + "x\n")
     poses, problems = read_pose_lines(tmp_path / "poses.txt")

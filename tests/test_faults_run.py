@@ -6,6 +6,7 @@ Library runs use the small synthetic streets of test_checkpoint.py; app runs the
 SemanticKITTI folders of test_pipeline.py, through `main(argv)` (a full disk: in a process
 of its own, whose file-size limit makes writes fail as a full disk does).
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -19,18 +20,18 @@ import sys
 
 import numpy as np
 import pytest
-
 from helpers import fresh_runtime
-from test_faults_config import run_app_named
 from test_checkpoint import comparable_metrics, make_scans, run_config
+from test_faults_config import run_app_named
 from test_pipeline import REPO, load_app, run_app, tiny_sequence
+
 from tisem.checkpoint import load_checkpoint
 from tisem.errors import RunInterrupted
 from tisem.io import mapfile
 from tisem.io.kitti_mcap import write_kitti_mcap
 from tisem.run import MappingRun
 
-FAR_M = 300e3            # a plausible place, 300 km from the drive
+FAR_M = 300e3  # a plausible place, 300 km from the drive
 
 
 def moved(scan, dx_m: float):
@@ -50,6 +51,7 @@ def errors_of(rec) -> list[logging.LogRecord]:
 
 # --------------------------------------------------------------------------- refused scans
 
+
 @pytest.mark.slow
 @pytest.mark.parametrize("stream", ["sequence", "iterator"])
 def test_refused_scans_are_scored_in_no_row(taichi_cpu, tmp_path, stream):
@@ -60,8 +62,9 @@ def test_refused_scans_are_scored_in_no_row(taichi_cpu, tmp_path, stream):
     scans[2] = dataclasses.replace(scans[2], labels=np.full(scans[2].num_points, 25))
     scans[4] = moved(scans[4], FAR_M)
     source = scans if stream == "sequence" else iter(scans)
-    result = MappingRun(source, run_config(), tmp_path).run(show_progress=False,
-                                                            write_map_files=False)
+    result = MappingRun(source, run_config(), tmp_path).run(
+        show_progress=False, write_map_files=False
+    )
     m = result.metrics
     reasons = {s["index"]: s["reason"] for s in m["skipped"]}
     assert sorted(reasons) == [2, 4]
@@ -76,13 +79,15 @@ def test_refused_scans_are_scored_in_no_row(taichi_cpu, tmp_path, stream):
 
 # --------------------------------------------------------------------------- outlier poses
 
+
 @pytest.mark.slow
 @pytest.mark.parametrize("where", [0, 1, 3], ids=["first", "second", "middle"])
 def test_one_outlier_pose_costs_one_scan(taichi_cpu, tmp_path, where):
     scans = make_scans(6, points=1500, seed=5)
     scans[where] = moved(scans[where], FAR_M)
-    result = MappingRun(scans, run_config(), tmp_path).run(show_progress=False,
-                                                           write_map_files=False)
+    result = MappingRun(scans, run_config(), tmp_path).run(
+        show_progress=False, write_map_files=False
+    )
     assert [s.index for s in result.skipped] == [where]
     assert result.metrics["scans"] == 5
     # the map's origin came from the drive, not from the outlier
@@ -95,7 +100,7 @@ def test_an_outlier_first_pose_through_the_app(tmp_path):
     seq = tiny_sequence(tmp_path / "08", 4)
     lines = (seq / "poses.txt").read_text().splitlines()
     row = np.array(lines[0].split(), float)
-    row[11] += FAR_M                      # camera z: the drive's forward axis
+    row[11] += FAR_M  # camera z: the drive's forward axis
     lines[0] = " ".join(f"{v:.12e}" for v in row)
     (seq / "poses.txt").write_text("\n".join(lines) + "\n")
     out = tmp_path / "out"
@@ -108,6 +113,7 @@ def test_an_outlier_first_pose_through_the_app(tmp_path):
 
 
 # --------------------------------------------------------------------------- output folders
+
 
 @pytest.fixture
 def workdir(tmp_path, monkeypatch):
@@ -183,11 +189,14 @@ def test_make_synthetic_refuses_or_replaces_an_existing_sequence(tmp_path):
 
 # --------------------------------------------------------------------------- Ctrl-C
 
+
 def ctrl_c_after(position: int):
     """An on_scan that presses Ctrl-C (a real SIGINT) once scan `position` is mapped."""
+
     def press(mapper, scan, k):
         if k == position:
             os.kill(os.getpid(), signal.SIGINT)
+
     return press
 
 
@@ -195,19 +204,19 @@ def ctrl_c_after(position: int):
 def test_ctrl_c_stops_at_a_scan_boundary_and_the_run_resumes(taichi_cpu, tmp_path):
     scans = make_scans(5, points=1500, seed=8)
     cfg = run_config()
-    full = MappingRun(scans, cfg, tmp_path / "full").run(show_progress=False,
-                                                         write_map_files=False)
+    full = MappingRun(scans, cfg, tmp_path / "full").run(show_progress=False, write_map_files=False)
     full_metrics = comparable_metrics(full.metrics)
 
     fresh_runtime()
     out = tmp_path / "run"
     handler = signal.getsignal(signal.SIGINT)
     with pytest.raises(RunInterrupted) as stop:
-        MappingRun(scans, cfg, out, checkpoint_every=10).run(show_progress=False,
-                                                             on_scan=ctrl_c_after(1))
+        MappingRun(scans, cfg, out, checkpoint_every=10).run(
+            show_progress=False, on_scan=ctrl_c_after(1)
+        )
     assert str(stop.value) == f"interrupted after scan 1; continue with --resume {out}"
-    assert signal.getsignal(signal.SIGINT) is handler          # the handler is given back
-    assert load_checkpoint(out).last_index == 1                  # saved on the way out
+    assert signal.getsignal(signal.SIGINT) is handler  # the handler is given back
+    assert load_checkpoint(out).last_index == 1  # saved on the way out
     assert not (out / "metrics.json").exists()
 
     fresh_runtime()
@@ -225,8 +234,10 @@ def test_ctrl_c_in_the_app_exits_130_with_one_line(tmp_path, monkeypatch):
         return run(self, **{**options, "on_scan": ctrl_c_after(0)})
 
     monkeypatch.setattr(MappingRun, "run", run_with_ctrl_c)
-    for extra, said in ((["--checkpoint-every", "5"], "continue with --resume"),
-                        ([], "nothing to resume from")):
+    for extra, said in (
+        (["--checkpoint-every", "5"], "continue with --resume"),
+        ([], "nothing to resume from"),
+    ):
         out = tmp_path / f"out{len(extra)}"
         rc, rec = run_app(["--data", seq, "--out", out, "--no-progress", *extra])
         assert rc == 130
@@ -242,15 +253,23 @@ def test_ctrl_c_in_the_app_exits_130_with_one_line(tmp_path, monkeypatch):
 
 # --------------------------------------------------------------------------- full disks
 
+
 def run_with_file_limit(limit_bytes: int, *args) -> subprocess.CompletedProcess:
     """`apps/map_kitti.py ARGS` in a process that may write no file beyond `limit_bytes`:
     a write past it fails (EFBIG) as a write to a full disk does (ENOSPC)."""
+
     def limit():
         signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
         resource.setrlimit(resource.RLIMIT_FSIZE, (limit_bytes, limit_bytes))
-    return subprocess.run([sys.executable, str(REPO / "apps" / "map_kitti.py"), "--no-progress",
-                           *map(str, args)], capture_output=True, text=True, timeout=600,
-                          preexec_fn=limit, env=dict(os.environ, PYTHONPATH=str(REPO)))
+
+    return subprocess.run(
+        [sys.executable, str(REPO / "apps" / "map_kitti.py"), "--no-progress", *map(str, args)],
+        capture_output=True,
+        text=True,
+        timeout=600,
+        preexec_fn=limit,
+        env=dict(os.environ, PYTHONPATH=str(REPO)),
+    )
 
 
 def error_lines(done: subprocess.CompletedProcess) -> list[str]:
@@ -282,9 +301,21 @@ def test_a_full_spill_folder_ends_the_run_with_what_could_be_written(tmp_path):
     spill = tmp_path / "spill"
     spill.mkdir()
     out = tmp_path / "out"
-    done = run_with_file_limit(300_000, "--data", seq, "--out", out, "--set", "max_range_m=20",
-                               "--set", "window_xy_m=24", "--set", "window_z_m=12",
-                               "--set", f"store_dir={spill}")
+    done = run_with_file_limit(
+        300_000,
+        "--data",
+        seq,
+        "--out",
+        out,
+        "--set",
+        "max_range_m=20",
+        "--set",
+        "window_xy_m=24",
+        "--set",
+        "window_z_m=12",
+        "--set",
+        f"store_dir={spill}",
+    )
     assert done.returncode == 1, done.stderr
     lines = error_lines(done)
     assert len(lines) == 1, lines
@@ -297,13 +328,15 @@ def test_a_full_spill_folder_ends_the_run_with_what_could_be_written(tmp_path):
 
 # --------------------------------------------------------------------------- checkpoints
 
+
 @pytest.fixture(scope="module")
 def good_checkpoint(tmp_path_factory):
     """A checkpoint of 3 small scans, and a way to write a changed copy of it."""
     fresh_runtime()
     out = tmp_path_factory.mktemp("ckpt")
-    MappingRun(make_scans(3, points=1000, seed=9), run_config(), out,
-               checkpoint_every=3).run(show_progress=False, write_map_files=False)
+    MappingRun(make_scans(3, points=1000, seed=9), run_config(), out, checkpoint_every=3).run(
+        show_progress=False, write_map_files=False
+    )
     return out / "checkpoint" / mapfile.CHECKPOINT_NAME
 
 
@@ -328,28 +361,43 @@ def set_in(path, value):
         for key in path[:-1]:
             d = d[key]
         d[path[-1]] = value
+
     return change
 
 
 DAMAGES = {
-    "last_index abc": (dict(meta=set_in(["last_index"], "abc")),
-                       "last_index 'abc' is not a scan number"),
-    "keys out of range": (dict(keys=lambda a: a + 2 ** 22), "voxel keys reach"),
-    "another resolution": (dict(resolution_m=lambda a: np.array(0.3)),
-                           "its voxels are 0.3 m but its mapper config says resolution_m = 0.2"),
+    "last_index abc": (
+        dict(meta=set_in(["last_index"], "abc")),
+        "last_index 'abc' is not a scan number",
+    ),
+    "keys out of range": (dict(keys=lambda a: a + 2**22), "voxel keys reach"),
+    "another resolution": (
+        dict(resolution_m=lambda a: np.array(0.3)),
+        "its voxels are 0.3 m but its mapper config says resolution_m = 0.2",
+    ),
     "nan counts": (dict(counts=lambda a: np.where(a > 0, np.nan, a)), "counts holds NaN/inf"),
     "negative counts": (dict(counts=lambda a: a - 1.0), "counts holds negative values"),
     "nan t_last": (dict(t_last=lambda a: a * np.inf), "t_last holds NaN/inf"),
-    "nan seconds": (dict(meta=set_in(["progress", "seconds", 0], float("nan"))),
-                    "progress seconds: nan is not a finite number"),
-    "negative confusion": (dict(meta=set_in(["progress", "input", 1, 1], -5)),
-                           "progress input confusion"),
-    "origin abc": (dict(meta=set_in(["mapper_state", "origin_vox"], "abc")),
-                   "origin_vox 'abc' is not three integers"),
-    "t0 nan": (dict(meta=set_in(["mapper_state", "t0"], float("nan"))),
-               "t0 nan is not a finite time"),
-    "skipped record": (dict(meta=set_in(["progress", "skipped"], [{"index": "x"}])),
-                       "is not an index / name / reason record"),
+    "nan seconds": (
+        dict(meta=set_in(["progress", "seconds", 0], float("nan"))),
+        "progress seconds: nan is not a finite number",
+    ),
+    "negative confusion": (
+        dict(meta=set_in(["progress", "input", 1, 1], -5)),
+        "progress input confusion",
+    ),
+    "origin abc": (
+        dict(meta=set_in(["mapper_state", "origin_vox"], "abc")),
+        "origin_vox 'abc' is not three integers",
+    ),
+    "t0 nan": (
+        dict(meta=set_in(["mapper_state", "t0"], float("nan"))),
+        "t0 nan is not a finite time",
+    ),
+    "skipped record": (
+        dict(meta=set_in(["progress", "skipped"], [{"index": "x"}])),
+        "is not an index / name / reason record",
+    ),
     "run config": (dict(meta=set_in(["run_config", "first"], "abc")), "first = 'abc'"),
 }
 
@@ -367,8 +415,9 @@ def test_a_checkpoint_that_does_not_fit_together_is_refused(good_checkpoint, tmp
 
 
 def test_resume_of_a_damaged_checkpoint_is_one_line(good_checkpoint, tmp_path):
-    folder = damaged_copy(good_checkpoint, tmp_path / "run" / "checkpoint",
-                          set_in(["last_index"], "abc"))
+    folder = damaged_copy(
+        good_checkpoint, tmp_path / "run" / "checkpoint", set_in(["last_index"], "abc")
+    )
     rc, rec = run_app(["--resume", folder.parent, "--no-progress"])
     assert rc == 2
     errors = errors_of(rec)
@@ -383,15 +432,17 @@ def test_temp_files_of_a_killed_save_are_removed(good_checkpoint, tmp_path):
     fresh_runtime()
     scans = make_scans(3, points=1000, seed=9)
     MappingRun.resume(scans, folder.parent)
-    assert not left.exists()                       # removed by the resume
+    assert not left.exists()  # removed by the resume
     left.write_bytes(b"\0" * 1000)
     fresh_runtime()
     MappingRun(scans, run_config(), tmp_path / "run", checkpoint_every=1).run(
-        show_progress=False, write_map_files=False)
+        show_progress=False, write_map_files=False
+    )
     assert sorted(p.name for p in folder.iterdir()) == [mapfile.CHECKPOINT_NAME]
 
 
 # --------------------------------------------------------------------------- reported once
+
 
 @pytest.mark.slow
 def test_each_skipped_scan_is_reported_once_by_both_apps(tmp_path, capsys):
@@ -406,8 +457,10 @@ def test_each_skipped_scan_is_reported_once_by_both_apps(tmp_path, capsys):
     recording = tmp_path / "drive.mcap"
     write_kitti_mcap(seq, recording)
     capsys.readouterr()
-    for name, argv in (("map_kitti", ["--data", seq]),
-                       ("map_mcap", [recording, "--gt-field", "gt_label"])):
+    for name, argv in (
+        ("map_kitti", ["--data", seq]),
+        ("map_mcap", [recording, "--gt-field", "gt_label"]),
+    ):
         rc, rec = run_app_named(name, [*argv, "--out", tmp_path / name, "--no-progress"])
         assert rc == 0, rec.text()
         said = "\n".join(rec.text(logging.DEBUG)) + "\n" + capsys.readouterr().out

@@ -4,6 +4,7 @@ The cluster is started once for the module (starting one takes 10-20 s on a 2-co
 longer than most of these tests) and shut down after its last test. Every merged map is
 compared with the map one serial run over the same scans builds, in this process.
 """
+
 from __future__ import annotations
 
 import json
@@ -28,6 +29,7 @@ SMALL = ["max_range_m=20", "window_xy_m=30", "window_z_m=12", "min_z_m=-4", "max
 @pytest.fixture(scope="module")
 def ray_cluster():
     from tisem.cluster import ray_cluster as local_cluster
+
     with local_cluster(num_cpus=2):
         yield
 
@@ -36,6 +38,7 @@ def ray_cluster():
 def robots(tmp_path_factory):
     """Two robots of one synthetic world, sharing half of their street, one after the other."""
     from tisem.synth.fleet_world import write_fleet
+
     root = tmp_path_factory.mktemp("fleet") / "robots"
     write_fleet(root, robots=2, scans=10, points_per_ring=128, progress=False)
     return root
@@ -44,6 +47,7 @@ def robots(tmp_path_factory):
 @pytest.fixture(scope="module")
 def long_log(tmp_path_factory):
     from tisem.synth.sequence import write_semantickitti
+
     root = tmp_path_factory.mktemp("fleet") / "long"
     write_semantickitti(root / "sequences" / "00", 24, points_per_ring=128, progress=False)
     return root
@@ -51,6 +55,7 @@ def long_log(tmp_path_factory):
 
 def fleet(logs, out, mode, **options):
     from tisem.fleet import FleetOptions, run_fleet
+
     cfg = load_config(None, [*SMALL, f"mode={mode}"])
     result = run_fleet(logs, cfg, out, FleetOptions(threads=1, **options))
     return result, cfg
@@ -78,20 +83,20 @@ def test_merged_fleet_map_is_the_serial_map(ray_cluster, robots, tmp_path, mode,
     assert set(report["tasks"]) == {"00", "01"} and report["missing"] == []
     # the two reducers split the tiles between them
     assert len(report["reduction"]["synthetic-street-seed0"]) == 2
-    if mode == "bki":         # robot 1 drove after robot 0 through its streets: refined
+    if mode == "bki":  # robot 1 drove after robot 0 through its streets: refined
         assert report["tasks"]["01"]["task"]["seed_from"] == ["00"]
         metrics = json.loads((folder / "metrics.json").read_text())
         assert metrics["scans"] == 20 and metrics["final"]["accuracy"] > 0.5
 
 
-def test_chunked_long_log_gives_the_serial_labels(ray_cluster, long_log, tmp_path,
-                                                  taichi_cpu):
-    result, cfg = fleet([long_log], tmp_path / "chunks", "bki", chunks=2, overlap_scans=4,
-                        evaluate=False)
+def test_chunked_long_log_gives_the_serial_labels(ray_cluster, long_log, tmp_path, taichi_cpu):
+    result, cfg = fleet(
+        [long_log], tmp_path / "chunks", "bki", chunks=2, overlap_scans=4, evaluate=False
+    )
     assert not result.failed
     assert set(result.report["tasks"]) == {"00#chunk0", "00#chunk1"}
     chunk = result.report["tasks"]["00#chunk1"]["task"]
-    assert (chunk["first"], chunk["last"], chunk["warmup"]) == (12, 23, 0)   # seeded instead
+    assert (chunk["first"], chunk["last"], chunk["warmup"]) == (12, 23, 0)  # seeded instead
     merged = TiledMap.open(result.maps["00"]).snapshot()
     serial, _, _ = serial_snapshot(discover_logs([long_log]), cfg)
     diff = compare_snapshots(merged, serial)
@@ -117,12 +122,16 @@ def test_a_failing_task_is_reported_and_the_rest_merged(ray_cluster, robots, tmp
 
 def test_a_finished_batch_runs_nothing_again(ray_cluster, robots, tmp_path):
     from tisem.batch import batch_table, run_batch
+
     logs = discover_logs([robots / "sequences" / "00"])
     first = run_batch(logs, tmp_path / "batch", overrides=SMALL, sweeps=["mode=csm,bki"])
     assert (first.ran, first.kept, first.failed) == (2, 0, {})
     assert [r["cell"] for r in first.rows] == ["mode=csm", "mode=bki"]
-    stamps = {p: p.stat().st_mtime_ns for p in (tmp_path / "batch").rglob("*") if p.is_file()
-              and p.name != "batch.json"}
+    stamps = {
+        p: p.stat().st_mtime_ns
+        for p in (tmp_path / "batch").rglob("*")
+        if p.is_file() and p.name != "batch.json"
+    }
     again = run_batch(logs, tmp_path / "batch", overrides=SMALL, sweeps=["mode=csm,bki"])
     assert (again.ran, again.kept) == (0, 2)
     assert stamps == {p: p.stat().st_mtime_ns for p in stamps}
@@ -136,11 +145,30 @@ def test_a_finished_batch_runs_nothing_again(ray_cluster, robots, tmp_path):
 def test_fleet_benchmark_runs(ray_cluster, tmp_path, capsys):
     """benchmarks/fleet.py with tiny arguments (so it never rots); no timing is checked."""
     from benchmarks import fleet as bench
+
     out = tmp_path / "f.json"
-    assert bench.main(["--robots", "2", "--scans", "4", "--points-per-ring", "64",
-                       "--modes", "bki", "--refine", "both", *sum([["--set", s] for s in SMALL],
-                                                                  []),
-                       "--out", str(tmp_path / "runs"), "--json", str(out)]) == 0
+    assert (
+        bench.main(
+            [
+                "--robots",
+                "2",
+                "--scans",
+                "4",
+                "--points-per-ring",
+                "64",
+                "--modes",
+                "bki",
+                "--refine",
+                "both",
+                *sum([["--set", s] for s in SMALL], []),
+                "--out",
+                str(tmp_path / "runs"),
+                "--json",
+                str(out),
+            ]
+        )
+        == 0
+    )
     rows = json.loads(out.read_text())["rows"]
     assert [r["row"] for r in rows] == ["serial", "fleet (apart)", "fleet (refined)"]
     assert rows[2]["label_agreement"] == 1.0 and rows[1]["peak_reducer_mb"] > 0

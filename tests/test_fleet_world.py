@@ -1,6 +1,7 @@
 """The multi-robot synthetic world, and fleet tasks run in this process (no Ray): a chunk's
 warm-up and a seed are taken back out of what the task writes; a tiled map answers queries
 as the mapper it came from does."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -27,11 +28,12 @@ def robots(tmp_path_factory):
 def test_robots_share_streets_and_frame_at_different_times(robots):
     drives = fleet_drives(3, 100)
     assert [d.forward for d in drives] == [True, False, True]
-    spans = [sorted((d.start_s_m, d.start_s_m + (1 if d.forward else -1) * d.length_m))
-             for d in drives]
-    assert spans[0][1] > spans[1][0] and spans[1][1] > spans[2][0]      # shared streets
+    spans = [
+        sorted((d.start_s_m, d.start_s_m + (1 if d.forward else -1) * d.length_m)) for d in drives
+    ]
+    assert spans[0][1] > spans[1][0] and spans[1][1] > spans[2][0]  # shared streets
     ends = [d.start_time_s + d.scans * 0.1 for d in drives]
-    assert all(ends[k] < drives[k + 1].start_time_s for k in range(2))   # one after another
+    assert all(ends[k] < drives[k + 1].start_time_s for k in range(2))  # one after another
     logs = discover_logs([robots])
     assert [log.name for log in logs] == ["00", "01"]
     assert logs[0].world_frame == logs[1].world_frame == "synthetic-street-seed0"
@@ -69,12 +71,16 @@ def test_a_seeded_task_writes_only_its_own_bki_evidence(robots, tmp_path, taichi
     anchor = anchor_of(*first_pose(logs[0]), cfg.mapper.resolution_m)
     run_task(MapTask("r0", logs[0], 0, 7, anchor=anchor), cfg, tmp_path / "r0")
     r0 = TiledMap.open(tmp_path / "r0")
-    seeded = map_task(MapTask("r1", logs[1], 0, 7, anchor=anchor, seed_from=("r0",)),
-                      to_dict(cfg), str(tmp_path / "r1"), threads=2,
-                      seed_dirs=[str(tmp_path / "r0")], footprint=r0.tile_keys)
+    seeded = map_task(
+        MapTask("r1", logs[1], 0, 7, anchor=anchor, seed_from=("r0",)),
+        to_dict(cfg),
+        str(tmp_path / "r1"),
+        threads=2,
+        seed_dirs=[str(tmp_path / "r0")],
+        footprint=r0.tile_keys,
+    )
     assert seeded["seed_voxels"] == r0.voxels
-    merged = merge_snapshots([r0.snapshot(), TiledMap.open(tmp_path / "r1").snapshot()],
-                             np.inf)
+    merged = merge_snapshots([r0.snapshot(), TiledMap.open(tmp_path / "r1").snapshot()], np.inf)
     serial, _, _ = serial_snapshot(logs, cfg)
     diff = compare_snapshots(merged, serial)
     assert diff.label_agreement == 1.0 and diff.max_counter_diff < 1e-4, diff
@@ -84,6 +90,7 @@ def test_a_seeded_task_writes_only_its_own_bki_evidence(robots, tmp_path, taichi
 def test_tiled_map_answers_as_the_mapper(robots, tmp_path, taichi_cpu):
     from tisem.mapper import Mapper
     from tisem.tiles import TileIndex, split_by_tile, write_index, write_tile
+
     log = discover_logs([robots])[0]
     cfg = load_config(None, [*SMALL, "mode=st"])
     mapper = Mapper(cfg.mapper)

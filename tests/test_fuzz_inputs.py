@@ -5,6 +5,7 @@ reader yields is byte-identical to the intact input's or reported as damaged (se
 `tisem.testing.oracle`). A failure names its seed, case and mutation; replay it with
 `python benchmarks/fuzz_inputs.py --target T --seed S --case K --keep DIR`.
 """
+
 from __future__ import annotations
 
 import json
@@ -56,8 +57,12 @@ def test_the_campaign_benchmark_runs_and_replays(tmp_path, capsys):
     assert not [r for r in results if r["outcome"] == "failure"], results
     printed = capsys.readouterr().out
     assert "| mcap | 6 |" in printed and "| kitti | 6 |" in printed
-    assert fuzz_inputs.main(["--target", "mcap", "--seed", "1", "--case", "2",
-                             "--keep", str(tmp_path / "case")]) == 0
+    assert (
+        fuzz_inputs.main(
+            ["--target", "mcap", "--seed", "1", "--case", "2", "--keep", str(tmp_path / "case")]
+        )
+        == 0
+    )
     replayed = capsys.readouterr().out
     assert f"mcap seed 1 case 2: {results[2]['what'].split('] ', 1)[1]}" in replayed
     assert f"outcome: {results[2]['outcome']}" in replayed

@@ -6,6 +6,7 @@
   query) against `tisem.reference.ReferenceMapper` on random scans, for every mode and
   several seeds (set TISEM_TEST_SEEDS="3,4,5" to try others; a failure names its seed).
 """
+
 from __future__ import annotations
 
 import math
@@ -13,33 +14,46 @@ import os
 
 import numpy as np
 import pytest
+from helpers import (
+    C,
+    away_from_faces,
+    engine_entropy,
+    hand_rasterize,
+    kernel_table_fields,
+    located_voxels,
+    one_hot,
+    pose,
+    sample_kernel,
+    scan_from_world,
+    small_config,
+    training_points,
+    voxel_keys,
+)
 from scipy.spatial import cKDTree
 
-from helpers import (C, away_from_faces, engine_entropy, hand_rasterize, kernel_table_fields,
-                     located_voxels, one_hot, pose, sample_kernel, scan_from_world, small_config,
-                     training_points, voxel_keys)
 from tisem.mapper import Mapper
 from tisem.reference import ReferenceMapper, normalized_entropy, sparse_kernel
 from tisem.scan import Scan
 from tisem.trace import IntegrationTrace
 
-
 # --------------------------------------------------------------------------- g(r), entropy
+
 
 def test_reference_formulas_by_hand():
     """The oracle itself, on values worked out by hand."""
     # g(r) = (2 + cos 2 pi r)/3 (1 - r) + sin(2 pi r)/(2 pi)
     assert sparse_kernel(0.0) == 1.0
-    assert sparse_kernel(0.5) == pytest.approx(1 / 6, abs=1e-15)      # (2 - 1)/3 * 1/2 + 0
+    assert sparse_kernel(0.5) == pytest.approx(1 / 6, abs=1e-15)  # (2 - 1)/3 * 1/2 + 0
     assert sparse_kernel(0.25) == pytest.approx(0.5 + 1 / (2 * math.pi), abs=1e-15)
     assert sparse_kernel(1.0) == 0.0 and sparse_kernel(1.7) == 0.0
     p = np.zeros((3, C))
-    p[0, 1:] = 5.0                       # uniform over the 19 real classes
-    p[1, 9] = 7.0                        # one class
+    p[0, 1:] = 5.0  # uniform over the 19 real classes
+    p[1, 9] = 7.0  # one class
     p[2, [3, 4]] = 1.0
-    p[:, 0] = 100.0                      # class 0 is outside the support
-    np.testing.assert_allclose(normalized_entropy(p), [1.0, 0.0, math.log(2) / math.log(19)],
-                               atol=1e-15)
+    p[:, 0] = 100.0  # class 0 is outside the support
+    np.testing.assert_allclose(
+        normalized_entropy(p), [1.0, 0.0, math.log(2) / math.log(19)], atol=1e-15
+    )
 
 
 def test_sparse_kernel_table(taichi_cpu):
@@ -59,11 +73,13 @@ def test_sparse_kernel_table(taichi_cpu):
 def test_entropy_and_adaptive_length_match_reference(taichi_cpu):
     rng = np.random.default_rng(7)
     prior, ell_min, ell_max = 2.0, 0.4, 1.2
-    rows = [np.full(C, 3.0),                                   # uniform -> H = 1 -> L_max
-            np.r_[0.0, np.full(C - 1, 0.01)],                  # uniform, tiny
-            prior + 1000.0 * one_hot([9])[0],                  # one class, lots of evidence
-            1000.0 * one_hot([9])[0],                          # one class only: H = 0 -> L_min
-            np.r_[50.0, np.full(C - 1, 1.0)]]                  # class 0 mass is ignored
+    rows = [
+        np.full(C, 3.0),  # uniform -> H = 1 -> L_max
+        np.r_[0.0, np.full(C - 1, 0.01)],  # uniform, tiny
+        prior + 1000.0 * one_hot([9])[0],  # one class, lots of evidence
+        1000.0 * one_hot([9])[0],  # one class only: H = 0 -> L_min
+        np.r_[50.0, np.full(C - 1, 1.0)],
+    ]  # class 0 mass is ignored
     for alpha in (0.05, 0.5, 5.0):
         rows += list(prior + rng.gamma(alpha, 3.0, (40, C)) * (rng.random((40, C)) < 0.6))
     p = np.array(rows)
@@ -76,11 +92,12 @@ def test_entropy_and_adaptive_length_match_reference(taichi_cpu):
     np.testing.assert_allclose(ell, ell_min + (ell_max - ell_min) * want, atol=2e-6)
     assert ell[0] == pytest.approx(ell_max, abs=1e-6) and ell[1] == pytest.approx(ell_max, abs=1e-6)
     assert ell[3] == pytest.approx(ell_min, abs=1e-6)
-    assert ell[2] - ell_min < 0.1 * (ell_max - ell_min)        # near L_min despite the prior
+    assert ell[2] - ell_min < 0.1 * (ell_max - ell_min)  # near L_min despite the prior
     assert ell[4] == pytest.approx(ell_max, abs=1e-6)
 
 
 # --------------------------------------------------------------------------- known points
+
 
 def test_rasterize_filter_entropy_query_on_known_points(taichi_cpu):
     """A scan of hand-placed points: what lands in each voxel, what the filter keeps, each
@@ -95,13 +112,13 @@ def test_rasterize_filter_entropy_query_on_known_points(taichi_cpu):
     def in_voxel(key, n):
         return (np.asarray(key) + rng.uniform(0.05, 0.95, (n, 3))) * res
 
-    groups = {   # voxel key (global) -> (points, labels)
-        "A": ((40, -5, 3), np.full(1000, 9)),                       # one class, many points
-        "B": ((40, 15, 3), np.arange(1, 20)),                        # 19 classes, one each
-        "D": ((10, 20, 2), np.array([11, 11, 11, 13, 0, 0])),       # mixed, with unlabeled
-        "E": ((5, 30, 3), np.array([11, 0, 0])),                     # 3 points, 1 labelled
-        "F": ((5, -30, 3), np.array([13, 13])),                      # 2 points < min_points
-        "G": ((-20, -20, 4), np.array([0, 0, 0, 0])),                # no class evidence
+    groups = {  # voxel key (global) -> (points, labels)
+        "A": ((40, -5, 3), np.full(1000, 9)),  # one class, many points
+        "B": ((40, 15, 3), np.arange(1, 20)),  # 19 classes, one each
+        "D": ((10, 20, 2), np.array([11, 11, 11, 13, 0, 0])),  # mixed, with unlabeled
+        "E": ((5, 30, 3), np.array([11, 0, 0])),  # 3 points, 1 labelled
+        "F": ((5, -30, 3), np.array([13, 13])),  # 2 points < min_points
+        "G": ((-20, -20, 4), np.array([0, 0, 0, 0])),  # no class evidence
     }
     pts, labels = [], []
     for key, lab in groups.values():
@@ -112,15 +129,20 @@ def test_rasterize_filter_entropy_query_on_known_points(taichi_cpu):
     sensor = (world - T[:3, 3]) @ T[:3, :3]
     # dropped before rasterisation: out of range (far, too near), above the height band,
     # non-finite
-    extra = np.array([[25.0, 0, 0], [0.3, 0.2, 0.1], [3.0, 0, 6.0], [np.nan, 1, 1],
-                      [1, np.inf, 1]])
+    extra = np.array([[25.0, 0, 0], [0.3, 0.2, 0.1], [3.0, 0, 6.0], [np.nan, 1, 1], [1, np.inf, 1]])
     sensor = np.concatenate([sensor, extra])
     labels = np.concatenate([labels, [9, 9, 9, 9, 9]]).astype(np.int32)
     scan = Scan(points_sensor=sensor, T_world_sensor=T, stamp_s=50.0, labels=labels)
 
     rep = mapper.integrate(scan, trace=trace)
-    assert (rep.points, rep.used, rep.dropped_nonfinite, rep.dropped_range, rep.dropped_band,
-            rep.dropped_window) == (len(sensor), len(world), 2, 2, 1, 0)
+    assert (
+        rep.points,
+        rep.used,
+        rep.dropped_nonfinite,
+        rep.dropped_range,
+        rep.dropped_band,
+        rep.dropped_window,
+    ) == (len(sensor), len(world), 2, 2, 1, 0)
 
     # located voxels: every hit voxel, with its point count (unlabeled points count) and how
     # many of its points carry evidence (unlabeled points do not)
@@ -142,31 +164,35 @@ def test_rasterize_filter_entropy_query_on_known_points(taichi_cpu):
     for i, key in enumerate(got["keys"]):
         g = next(g for g in "ABDE" if groups[g][0] == tuple(key))
         lab = groups[g][1]
-        np.testing.assert_array_equal(got["hist"][i], np.bincount(lab[lab > 0], minlength=C),
-                                      err_msg=g)
+        np.testing.assert_array_equal(
+            got["hist"][i], np.bincount(lab[lab > 0], minlength=C), err_msg=g
+        )
         inside = (k_world == key).all(axis=1)
-        np.testing.assert_allclose(got["centroid"][i], world[inside].mean(axis=0), atol=1e-5,
-                                   err_msg=g)
+        np.testing.assert_allclose(
+            got["centroid"][i], world[inside].mean(axis=0), atol=1e-5, err_msg=g
+        )
     snap = mapper.snapshot()
-    np.testing.assert_array_equal(snap.keys, kept)   # only training voxels become map voxels
+    np.testing.assert_array_equal(snap.keys, kept)  # only training voxels become map voxels
 
     # the adaptive length from p = prior + decayed map counter (0 here) + h
-    hist = np.array([np.bincount(groups[g][1][groups[g][1] > 0], minlength=C) for g in "ABDE"],
-                    np.float64)
+    hist = np.array(
+        [np.bincount(groups[g][1][groups[g][1] > 0], minlength=C) for g in "ABDE"], np.float64
+    )
     order = np.lexsort(np.array([groups[g][0] for g in "ABDE"]).T[::-1])
     span = cfg.ell_max_m - cfg.ell_min_m
     want_ell = cfg.ell_min_m + span * normalized_entropy(cfg.prior + hist)
     np.testing.assert_allclose(snap.ell_m, want_ell[order], atol=2e-6)
-    got = {g: snap.ell_m[np.flatnonzero((snap.keys == groups[g][0]).all(axis=1))[0]]
-           for g in "AB"}
-    assert got["B"] == pytest.approx(cfg.ell_max_m, abs=1e-6)      # uniform -> L_max
-    assert got["A"] - cfg.ell_min_m < 0.1 * span, got               # one class -> near L_min
+    got = {g: snap.ell_m[np.flatnonzero((snap.keys == groups[g][0]).all(axis=1))[0]] for g in "AB"}
+    assert got["B"] == pytest.approx(cfg.ell_max_m, abs=1e-6)  # uniform -> L_max
+    assert got["A"] - cfg.ell_min_m < 0.1 * span, got  # one class -> near L_min
 
     # query: labels of the kept voxels; 0 and zero probabilities where there is no voxel and
     # none within the query radius: an empty voxel inside the window, the filtered voxels F
     # and G, outside the window, very far, non-finite
-    q = np.array([(np.array(groups[g][0]) + 0.5) * res for g in "ADEFG"]
-                 + [[10.0, 10.0, 0.5], [300.0, 0, 0], [1e9, -1e9, 0], [np.nan, 0, 0]])
+    q = np.array(
+        [(np.array(groups[g][0]) + 0.5) * res for g in "ADEFG"]
+        + [[10.0, 10.0, 0.5], [300.0, 0, 0], [1e9, -1e9, 0], [np.nan, 0, 0]]
+    )
     lab, prob = mapper.query(q)
     assert lab[:3].tolist() == [9, 11, 11]
     np.testing.assert_allclose(prob[:3].sum(axis=1), 1.0, atol=1e-6)
@@ -188,18 +214,18 @@ MODE_CONFIGS = {
 SEEDS = [int(s) for s in os.environ.get("TISEM_TEST_SEEDS", "11,12,13").split(",")]
 SCANS_PER_SEED = 2
 POINTS_PER_SCAN = 2500
-REGION_STEP_M = 100.0     # seeds alternate between two regions farther apart than the window
+REGION_STEP_M = 100.0  # seeds alternate between two regions farther apart than the window
 
 # Tolerances (float32 Taichi vs float64 numpy):
-CENTROID_ATOL_M = 1e-4    # float32 sums of up to ~100 coordinates of ~20 m
+CENTROID_ATOL_M = 1e-4  # float32 sums of up to ~100 coordinates of ~20 m
 EVIDENCE_RTOL = 1e-5
 COUNT_RTOL, COUNT_ATOL = 1e-4, 1e-4  # the table g(r) is within 1e-6 sigma0 of the formula,
-                                     # summed over up to ~100 weighted training points
-ELL_ATOL_M = 1e-5         # float32 entropy with a polynomial log
-T_LAST_ATOL_S = 1e-5      # float32 seconds since the first scan
+# summed over up to ~100 weighted training points
+ELL_ATOL_M = 1e-5  # float32 entropy with a polynomial log
+T_LAST_ATOL_S = 1e-5  # float32 seconds since the first scan
 MIN_T_LAST_MATCH = 0.995
-BLEND_ATOL = 1e-3         # a blend of normalised posteriors, each within COUNT_ATOL / total
-MIN_BLEND_WEIGHT = 1e-3   # of g over the voxels within the query radius
+BLEND_ATOL = 1e-3  # a blend of normalised posteriors, each within COUNT_ATOL / total
+MIN_BLEND_WEIGHT = 1e-3  # of g over the voxels within the query radius
 
 
 def random_scans(seed: int, region_x: float, t_start: float, probs: bool):
@@ -208,17 +234,27 @@ def random_scans(seed: int, region_x: float, t_start: float, probs: bool):
     poses, some points out of range or non-finite, at irregular times."""
     rng = np.random.default_rng(seed)
     n_patch = 10
-    centres = np.array([region_x, 0.0, 0.0]) + rng.uniform([-9, -9, -2.5], [9, 9, 2.0],
-                                                            (n_patch, 3))
+    centres = np.array([region_x, 0.0, 0.0]) + rng.uniform(
+        [-9, -9, -2.5], [9, 9, 2.0], (n_patch, 3)
+    )
     axes = np.column_stack([rng.uniform(0.3, 0.9, (n_patch, 2)), np.full(n_patch, 0.03)])
-    rot = np.array([pose(yaw=a, pitch=b, roll=c)[:3, :3]
-                    for a, b, c in rng.uniform(-math.pi, math.pi, (n_patch, 3))])
+    rot = np.array(
+        [
+            pose(yaw=a, pitch=b, roll=c)[:3, :3]
+            for a, b, c in rng.uniform(-math.pi, math.pi, (n_patch, 3))
+        ]
+    )
     cls = rng.integers(1, C, n_patch)
     scans, t = [], t_start
     for i in range(SCANS_PER_SEED):
-        T = pose(region_x + rng.uniform(-1.5, 1.5), rng.uniform(-1.5, 1.5),
-                 1.5 + rng.uniform(-.2, .2), yaw=rng.uniform(-math.pi, math.pi),
-                 pitch=rng.uniform(-.05, .05), roll=rng.uniform(-.05, .05))
+        T = pose(
+            region_x + rng.uniform(-1.5, 1.5),
+            rng.uniform(-1.5, 1.5),
+            1.5 + rng.uniform(-0.2, 0.2),
+            yaw=rng.uniform(-math.pi, math.pi),
+            pitch=rng.uniform(-0.05, 0.05),
+            roll=rng.uniform(-0.05, 0.05),
+        )
         k = rng.integers(0, n_patch, POINTS_PER_SCAN)
         local = rng.normal(0, 1, (POINTS_PER_SCAN, 3)) * axes[k]
         world = centres[k] + np.einsum("nij,nj->ni", rot[k], local)
@@ -229,16 +265,16 @@ def random_scans(seed: int, region_x: float, t_start: float, probs: bool):
         t += rng.uniform(0.05, 0.4)
         if probs:
             p = 0.5 * one_hot(lab) + 0.5 * rng.dirichlet(np.full(C, 0.2), POINTS_PER_SCAN)
-            p[rng.random(POINTS_PER_SCAN) < 0.05] = 0.0            # no evidence at all
+            p[rng.random(POINTS_PER_SCAN) < 0.05] = 0.0  # no evidence at all
             scan = scan_from_world(world, T, t, probs=p.astype(np.float32), index=i)
         else:
             scan = scan_from_world(world, T, t, labels=lab, index=i)
         bad = rng.choice(POINTS_PER_SCAN, 6, replace=False)
         scan.points_sensor[bad[:2], 0] = np.nan
         scan.points_sensor[bad[2], 1] = np.inf
-        scan.points_sensor[bad[3]] = [30.0, 0, 0]                 # beyond max_range
-        scan.points_sensor[bad[4]] = [0.5, 0.5, 0]                # within min_range
-        scan.points_sensor[bad[5]] = [5.0, 0, -6.0]               # below the height band
+        scan.points_sensor[bad[3]] = [30.0, 0, 0]  # beyond max_range
+        scan.points_sensor[bad[4]] = [0.5, 0.5, 0]  # within min_range
+        scan.points_sensor[bad[5]] = [5.0, 0, -6.0]  # below the height band
         scans.append(scan)
     return scans, t
 
@@ -251,17 +287,28 @@ def _check_stages(step, scan, ref, cfg, where):
     np.testing.assert_array_equal(layer["keys"], keys, err_msg=f"{where}: located voxels")
     np.testing.assert_array_equal(layer["npts"], npts, err_msg=f"{where}: points per voxel")
     # (a voxel with evidence has a labelled point, or a point with a positive probability)
-    np.testing.assert_array_equal(layer["labelled"] > 0, hist.sum(axis=1) > 0,
-                                  err_msg=f"{where}: voxels with class evidence")
+    np.testing.assert_array_equal(
+        layer["labelled"] > 0, hist.sum(axis=1) > 0, err_msg=f"{where}: voxels with class evidence"
+    )
     r_keys, r_centroid, r_h = ref.rasterize(scan)
     r_keys = r_keys + ref.origin_vox
     order = np.lexsort(r_keys.T[::-1])
     got = training_points(step)
     np.testing.assert_array_equal(got["keys"], r_keys[order], err_msg=f"{where}: training voxels")
-    np.testing.assert_allclose(got["centroid"], r_centroid[order] + ref.origin_vox * ref.res,
-                               rtol=0, atol=CENTROID_ATOL_M, err_msg=f"{where}: training points")
-    np.testing.assert_allclose(got["hist"], r_h[order], rtol=EVIDENCE_RTOL, atol=1e-6,
-                               err_msg=f"{where}: training evidence")
+    np.testing.assert_allclose(
+        got["centroid"],
+        r_centroid[order] + ref.origin_vox * ref.res,
+        rtol=0,
+        atol=CENTROID_ATOL_M,
+        err_msg=f"{where}: training points",
+    )
+    np.testing.assert_allclose(
+        got["hist"],
+        r_h[order],
+        rtol=EVIDENCE_RTOL,
+        atol=1e-6,
+        err_msg=f"{where}: training evidence",
+    )
 
 
 def _check_map(mapper, ref, tainted: set, where: str, query_pts):
@@ -284,22 +331,30 @@ def _check_map(mapper, ref, tainted: set, where: str, query_pts):
     tainted.update(k for k, ok in zip(packed, t_ok) if not ok)
     good = np.array([k not in tainted for k in packed])
     assert good.mean() >= MIN_T_LAST_MATCH, (
-        f"{where}: only {good.mean():.2%} of voxels agree on t_last (>= 99.5 % required)")
-    np.testing.assert_allclose(snap.counts[good], counts[good], rtol=COUNT_RTOL, atol=COUNT_ATOL,
-                               err_msg=f"{where}: counters")
-    np.testing.assert_allclose(snap.ell_m[good], ell[good], rtol=0, atol=ELL_ATOL_M,
-                               err_msg=f"{where}: kernel lengths")
+        f"{where}: only {good.mean():.2%} of voxels agree on t_last (>= 99.5 % required)"
+    )
+    np.testing.assert_allclose(
+        snap.counts[good],
+        counts[good],
+        rtol=COUNT_RTOL,
+        atol=COUNT_ATOL,
+        err_msg=f"{where}: counters",
+    )
+    np.testing.assert_allclose(
+        snap.ell_m[good], ell[good], rtol=0, atol=ELL_ATOL_M, err_msg=f"{where}: kernel lengths"
+    )
     # labels: equal, except where the reference's two best classes tie within tolerance
     top = np.sort(counts, axis=1)[:, ::-1]
     clear = good & (top[:, 0] - top[:, 1] > COUNT_RTOL * top[:, 0] + 2 * COUNT_ATOL)
     want = np.where(counts.sum(axis=1) > 0, counts.argmax(axis=1), 0)
     got = snap.labels()
     bad = np.flatnonzero(clear & (got != want))
-    assert bad.size == 0, (f"{where}: labels differ at {keys[bad[:5]].tolist()}: "
-                           f"{got[bad[:5]]} vs {want[bad[:5]]}")
+    assert bad.size == 0, (
+        f"{where}: labels differ at {keys[bad[:5]].tolist()}: {got[bad[:5]]} vs {want[bad[:5]]}"
+    )
     tie = good & ~clear
     assert np.all(counts[tie, got[tie]] >= top[tie, 0] - COUNT_RTOL * top[tie, 0] - 2 * COUNT_ATOL)
-    lab, _ = mapper.query(snap.centers(), with_probs=False)     # the query sees every voxel
+    lab, _ = mapper.query(snap.centers(), with_probs=False)  # the query sees every voxel
     np.testing.assert_array_equal(lab, snap.labels(), err_msg=f"{where}: query vs snapshot")
     if query_pts is None:
         return good.mean()
@@ -319,8 +374,10 @@ def _check_map(mapper, ref, tainted: set, where: str, query_pts):
     err = np.abs(prob[ok] - r_prob[ok]).max(axis=1)
     tol = 1e-5 + 3 * COUNT_ATOL / total
     bad = np.flatnonzero(err > tol)
-    assert bad.size == 0, (f"{where}: query probabilities differ by {err[bad[:3]]} at voxels "
-                           f"with total evidence {total[bad[:3]]}")
+    assert bad.size == 0, (
+        f"{where}: query probabilities differ by {err[bad[:3]]} at voxels "
+        f"with total evidence {total[bad[:3]]}"
+    )
     return good.mean()
 
 
@@ -334,12 +391,14 @@ def _check_blend(mapper, ref, pts, lab, prob, missing, tainted, where):
     off = np.abs(local - st.center_vox)
     held = np.all(off <= st.half_vox - math.ceil(radius / res) - 1, axis=1)
     if tainted:
-        near = cKDTree((np.array(sorted(tainted)) + 0.5) * res).query(pts, distance_upper_bound=
-                                                                      radius + res)[0]
+        near = cKDTree((np.array(sorted(tainted)) + 0.5) * res).query(
+            pts, distance_upper_bound=radius + res
+        )[0]
         held &= ~np.isfinite(near)
     outside = missing & np.any(off > st.half_vox, axis=1)
     assert np.all(lab[outside] == 0) and not prob[outside].any(), (
-        f"{where}: query outside the window")
+        f"{where}: query outside the window"
+    )
     # where the voxels within reach all sit at the radius's edge, the blend's total weight is
     # float error (g ~ 0) and its normalised posterior is not comparable
     held &= missing
@@ -349,15 +408,19 @@ def _check_blend(mapper, ref, pts, lab, prob, missing, tainted, where):
     got_lab, got_prob = lab[held], prob[held]
     top = np.sort(r_prob, axis=1)[:, ::-1]
     clear = top[:, 0] - top[:, 1] > BLEND_ATOL
-    np.testing.assert_array_equal(got_lab[clear], r_lab[clear],
-                                  err_msg=f"{where}: blended query labels")
-    np.testing.assert_allclose(got_prob, r_prob, rtol=0, atol=BLEND_ATOL,
-                               err_msg=f"{where}: blended query probabilities")
+    np.testing.assert_array_equal(
+        got_lab[clear], r_lab[clear], err_msg=f"{where}: blended query labels"
+    )
+    np.testing.assert_allclose(
+        got_prob, r_prob, rtol=0, atol=BLEND_ATOL, err_msg=f"{where}: blended query probabilities"
+    )
     return int(np.count_nonzero(r_lab))
 
 
-@pytest.mark.parametrize("mode,loop", [(mode, "per block") for mode in MODE_CONFIGS]
-                         + [("st", "per voxel"), ("bki", "per voxel")])
+@pytest.mark.parametrize(
+    "mode,loop",
+    [(mode, "per block") for mode in MODE_CONFIGS] + [("st", "per voxel"), ("bki", "per voxel")],
+)
 def test_stages_match_reference(taichi_cpu, mode, loop):
     """All of `integrate` against the numpy oracle, stage by stage, after every scan.
 
@@ -385,7 +448,7 @@ def test_stages_match_reference(taichi_cpu, mode, loop):
             done += 1
             all_scans.append(scan)
             q = None
-            if i == len(scans) - 1:    # the query (numpy's is slow) once per seed
+            if i == len(scans) - 1:  # the query (numpy's is slow) once per seed
                 pts = np.concatenate([s.points_world() for s in all_scans])
                 pts = pts[np.isfinite(pts).all(axis=1)]
                 lo, hi = pts.min(axis=0) - 2, pts.max(axis=0) + 2

@@ -12,6 +12,7 @@ each map below runs several stories in regions (and at times) far enough apart n
 each other, in a module-scoped fixture that keeps only numpy results; the tests then check
 those. Every story's scans are built from analytic shapes with known labels (tests/helpers.py).
 """
+
 from __future__ import annotations
 
 import math
@@ -20,18 +21,39 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 import taichi as ti
+from helpers import (
+    A_CLASS,
+    B_CLASS,
+    BUILDING,
+    POLE,
+    RES,
+    ROAD,
+    SHIFT_M,
+    SIDEWALK,
+    C,
+    distance_to_other_class,
+    fresh_runtime,
+    plane_story,
+    pose,
+    predicted_switch,
+    probs_story,
+    region,
+    scan_from_world,
+    small_config,
+    street_scene,
+    switch_story,
+    voxel_keys,
+    voxel_scans,
+)
 
-from helpers import (A_CLASS, B_CLASS, BUILDING, C, POLE, RES, ROAD, SHIFT_M, SIDEWALK,
-                     distance_to_other_class, fresh_runtime, plane_story, pose, predicted_switch,
-                     probs_story, region, scan_from_world, small_config, street_scene,
-                     switch_story, voxel_keys, voxel_scans)
 from tisem.mapper import Mapper
 from tisem.scan import Scan
 
-K_A = {"st": 30, "debug": 30, "adaptive": 12}   # scans of class A before the switch
+K_A = {"st": 30, "debug": 30, "adaptive": 12}  # scans of class A before the switch
 
 
 # --------------------------------------------------------------------------- the maps
+
 
 def _finish(result):
     ti.reset()
@@ -107,8 +129,9 @@ def debug_map():
     3. the edge of the window (at home + 600 m): a pitched sensor whose far points leave the
        window in z, points at max range in every direction, moves of a window half-width."""
     fresh_runtime(debug=True)
-    cfg = small_config(mode="st", tau_s=0.5, window_xy_m=20.0 + 1.2 + 0.8,
-                       window_z_m=4.0 + 1.2 + 0.8)
+    cfg = small_config(
+        mode="st", tau_s=0.5, window_xy_m=20.0 + 1.2 + 0.8, window_z_m=4.0 + 1.2 + 0.8
+    )
     mapper = Mapper(cfg)
     rng = np.random.default_rng(8)
     out = SimpleNamespace(cfg=cfg)
@@ -119,8 +142,9 @@ def debug_map():
     xyz, gt = xyz[sub], gt[sub]
     for i, offset in enumerate([0.0, 0.0, 2000.0, 0.0]):
         T = pose(*(home + [offset, 0, 1.7]), yaw=0.1 * i)
-        mapper.integrate(scan_from_world(xyz + home + [offset, 0, 0], T, 1e6 + 0.1 * i,
-                                         labels=gt, index=i))
+        mapper.integrate(
+            scan_from_world(xyz + home + [offset, 0, 0], T, 1e6 + 0.1 * i, labels=gt, index=i)
+        )
     out.far_gt = gt
     out.far_home = mapper.query(xyz + home)[0]
     out.far_away = mapper.query(xyz + home + [2000.0, 0, 0])[0]
@@ -141,24 +165,35 @@ def debug_map():
     d /= np.linalg.norm(d, axis=1, keepdims=True)
     r = np.where(rng.random(6000) < 0.5, 19.999, rng.uniform(1.0, 20.5, 6000))
     sensor = d * r[:, None]
-    sensor[:, 2] = np.clip(sensor[:, 2], -4.0, 4.0)          # the band's edges
+    sensor[:, 2] = np.clip(sensor[:, 2], -4.0, 4.0)  # the band's edges
     labels = rng.integers(1, C, len(sensor)).astype(np.int32)
     out.edge_range = np.linalg.norm(sensor, axis=1)
     out.edge_reports, out.edge_first_labels, out.edge_disagree = [], None, []
-    for i, T in enumerate([pose(*(base + [0, 0, 1.7])),
-                           pose(*(base + [0, 0, 1.7]), pitch=0.4, yaw=0.3),
-                           pose(*(base + [22.0, -22.0, 7.7]), pitch=-0.3),
-                           pose(*(base + [22.0, -22.0, 7.7]), roll=0.5)]):
-        scan = Scan(points_sensor=sensor, T_world_sensor=T, stamp_s=1e6 + 20.0 + 0.1 * i,
-                    labels=labels, index=i)
+    for i, T in enumerate(
+        [
+            pose(*(base + [0, 0, 1.7])),
+            pose(*(base + [0, 0, 1.7]), pitch=0.4, yaw=0.3),
+            pose(*(base + [22.0, -22.0, 7.7]), pitch=-0.3),
+            pose(*(base + [22.0, -22.0, 7.7]), roll=0.5),
+        ]
+    ):
+        scan = Scan(
+            points_sensor=sensor,
+            T_world_sensor=T,
+            stamp_s=1e6 + 20.0 + 0.1 * i,
+            labels=labels,
+            index=i,
+        )
         out.edge_reports.append(mapper.integrate(scan))
         if i == 0:
             out.edge_first_labels = mapper.query(scan.points_world())[0]
-        snap = mapper.snapshot()     # the query must see every voxel the map holds
-        out.edge_disagree.append(int(np.count_nonzero(mapper.query(snap.centers())[0]
-                                                      != snap.labels())))
-    out.edge_random = mapper.query(base + np.random.default_rng(1).uniform(
-        [-60, -60, -20], [60, 60, 30], (20000, 3)))
+        snap = mapper.snapshot()  # the query must see every voxel the map holds
+        out.edge_disagree.append(
+            int(np.count_nonzero(mapper.query(snap.centers())[0] != snap.labels()))
+        )
+    out.edge_random = mapper.query(
+        base + np.random.default_rng(1).uniform([-60, -60, -20], [60, 60, 30], (20000, 3))
+    )
     snap = mapper.snapshot()
     out.snap_size, out.snap_finite = len(snap), bool(np.isfinite(snap.counts).all())
     return _finish(out)
@@ -193,21 +228,23 @@ def test_noisy_plane_and_boundaries(request, mode):
 
 # --------------------------------------------------------------------------- csm
 
+
 @pytest.mark.parametrize("fixture", ["csm_map", "csm_unit_map"], ids=["count", "unit-min3"])
 def test_csm_is_exact_per_voxel_counting(request, fixture):
     run = request.getfixturevalue(fixture)
     cfg, snap = run.cfg, run.snap
     want: dict[tuple, np.ndarray] = {}
     for s in run.scans:
-        keys, inv, npts = np.unique(voxel_keys(s.points_world(), RES), axis=0,
-                                    return_inverse=True, return_counts=True)
+        keys, inv, npts = np.unique(
+            voxel_keys(s.points_world(), RES), axis=0, return_inverse=True, return_counts=True
+        )
         inv = inv.reshape(-1)
         hist = np.zeros((len(keys), C))
         lab = s.labels > 0
         np.add.at(hist, (inv[lab], s.labels[lab]), 1.0)
         total = hist.sum(axis=1)
         for k, h, n, tot in zip(map(tuple, keys), hist, npts, total):
-            if n >= cfg.min_points and tot > 0:       # the filter: enough points, some evidence
+            if n >= cfg.min_points and tot > 0:  # the filter: enough points, some evidence
                 add = h if cfg.point_weight == "count" else h / tot
                 want[k] = want.get(k, 0.0) + add
     r0 = region(snap, 0)
@@ -216,20 +253,22 @@ def test_csm_is_exact_per_voxel_counting(request, fixture):
     want_counts = np.array([want[tuple(k)] for k in want_keys])
     got = snap.counts[r0]
     if cfg.point_weight == "count":
-        np.testing.assert_array_equal(got, want_counts)          # integer sums: exact
+        np.testing.assert_array_equal(got, want_counts)  # integer sums: exact
     else:
         np.testing.assert_allclose(got, want_counts, rtol=1e-6, atol=0)
     top = np.sort(want_counts, axis=1)[:, ::-1]
-    clear = top[:, 0] - top[:, 1] > 1e-5                      # no tie to break
+    clear = top[:, 0] - top[:, 1] > 1e-5  # no tie to break
     np.testing.assert_array_equal(snap.labels()[r0][clear], want_counts.argmax(1)[clear])
     assert (got[:, 0] == 0).all(), "class 0 adds no evidence"
     if cfg.min_points > 1:
-        hit = np.unique(np.concatenate([voxel_keys(s.points_world(), RES)
-                                        for s in run.scans]), axis=0)
+        hit = np.unique(
+            np.concatenate([voxel_keys(s.points_world(), RES) for s in run.scans]), axis=0
+        )
         assert len(want_keys) < len(hit), "min_points should have dropped voxels"
 
 
 # --------------------------------------------------------------------------- decay
+
 
 @pytest.mark.parametrize("tau_s,fixture", [(0.5, "debug_map"), (2.0, "st_map")])
 def test_decay_switches_class_after_predicted_scans(request, tau_s, fixture):
@@ -243,18 +282,18 @@ def test_decay_switches_class_after_predicted_scans(request, tau_s, fixture):
     assert sw.label_a == A_CLASS
     assert set(sw.labels) <= {A_CLASS, B_CLASS}
     switched = sw.labels.index(B_CLASS) + 1 if B_CLASS in sw.labels else None
-    assert switched == n_star, (f"tau {tau_s} s: switched after {switched} B scans, "
-                                f"predicted {n_star}")
-    assert all(lab == B_CLASS for lab in sw.labels[n_star - 1:]), "switched back"
+    assert switched == n_star, (
+        f"tau {tau_s} s: switched after {switched} B scans, predicted {n_star}"
+    )
+    assert all(lab == B_CLASS for lab in sw.labels[n_star - 1 :]), "switched back"
     # and the counters are the recursion's
     delta = sw.first[:, A_CLASS]
     assert (delta > 0).all()
-    geo = (1 - alpha ** sw.k) / (1 - alpha)
+    geo = (1 - alpha**sw.k) / (1 - alpha)
     np.testing.assert_allclose(sw.after_a[:, A_CLASS], delta * geo, rtol=1e-4)
     n = len(sw.labels)
-    np.testing.assert_allclose(sw.end[:, A_CLASS], delta * alpha ** n * geo, rtol=1e-4)
-    np.testing.assert_allclose(sw.end[:, B_CLASS], delta * (1 - alpha ** n) / (1 - alpha),
-                               rtol=1e-4)
+    np.testing.assert_allclose(sw.end[:, A_CLASS], delta * alpha**n * geo, rtol=1e-4)
+    np.testing.assert_allclose(sw.end[:, B_CLASS], delta * (1 - alpha**n) / (1 - alpha), rtol=1e-4)
 
 
 def test_no_decay_switches_only_after_as_many_scans(adaptive_map):
@@ -262,14 +301,15 @@ def test_no_decay_switches_only_after_as_many_scans(adaptive_map):
     sw = adaptive_map.switch
     k = sw.k
     assert sw.label_a == A_CLASS
-    assert sw.labels[:k - 1] == [A_CLASS] * (k - 1), f"switched too early: {sw.labels}"
-    np.testing.assert_allclose(sw.tie[:, B_CLASS], sw.tie[:, A_CLASS], rtol=1e-5)   # a tie
+    assert sw.labels[: k - 1] == [A_CLASS] * (k - 1), f"switched too early: {sw.labels}"
+    np.testing.assert_allclose(sw.tie[:, B_CLASS], sw.tie[:, A_CLASS], rtol=1e-5)  # a tie
     assert sw.labels[k] == B_CLASS, f"not switched after {k + 1} B scans for {k} A scans"
     np.testing.assert_allclose(sw.end[:, A_CLASS], k * sw.first[:, A_CLASS], rtol=1e-5)
     np.testing.assert_allclose(sw.end[:, B_CLASS], (k + 1) * sw.first[:, A_CLASS], rtol=1e-5)
 
 
 # --------------------------------------------------------------------------- probabilities
+
 
 @pytest.mark.parametrize("mode", ["csm", "bki"])
 def test_probabilities_one_hot_equal_labels_and_split_mass(request, mode):
@@ -284,7 +324,7 @@ def test_probabilities_one_hot_equal_labels_and_split_mass(request, mode):
     np.testing.assert_array_equal(snap.keys[r1] + [n_shift, 0, 0], snap.keys[r2])
     if mode == "csm":
         np.testing.assert_array_equal(snap.counts[r1], snap.counts[r2])
-    else:   # float32 coordinates 64 m apart round differently (~1e-5 m): a tolerance
+    else:  # float32 coordinates 64 m apart round differently (~1e-5 m): a tolerance
         np.testing.assert_allclose(snap.counts[r1], snap.counts[r2], rtol=1e-3, atol=1e-4)
     top = np.sort(snap.counts[r1], axis=1)[:, ::-1]
     clear = top[:, 0] - top[:, 1] > 1e-3 * top[:, 0]
@@ -295,7 +335,7 @@ def test_probabilities_one_hot_equal_labels_and_split_mass(request, mode):
     np.testing.assert_allclose(prob[:, 3], 0.7, atol=1e-5)
     np.testing.assert_allclose(prob[:, 5], 0.3, atol=1e-5)
     assert (snap.labels()[r3] == 3).all()
-    if mode == "csm":   # count weighting: the evidence is the summed probabilities, class 0 out
+    if mode == "csm":  # count weighting: the evidence is the summed probabilities, class 0 out
         keys, inv = np.unique(voxel_keys(pr.patch, RES), axis=0, return_inverse=True)
         want = np.zeros((len(keys), C))
         np.add.at(want, inv.reshape(-1), pr.p.astype(np.float64))
@@ -303,11 +343,13 @@ def test_probabilities_one_hot_equal_labels_and_split_mass(request, mode):
         np.testing.assert_array_equal(snap.keys[r3], keys)
         np.testing.assert_allclose(snap.counts[r3], want, rtol=1e-6, atol=1e-7)
     assert (pr.patch_labels == 3).all()
-    np.testing.assert_allclose(pr.patch_probs[:, [3, 5]],
-                               np.tile([0.7, 0.3], (len(pr.patch), 1)), atol=1e-5)
+    np.testing.assert_allclose(
+        pr.patch_probs[:, [3, 5]], np.tile([0.7, 0.3], (len(pr.patch), 1)), atol=1e-5
+    )
 
 
 # --------------------------------------------------------------------------- debug=True
+
 
 def test_debug_pose_far_from_the_origin(debug_map):
     out = debug_map
@@ -323,17 +365,25 @@ def test_debug_scan_at_the_edge_of_the_window(debug_map):
     n = len(out.edge_range)
     in_range = (out.edge_range <= 20.0) & (out.edge_range >= 2.0)
     for rep in out.edge_reports:
-        assert rep.used + rep.dropped_range + rep.dropped_band + rep.dropped_window \
-            + rep.dropped_nonfinite == n
+        assert (
+            rep.used
+            + rep.dropped_range
+            + rep.dropped_band
+            + rep.dropped_window
+            + rep.dropped_nonfinite
+            == n
+        )
         assert rep.dropped_range == np.count_nonzero(~in_range)
     first = out.edge_reports[0]
-    assert first.dropped_window == 0          # a level sensor: every point in range fits
+    assert first.dropped_window == 0  # a level sensor: every point in range fits
     assert (out.edge_first_labels[in_range] > 0).all()
-    assert any(rep.dropped_window > 0 for rep in out.edge_reports[1:]), \
+    assert any(rep.dropped_window > 0 for rep in out.edge_reports[1:]), (
         "the tilted scans' far points leave the window in z: dropped and counted"
+    )
     assert out.edge_reports[2].evicted_voxels > 0
     assert out.edge_disagree == [0] * len(out.edge_reports), (
-        "query and snapshot disagree on voxels the map holds (near the window's face)")
+        "query and snapshot disagree on voxels the map holds (near the window's face)"
+    )
     lab, prob = out.edge_random
     assert lab.min() >= 0 and lab.max() < C and np.isfinite(prob).all()
     assert out.snap_size > 0 and out.snap_finite
@@ -343,6 +393,7 @@ def test_a_scan_with_more_points_than_training_rows_can_count_is_refused(taichi_
     """Training rows pass through float32 (exact below 2^24): a scan that could need more is
     refused with its name before any kernel runs, and the map is untouched."""
     from tisem.kernels import layout
+
     mapper = Mapper(small_config(mode="st"))
     rng = np.random.default_rng(0)
     pts = rng.uniform(-5, 5, (50, 3))
@@ -359,7 +410,8 @@ def test_a_scan_with_more_points_than_training_rows_can_count_is_refused(taichi_
 def test_a_range_that_needs_too_big_a_scan_table_is_refused(taichi_cpu):
     """The scan's table is dense (every leaf block within max_range of the sensor): a range and
     resolution that need more cells than int32 ids and memory allow are refused up front."""
-    cfg = small_config(max_range_m=900.0, resolution_m=0.02, window_xy_m=910.0, ell_min_m=0.04,
-                       ell_max_m=0.16)
+    cfg = small_config(
+        max_range_m=900.0, resolution_m=0.02, window_xy_m=910.0, ell_min_m=0.04, ell_max_m=0.16
+    )
     with pytest.raises(ValueError, match=r"needs a scan table of [\d,]+ leaf blocks"):
         Mapper(cfg)

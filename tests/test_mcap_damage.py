@@ -3,6 +3,7 @@
 Each test writes a small log, damages its bytes, and checks that every intact message is
 recovered, the damaged part is reported (never a traceback), and no scan carries wrong data.
 """
+
 from __future__ import annotations
 
 import json
@@ -32,7 +33,7 @@ def top_level_records(data: bytes) -> list[tuple[int, int, int]]:
     while pos < len(data):
         opcode, length = struct.unpack_from("<BQ", data, pos)
         out.append((opcode, pos, pos + 9 + length))
-        if opcode == 0x0F:             # data end: the summary follows
+        if opcode == 0x0F:  # data end: the summary follows
             break
         pos += 9 + length
     return out
@@ -58,13 +59,14 @@ def cut(src, dst, size: int) -> None:
 @pytest.mark.parametrize("fraction", [0.3, 0.62, 0.97])
 def test_cut_unchunked_file_recovers_every_complete_message(tmp_path, fraction):
     full = tmp_path / "full.mcap"
-    truth = write_synthetic_log(full, n_scans=N_SCANS, n_points=300, chunked=False,
-                                compression="none")
+    truth = write_synthetic_log(
+        full, n_scans=N_SCANS, n_points=300, chunked=False, compression="none"
+    )
     data = full.read_bytes()
     size = int(len(data) * fraction)
     messages = [r for r in top_level_records(data) if r[0] == 0x05]
     complete = [r for r in messages if r[2] <= size]
-    clouds = [r for r in complete if len(data[r[1]:r[2]]) > 2000]      # clouds are the big ones
+    clouds = [r for r in complete if len(data[r[1] : r[2]]) > 2000]  # clouds are the big ones
     cut(full, tmp_path / "cut.mcap", size)
 
     reader = McapScanReader(tmp_path / "cut.mcap")
@@ -78,22 +80,26 @@ def test_cut_unchunked_file_recovers_every_complete_message(tmp_path, fraction):
 @pytest.mark.parametrize("fraction", [0.5, 0.999])
 def test_cut_chunked_file(tmp_path, compression, fraction):
     full = tmp_path / "full.mcap"
-    truth = write_synthetic_log(full, n_scans=N_SCANS, n_points=600, compression=compression,
-                                chunk_size=8_000)                  # about one chunk per scan
+    truth = write_synthetic_log(
+        full, n_scans=N_SCANS, n_points=600, compression=compression, chunk_size=8_000
+    )  # about one chunk per scan
     with open(full, "rb") as f:
         summary = make_reader(f).get_summary()
     size = int(full.stat().st_size * fraction)
-    whole_chunks = [c for c in summary.chunk_indexes
-                    if c.chunk_start_offset + c.chunk_length <= size]
-    clouds_in_whole_chunks = sum(any(c.message_start_time <= t + 35_000_000 <= c.message_end_time
-                                     for c in whole_chunks) for t in truth["stamps_ns"])
+    whole_chunks = [
+        c for c in summary.chunk_indexes if c.chunk_start_offset + c.chunk_length <= size
+    ]
+    clouds_in_whole_chunks = sum(
+        any(c.message_start_time <= t + 35_000_000 <= c.message_end_time for c in whole_chunks)
+        for t in truth["stamps_ns"]
+    )
     cut(full, tmp_path / "cut.mcap", size)
 
     reader = McapScanReader(tmp_path / "cut.mcap")
     items = list(reader)
     got = check_scans_against_truth(items, truth)
     assert got == list(range(len(got))) and len(got) >= clouds_in_whole_chunks
-    if fraction > 0.99:   # only the summary is gone: nothing lost
+    if fraction > 0.99:  # only the summary is gone: nothing lost
         assert len(got) == N_SCANS
     lines = reader.report.lines()
     assert any("no summary section" in line for line in lines)
@@ -106,14 +112,19 @@ def test_files_cut_before_any_cloud_give_a_clear_error(tmp_path, size):
     full = tmp_path / "full.mcap"
     write_synthetic_log(full, n_scans=2, n_points=50)
     cut(full, tmp_path / "cut.mcap", size)
-    with pytest.raises(DatasetError,
-                       match="no point-cloud messages found.*the file is damaged.*cut"):
+    with pytest.raises(
+        DatasetError, match="no point-cloud messages found.*the file is damaged.*cut"
+    ):
         McapScanReader(tmp_path / "cut.mcap")
 
 
-@pytest.mark.parametrize("content,message", [
-    (b"", "the file is empty"), (b"PK\x03\x04 not an mcap at all", "not an MCAP file"),
-])
+@pytest.mark.parametrize(
+    "content,message",
+    [
+        (b"", "the file is empty"),
+        (b"PK\x03\x04 not an mcap at all", "not an MCAP file"),
+    ],
+)
 def test_empty_and_foreign_files(tmp_path, content, message):
     (tmp_path / "x.mcap").write_bytes(content)
     with pytest.raises(DatasetError, match=message):
@@ -126,8 +137,9 @@ def chunk_of_scan(path, truth, k):
     with open(path, "rb") as f:
         summary = make_reader(f).get_summary()
     log_time = truth["stamps_ns"][k] + 35_000_000
-    (chunk,) = [c for c in summary.chunk_indexes
-                if c.message_start_time <= log_time <= c.message_end_time]
+    (chunk,) = [
+        c for c in summary.chunk_indexes if c.message_start_time <= log_time <= c.message_end_time
+    ]
     return chunk
 
 
@@ -141,17 +153,18 @@ def flip(path, offset: int) -> None:
 @pytest.mark.parametrize("summary", ["intact", "cut off"])
 def test_a_chunk_with_a_bad_crc_is_skipped_and_reported(tmp_path, compression, summary):
     path = tmp_path / "log.mcap"
-    truth = write_synthetic_log(path, n_scans=N_SCANS, n_points=600, compression=compression,
-                                chunk_size=8_000)
+    truth = write_synthetic_log(
+        path, n_scans=N_SCANS, n_points=600, compression=compression, chunk_size=8_000
+    )
     chunk = chunk_of_scan(path, truth, 2)
-    flip(path, chunk.chunk_start_offset + chunk.chunk_length - 100)   # inside its data
-    if summary == "cut off":   # linear reading; the message index records still count the loss
+    flip(path, chunk.chunk_start_offset + chunk.chunk_length - 100)  # inside its data
+    if summary == "cut off":  # linear reading; the message index records still count the loss
         data = path.read_bytes()
         end = [r for r in top_level_records(data) if r[0] == 0x0F][0][1]
         path.write_bytes(data[:end])
     reader = McapScanReader(path)
     items = list(reader)
-    assert [i.index for i in items] == list(range(N_SCANS))       # numbering as in the intact file
+    assert [i.index for i in items] == list(range(N_SCANS))  # numbering as in the intact file
     assert check_scans_against_truth(items, truth) == [0, 1, 3, 4, 5]
     assert isinstance(items[2], SkippedScan)
     assert f"chunk at byte {chunk.chunk_start_offset}" in items[2].reason
@@ -167,16 +180,18 @@ def test_a_damaged_chunk_length_field_loses_at_most_that_chunk(tmp_path, summary
     chunk = chunk_of_scan(path, truth, 4)
     data = bytearray(path.read_bytes())
     if summary == "cut off":
-        data = data[:[r for r in top_level_records(bytes(data)) if r[0] == 0x0F][0][1]]
-    data[chunk.chunk_start_offset + 1:chunk.chunk_start_offset + 9] = b"\xff" * 8   # its length
+        data = data[: [r for r in top_level_records(bytes(data)) if r[0] == 0x0F][0][1]]
+    data[chunk.chunk_start_offset + 1 : chunk.chunk_start_offset + 9] = b"\xff" * 8  # its length
     path.write_bytes(bytes(data))
     reader = McapScanReader(path)
     items = list(reader)
-    if summary == "intact":      # the chunk index gives the length, and the chunk checks out
+    if summary == "intact":  # the chunk index gives the length, and the chunk checks out
         assert check_scans_against_truth(items, truth) == list(range(N_SCANS))
-        assert "its record header is damaged; the chunk index gives its length" in \
-            reader.report.lines()[0]
-    else:                        # the next chunk is found in the bytes; the loss is counted
+        assert (
+            "its record header is damaged; the chunk index gives its length"
+            in reader.report.lines()[0]
+        )
+    else:  # the next chunk is found in the bytes; the loss is counted
         assert check_scans_against_truth(items, truth) == [0, 1, 2, 3, 5]
         assert isinstance(items[4], SkippedScan) and items[4].index == 4
         (loss,) = [x for x in reader.report.losses if "reading went on" in x.what]
@@ -184,8 +199,14 @@ def test_a_damaged_chunk_length_field_loses_at_most_that_chunk(tmp_path, summary
         assert not reader.report.suspect
 
 
-@pytest.mark.parametrize("variant", [dict(indexed=False), dict(chunked=False),
-                                     dict(indexed=False, chunked=False, compression="lz4")])
+@pytest.mark.parametrize(
+    "variant",
+    [
+        dict(indexed=False),
+        dict(chunked=False),
+        dict(indexed=False, chunked=False, compression="lz4"),
+    ],
+)
 def test_files_without_index_or_chunks_read_completely(tmp_path, variant):
     path = tmp_path / "log.mcap"
     truth = write_synthetic_log(path, n_scans=N_SCANS, n_points=200, **variant)
@@ -206,10 +227,10 @@ def test_an_undecodable_cloud_is_skipped_with_the_reason(tmp_path):
     path = tmp_path / "log.mcap"
     truth = write_synthetic_log(path, n_scans=4, n_points=100, compression="none", crcs=False)
     data = bytearray(path.read_bytes())
-    frame = struct.pack("<I", 9) + b"velodyne\x00"               # a CDR string
+    frame = struct.pack("<I", 9) + b"velodyne\x00"  # a CDR string
     hits = [i for i in range(len(data)) if data.startswith(frame, i)]
-    at = hits[3] + len(frame) + 3                                 # cloud 2 (after /tf_static)
-    data[at:at + 16] = b"\xff" * 16                                # height, width, fields length
+    at = hits[3] + len(frame) + 3  # cloud 2 (after /tf_static)
+    data[at : at + 16] = b"\xff" * 16  # height, width, fields length
     path.write_bytes(bytes(data))
     items = list(McapScanReader(path))
     assert check_scans_against_truth(items, truth) == [0, 1, 3]
@@ -228,6 +249,7 @@ def test_lost_clouds_outside_first_last_are_not_reported(tmp_path):
 
 # ---- lengths taken on trust, the summary and its index, CRCs -------------------------------
 
+
 def regions_of(path, kind):
     return [r for r in layout(path.read_bytes()) if r.kind == kind]
 
@@ -235,7 +257,7 @@ def regions_of(path, kind):
 def set_field(path, region, name, value) -> None:
     at, size = region.fields[name]
     data = bytearray(path.read_bytes())
-    data[at:at + size] = value.to_bytes(size, "little")
+    data[at : at + size] = value.to_bytes(size, "little")
     path.write_bytes(bytes(data))
 
 
@@ -244,49 +266,66 @@ def refresh_summary_crc(path) -> None:
     data = bytearray(path.read_bytes())
     footer = len(data) - 37
     start = struct.unpack_from("<Q", data, footer + 9)[0]
-    struct.pack_into("<I", data, footer + 25, zlib.crc32(data[start:footer + 25]))
+    struct.pack_into("<I", data, footer + 25, zlib.crc32(data[start : footer + 25]))
     path.write_bytes(bytes(data))
 
 
 def read_with_memory_limit(path, limit_mb: int = 1500) -> dict:
     """Read in a child process whose address space is limited: a length taken on trust that
     allocates gigabytes is a MemoryError there (what it was under a 3 GB limit)."""
-    code = (f"import json, resource; resource.setrlimit(resource.RLIMIT_AS, ({limit_mb << 20},"
-            f" {limit_mb << 20}))\n"
-            "from tisem.io.mcap_reader import McapScanReader\n"
-            "from tisem.scan import Scan\n"
-            f"r = McapScanReader({str(path)!r})\n"
-            "items = list(r)\n"
-            "print(json.dumps({'scans': [s.index for s in items if isinstance(s, Scan)],"
-            " 'lines': r.report.lines()}))\n")
-    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
-                          env={**os.environ, "OPENBLAS_NUM_THREADS": "1"})
+    code = (
+        f"import json, resource; resource.setrlimit(resource.RLIMIT_AS, ({limit_mb << 20},"
+        f" {limit_mb << 20}))\n"
+        "from tisem.io.mcap_reader import McapScanReader\n"
+        "from tisem.scan import Scan\n"
+        f"r = McapScanReader({str(path)!r})\n"
+        "items = list(r)\n"
+        "print(json.dumps({'scans': [s.index for s in items if isinstance(s, Scan)],"
+        " 'lines': r.report.lines()}))\n"
+    )
+    done = subprocess.run(
+        [sys.executable, "-c", code],
+        capture_output=True,
+        text=True,
+        env={**os.environ, "OPENBLAS_NUM_THREADS": "1"},
+    )
     assert done.returncode == 0, done.stderr[-2000:]
     return json.loads(done.stdout)
 
 
-@pytest.mark.parametrize("kind,name,value", [
-    ("summary schema", "record length", 2 ** 32),       # was a MemoryError under 3 GB
-    ("summary channel", "string length", 2 ** 32 - 1),
-    ("chunk index", "offsets length", 2 ** 31),
-    ("statistics", "counts length", 2 ** 32 - 1),
-    ("footer", "summary start", 2 ** 63),
-])
+@pytest.mark.parametrize(
+    "kind,name,value",
+    [
+        ("summary schema", "record length", 2**32),  # was a MemoryError under 3 GB
+        ("summary channel", "string length", 2**32 - 1),
+        ("chunk index", "offsets length", 2**31),
+        ("statistics", "counts length", 2**32 - 1),
+        ("footer", "summary start", 2**63),
+    ],
+)
 def test_huge_lengths_in_the_summary_only_cost_the_summary(tmp_path, kind, name, value):
     path = tmp_path / "log.mcap"
     write_synthetic_log(path, n_scans=N_SCANS, n_points=200, chunk_size=3_000)
     set_field(path, regions_of(path, kind)[0], name, value)
-    refresh_summary_crc(path)       # the CRC alone would already refuse the summary
+    refresh_summary_crc(path)  # the CRC alone would already refuse the summary
     got = read_with_memory_limit(path)
     assert got["scans"] == list(range(N_SCANS))
-    assert any(line.startswith("summary section: ") and "it was not used and the file was read "
-               "from its data" in line for line in got["lines"])
+    assert any(
+        line.startswith("summary section: ")
+        and "it was not used and the file was read from its data" in line
+        for line in got["lines"]
+    )
 
 
-@pytest.mark.parametrize("name,value", [("uncompressed size", 2 ** 63),     # an OverflowError
-                                        ("uncompressed size", 2 ** 40),
-                                        ("data length", 2 ** 64 - 1),
-                                        ("compression length", 2 ** 32 - 1)])
+@pytest.mark.parametrize(
+    "name,value",
+    [
+        ("uncompressed size", 2**63),  # an OverflowError
+        ("uncompressed size", 2**40),
+        ("data length", 2**64 - 1),
+        ("compression length", 2**32 - 1),
+    ],
+)
 def test_huge_lengths_in_a_chunk_lose_that_chunk_only(tmp_path, name, value):
     path = tmp_path / "log.mcap"
     truth = write_synthetic_log(path, n_scans=N_SCANS, n_points=200, chunk_size=3_000)
@@ -295,9 +334,12 @@ def test_huge_lengths_in_a_chunk_lose_that_chunk_only(tmp_path, name, value):
     set_field(path, region, name, value)
     got = read_with_memory_limit(path)
     assert got["scans"] == [0, 1, 3, 4, 5]
-    assert any(line.startswith(f"chunk at byte {chunk.chunk_start_offset}") and
-               "chunk skipped" in line and "1 on /velodyne_points" in line
-               for line in got["lines"])
+    assert any(
+        line.startswith(f"chunk at byte {chunk.chunk_start_offset}")
+        and "chunk skipped" in line
+        and "1 on /velodyne_points" in line
+        for line in got["lines"]
+    )
 
 
 def test_a_lost_chunk_is_counted_from_the_data_not_from_index_offsets(tmp_path):
@@ -311,8 +353,8 @@ def test_a_lost_chunk_is_counted_from_the_data_not_from_index_offsets(tmp_path):
     for entry in regions_of(path, "chunk index"):
         at = entry.fields["offsets length"][0] + 4
         n = struct.unpack_from("<I", data, at - 4)[0] // 10
-        for k in range(n):                           # (u16 channel, u64 offset) pairs
-            struct.pack_into("<Q", data, at + 10 * k + 2, 2 ** 64 - 1 - k)
+        for k in range(n):  # (u16 channel, u64 offset) pairs
+            struct.pack_into("<Q", data, at + 10 * k + 2, 2**64 - 1 - k)
     path.write_bytes(bytes(data))
     refresh_summary_crc(path)
     reader = McapScanReader(path)
@@ -327,12 +369,13 @@ def test_a_summary_whose_crc_fails_is_not_used(tmp_path):
     path = tmp_path / "log.mcap"
     truth = write_synthetic_log(path, n_scans=N_SCANS, n_points=200, chunk_size=3_000)
     entry = regions_of(path, "chunk index")[1]
-    set_field(path, entry, "chunk offset", 8)             # an index that points elsewhere
+    set_field(path, entry, "chunk offset", 8)  # an index that points elsewhere
     reader = McapScanReader(path)
     assert check_scans_against_truth(list(reader), truth) == list(range(N_SCANS))
     assert reader.report.lines()[0] == (
         "summary section: the summary section's CRC does not match (corrupted bytes); it was "
-        "not used and the file was read from its data")
+        "not used and the file was read from its data"
+    )
 
 
 @pytest.mark.parametrize("edit", ["duplicate", "delete"])
@@ -346,9 +389,9 @@ def test_a_damaged_chunk_index_neither_duplicates_nor_renumbers_a_scan(tmp_path,
     first = entries[0]
     shift = first.end - first.start
     if edit == "duplicate":
-        data[first.end:first.end] = data[first.start:first.end]
+        data[first.end : first.end] = data[first.start : first.end]
     else:
-        del data[first.start:first.end]
+        del data[first.start : first.end]
         shift = -shift
     footer = len(data) - 37
     offset_start = struct.unpack_from("<Q", data, footer + 17)[0]
@@ -360,8 +403,11 @@ def test_a_damaged_chunk_index_neither_duplicates_nor_renumbers_a_scan(tmp_path,
     assert [i.index for i in items] == list(range(N_SCANS))
     assert check_scans_against_truth(items, truth) == list(range(N_SCANS))
     (line,) = [x.line() for x in reader.report.losses]
-    what = ("1 duplicated entry for the chunk(s) at byte" if edit == "duplicate"
-            else "no entry for the chunk(s) at byte")
+    what = (
+        "1 duplicated entry for the chunk(s) at byte"
+        if edit == "duplicate"
+        else "no entry for the chunk(s) at byte"
+    )
     assert line.startswith("chunk index (summary section): disagrees with the data (" + what)
     assert line.endswith("): the file was read from its data")
 
@@ -370,35 +416,46 @@ def test_a_flipped_bit_in_an_unchunked_file_marks_its_scans_suspect(tmp_path):
     """Records outside chunks have no CRC of their own; the data section's CRC (in the
     data-end record) says that something is corrupted, not where: every scan is marked."""
     path = tmp_path / "log.mcap"
-    truth = write_synthetic_log(path, n_scans=4, n_points=200, chunked=False,
-                                compression="none", data_crc=True)
+    truth = write_synthetic_log(
+        path, n_scans=4, n_points=200, chunked=False, compression="none", data_crc=True
+    )
     clouds = [r for r in regions_of(path, "message") if r.end - r.start > 2000]
-    flip(path, clouds[2].end - 100)                   # a point of cloud 2
+    flip(path, clouds[2].end - 100)  # a point of cloud 2
     reader = McapScanReader(path)
     items = list(reader)
     assert [type(i).__name__ for i in items] == ["Scan"] * 4
     assert sorted(reader.report.suspect) == [0, 1, 2, 3]
     assert check_scans_against_truth([i for i in items if i.index != 2], truth) == [0, 1, 3]
     lines = reader.report.lines()
-    assert lines[0] == ("data section: its CRC (in the data-end record) does not match: some "
-                        "bytes are corrupted; messages without a CRC of their own cannot be "
-                        "told apart from damaged ones (their scans are marked suspect)")
+    assert lines[0] == (
+        "data section: its CRC (in the data-end record) does not match: some "
+        "bytes are corrupted; messages without a CRC of their own cannot be "
+        "told apart from damaged ones (their scans are marked suspect)"
+    )
     assert "scan(s) 0-3 mapped but suspect: the data section's CRC does not match" in lines[-1]
     # intact, the same file is clean
-    write_synthetic_log(path, n_scans=4, n_points=200, chunked=False, compression="none",
-                        data_crc=True)
+    write_synthetic_log(
+        path, n_scans=4, n_points=200, chunked=False, compression="none", data_crc=True
+    )
     assert McapScanReader(path).report.lines() == ["no chunk index: the file was read linearly"]
 
 
 @pytest.mark.parametrize("compression,counted", [("none", True), ("zstd", False)])
-def test_a_bad_chunk_in_a_file_without_index_is_counted_or_said_unknown(tmp_path, compression,
-                                                                       counted):
+def test_a_bad_chunk_in_a_file_without_index_is_counted_or_said_unknown(
+    tmp_path, compression, counted
+):
     """Without message index records, an uncompressed damaged chunk still shows its records;
     a compressed one cannot be counted: the loss says so and the scans after it are marked
     (their numbers may differ from those in the intact file)."""
     path = tmp_path / "log.mcap"
-    truth = write_synthetic_log(path, n_scans=N_SCANS, n_points=200, chunk_size=3_000,
-                                indexed=False, compression=compression)
+    truth = write_synthetic_log(
+        path,
+        n_scans=N_SCANS,
+        n_points=200,
+        chunk_size=3_000,
+        indexed=False,
+        compression=compression,
+    )
     chunks = regions_of(path, "chunk")
     flip(path, chunks[2].end - 60)
     reader = McapScanReader(path)
@@ -408,47 +465,55 @@ def test_a_bad_chunk_in_a_file_without_index_is_counted_or_said_unknown(tmp_path
         assert "(counted from its damaged records)" in loss.what and loss.messages > 0
         assert [i.index for i in items] == list(range(N_SCANS)) and not reader.report.suspect
         skipped = [i.index for i in items if isinstance(i, SkippedScan)]
-        assert check_scans_against_truth(items, truth) == sorted(set(range(N_SCANS)) -
-                                                                 set(skipped))
+        assert check_scans_against_truth(items, truth) == sorted(set(range(N_SCANS)) - set(skipped))
     else:
         assert loss.uncounted and loss.line().endswith(": an unknown number of messages lost")
         scans = [i for i in items if not isinstance(i, SkippedScan)]
         first_after = min(reader.report.suspect)
-        assert sorted(reader.report.suspect) == [s.index for s in scans
-                                                 if s.index >= first_after]
+        assert sorted(reader.report.suspect) == [s.index for s in scans if s.index >= first_after]
         assert reader.report.suspect[first_after].endswith(
             "holding an unknown number of messages, came before it, so its number may differ "
-            "from the intact file's")
+            "from the intact file's"
+        )
         check_scans_against_truth([s for s in scans if s.index < first_after], truth)
 
 
 def test_an_attachment_with_a_bad_crc_is_reported(tmp_path):
     from mcap.writer import Writer
+
     path = tmp_path / "log.mcap"
     write_synthetic_log(path, n_scans=2, n_points=50, chunked=False, compression="none")
     with open(tmp_path / "att.mcap", "wb") as f:
         w = Writer(f)
         w.start()
-        w.add_attachment(create_time=1, log_time=1, name="calib.yaml",
-                         media_type="text/yaml", data=b"k: 1\n" * 20)
+        w.add_attachment(
+            create_time=1,
+            log_time=1,
+            name="calib.yaml",
+            media_type="text/yaml",
+            data=b"k: 1\n" * 20,
+        )
         w.finish()
     (att,) = regions_of(tmp_path / "att.mcap", "attachment")
-    record = bytearray((tmp_path / "att.mcap").read_bytes()[att.start:att.end])
-    record[-10] ^= 0xFF                                 # its data, not its CRC
+    record = bytearray((tmp_path / "att.mcap").read_bytes()[att.start : att.end])
+    record[-10] ^= 0xFF  # its data, not its CRC
     data = bytearray(path.read_bytes())
     header = regions_of(path, "header")[0]
-    data[header.end:header.end] = record                 # right after the header record
+    data[header.end : header.end] = record  # right after the header record
     path.write_bytes(bytes(data))
     reader = McapScanReader(path)
     assert len([s for s in reader if not isinstance(s, SkippedScan)]) == 2
-    assert f"attachment at byte {header.end}: 'calib.yaml': its CRC does not match (tisem " \
+    assert (
+        f"attachment at byte {header.end}: 'calib.yaml': its CRC does not match (tisem "
         "does not use attachments)" in reader.report.lines()
+    )
 
 
 def test_scans_posed_across_lost_tf_messages_are_marked(tmp_path):
     """A lost chunk also held /tf samples: a scan whose pose is interpolated across the gap
     gets another pose than from the intact file, so it is marked; the others are identical."""
     from tisem.testing.oracle import signature
+
     path = tmp_path / "log.mcap"
     # /tf at 20 Hz: the sample after scan 2's stamp is logged after its cloud, in the next chunk
     write_synthetic_log(path, n_scans=N_SCANS, n_points=200, chunk_size=3_000, tf_rate_hz=20)
@@ -458,9 +523,14 @@ def test_scans_posed_across_lost_tf_messages_are_marked(tmp_path):
     reader = McapScanReader(path)
     items = [s for s in reader if not isinstance(s, SkippedScan)]
     suspect = reader.report.suspect
-    assert sorted(suspect) == [2] and all(why.startswith("pose messages were lost and its pose is "
-                                          "interpolated across the gap: edge map -> base_link "
-                                          "has no samples from") for why in suspect.values())
+    assert sorted(suspect) == [2] and all(
+        why.startswith(
+            "pose messages were lost and its pose is "
+            "interpolated across the gap: edge map -> base_link "
+            "has no samples from"
+        )
+        for why in suspect.values()
+    )
     assert all(signature(s) == intact[s.index] for s in items if s.index not in suspect)
 
 
@@ -474,9 +544,11 @@ def test_a_message_index_whose_opcode_turned_message_is_not_taken_for_a_cloud(tm
     path.write_bytes(bytes(data))
     reader = McapScanReader(path)
     assert check_scans_against_truth(list(reader), truth) == list(range(N_SCANS))
-    assert reader.report.lines()[0] == (f"byte {index.start}: the chunk index has a message index "
-                                        f"record here, the data opcode 0x5: taken as a damaged "
-                                        f"message index record")
+    assert reader.report.lines()[0] == (
+        f"byte {index.start}: the chunk index has a message index "
+        f"record here, the data opcode 0x5: taken as a damaged "
+        f"message index record"
+    )
 
 
 def test_more_messages_than_the_summary_counts_marks_the_scans_from_there(tmp_path):
@@ -486,12 +558,12 @@ def test_more_messages_than_the_summary_counts_marks_the_scans_from_there(tmp_pa
     truth = write_synthetic_log(path, n_scans=N_SCANS, n_points=200, chunk_size=3_000)
     write_synthetic_log(loose, n_scans=N_SCANS, n_points=200, chunked=False)
     extra = [r for r in regions_of(loose, "message") if r.end - r.start > 2000][1]
-    record = loose.read_bytes()[extra.start:extra.end]
+    record = loose.read_bytes()[extra.start : extra.end]
     data = bytearray(path.read_bytes())
     (data_end,) = regions_of(path, "data end")
-    data[data_end.start:data_end.start] = record
+    data[data_end.start : data_end.start] = record
     footer = len(data) - 37
-    for at in (footer + 9, footer + 17):                   # summary start, summary offsets
+    for at in (footer + 9, footer + 17):  # summary start, summary offsets
         struct.pack_into("<Q", data, at, struct.unpack_from("<Q", data, at)[0] + len(record))
     path.write_bytes(bytes(data))
     refresh_summary_crc(path)
@@ -500,24 +572,29 @@ def test_more_messages_than_the_summary_counts_marks_the_scans_from_there(tmp_pa
     assert check_scans_against_truth(items[:N_SCANS], truth) == list(range(N_SCANS))
     assert [i.index for i in items] == list(range(N_SCANS + 1))
     assert list(reader.report.suspect) == [N_SCANS]
-    assert any("the data holds more messages than the summary counts (1 on /velodyne_points)"
-               in line for line in reader.report.lines())
+    assert any(
+        "the data holds more messages than the summary counts (1 on /velodyne_points)" in line
+        for line in reader.report.lines()
+    )
 
 
 def test_the_data_crc_is_checked_even_when_the_walk_never_reaches_the_data_end(tmp_path):
     """Zeros over the end of the last message and the header after it: the walk stops there,
     yet the footer leads to the data-end record, whose CRC says the data is corrupted."""
     path = tmp_path / "log.mcap"
-    write_synthetic_log(path, n_scans=4, n_points=200, chunked=False, compression="none",
-                        data_crc=True)
+    write_synthetic_log(
+        path, n_scans=4, n_points=200, chunked=False, compression="none", data_crc=True
+    )
     last = regions_of(path, "message")[-1]
     data = bytearray(path.read_bytes())
-    data[last.start - 8:last.start + 2] = bytes(10)
+    data[last.start - 8 : last.start + 2] = bytes(10)
     path.write_bytes(bytes(data))
     reader = McapScanReader(path)
     scans = [s for s in reader if not isinstance(s, SkippedScan)]
     lines = reader.report.lines()
     assert lines[0].startswith(f"bytes {last.start}-") and "invalid record opcode 0x0" in lines[0]
-    assert any(line.startswith("data section: its CRC (in the data-end record) does not "
-                               "match") for line in lines)
+    assert any(
+        line.startswith("data section: its CRC (in the data-end record) does not match")
+        for line in lines
+    )
     assert sorted(reader.report.suspect) == [s.index for s in scans]

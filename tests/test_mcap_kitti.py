@@ -1,6 +1,7 @@
 """tisem.io.kitti_mcap (apps/kitti_to_mcap.py) and apps/map_mcap.py: a SemanticKITTI sequence
 through MCAP gives the same scans (and, end to end, the same predictions and metrics) as reading
 the folder."""
+
 from __future__ import annotations
 
 import importlib.util
@@ -34,7 +35,7 @@ def write_tiny_sequence(root: Path, n_scans: int = 3, n_points: int = 400, seed:
     for sub in ("velodyne", "labels", "predictions"):
         (root / sub).mkdir(parents=True)
     Tr = np.eye(4)
-    Tr[:3, :3] = quat_to_matrix([0.5, -0.5, 0.5, -0.5])                # velodyne -> camera
+    Tr[:3, :3] = quat_to_matrix([0.5, -0.5, 0.5, -0.5])  # velodyne -> camera
     Tr[:3, 3] = [0.01, -0.07, -0.33]
     (root / "calib.txt").write_text("Tr: " + " ".join(f"{v:.17g}" for v in Tr[:3].ravel()) + "\n")
     poses = []
@@ -43,12 +44,19 @@ def write_tiny_sequence(root: Path, n_scans: int = 3, n_points: int = 400, seed:
         P[:3, :3] = quat_to_matrix([0.0, np.sin(0.01 * k), 0.0, np.cos(0.01 * k)])
         P[:3, 3] = [0.02 * k, 0.0, 0.9 * k]
         poses.append(" ".join(f"{v:.17g}" for v in P[:3].ravel()))
-        pts = np.concatenate([rng.uniform(-20, 20, (n_points, 2)),
-                              rng.uniform(-2, 3, (n_points, 1)), rng.random((n_points, 1))], 1)
+        pts = np.concatenate(
+            [
+                rng.uniform(-20, 20, (n_points, 2)),
+                rng.uniform(-2, 3, (n_points, 1)),
+                rng.random((n_points, 1)),
+            ],
+            1,
+        )
         pts.astype("<f4").tofile(root / "velodyne" / f"{k:06d}.bin")
         raw_gt = np.where(pts[:, 2] < -1, 40, np.where(pts[:, 0] > 0, 50, 70)).astype(np.uint32)
         (raw_gt | (rng.integers(0, 3, n_points, dtype=np.uint32) << 16)).astype("<u4").tofile(
-            root / "labels" / f"{k:06d}.label")
+            root / "labels" / f"{k:06d}.label"
+        )
         pred = np.where(rng.random(n_points) < 0.1, 10, raw_gt).astype("<u4")
         pred.tofile(root / "predictions" / f"{k:06d}.label")
     (root / "poses.txt").write_text("\n".join(poses) + "\n")
@@ -79,21 +87,36 @@ def test_conversion_round_trips_through_the_reader(tmp_path, extra):
     with open(tmp_path / "out.mcap", "rb") as f:
         reader = make_reader(f)
         summary = reader.get_summary()
-        topics = {ch.topic: summary.statistics.channel_message_counts[cid]
-                  for cid, ch in summary.channels.items()}
+        topics = {
+            ch.topic: summary.statistics.channel_message_counts[cid]
+            for cid, ch in summary.channels.items()
+        }
         compression = {c.compression for c in summary.chunk_indexes}
     assert topics == {"/tf_static": 1, "/tf": 3, "/velodyne_points": 3}
     assert compression == {"lz4" if extra else "zstd"}
     tf = McapScanReader(tmp_path / "out.mcap").tf
     mount = tf.lookup("base_link", "velodyne", 0)
-    assert np.abs(mount - np.eye(4)).max() > 0.1          # a real mount, not an identity
+    assert np.abs(mount - np.eye(4)).max() > 0.1  # a real mount, not an identity
 
 
 def test_app_is_the_library_conversion(tmp_path, capsys):
     seq = write_tiny_sequence(tmp_path / "seq")
     app = load_app("kitti_to_mcap")
-    assert app.main([str(seq), str(tmp_path / "app.mcap"), "--compression", "lz4",
-                     "--label-type", "uint16", "--first", "1"]) == 0
+    assert (
+        app.main(
+            [
+                str(seq),
+                str(tmp_path / "app.mcap"),
+                "--compression",
+                "lz4",
+                "--label-type",
+                "uint16",
+                "--first",
+                "1",
+            ]
+        )
+        == 0
+    )
     assert "wrote" in capsys.readouterr().out
     info = convert(seq, tmp_path / "lib.mcap", compression="lz4", label_type="uint16", first=1)
     assert info.scans == 2
@@ -113,18 +136,27 @@ def test_map_mcap_gives_the_same_predictions_and_metrics_as_map_kitti(tmp_path):
     convert(seq, tmp_path / "seq.mcap")
     # a damaged copy: cut inside the last cloud; the app must still map and say what was lost
     data = (tmp_path / "seq.mcap").read_bytes()
-    (tmp_path / "cut.mcap").write_bytes(data[:int(len(data) * 0.8)])
+    (tmp_path / "cut.mcap").write_bytes(data[: int(len(data) * 0.8)])
     common = ["--arch", "cpu", "--threads", "1", "--no-progress"]
     runs = {
         "kitti": [REPO / "apps" / "map_kitti.py", "--data", seq],
-        "mcap": [REPO / "apps" / "map_mcap.py", tmp_path / "seq.mcap", "--gt-field", "gt_label",
-                 "--save-scans"],
+        "mcap": [
+            REPO / "apps" / "map_mcap.py",
+            tmp_path / "seq.mcap",
+            "--gt-field",
+            "gt_label",
+            "--save-scans",
+        ],
         "cut": [REPO / "apps" / "map_mcap.py", tmp_path / "cut.mcap", "--gt-field", "gt_label"],
     }
     out = {}
     for name, args in runs.items():
-        done = subprocess.run([sys.executable, *map(str, args), *common, "--out",
-                               str(tmp_path / name)], capture_output=True, text=True, timeout=300)
+        done = subprocess.run(
+            [sys.executable, *map(str, args), *common, "--out", str(tmp_path / name)],
+            capture_output=True,
+            text=True,
+            timeout=300,
+        )
         assert done.returncode == 0, done.stderr[-3000:]
         assert "Traceback" not in done.stderr
         out[name] = done.stdout
@@ -145,8 +177,17 @@ def test_map_mcap_gives_the_same_predictions_and_metrics_as_map_kitti(tmp_path):
 
 def test_map_mcap_errors_are_one_line_not_tracebacks(tmp_path):
     (tmp_path / "x.mcap").write_bytes(b"garbage")
-    done = subprocess.run([sys.executable, str(REPO / "apps" / "map_mcap.py"),
-                           str(tmp_path / "x.mcap"), "--out", str(tmp_path / "o")],
-                          capture_output=True, text=True, timeout=120)
+    done = subprocess.run(
+        [
+            sys.executable,
+            str(REPO / "apps" / "map_mcap.py"),
+            str(tmp_path / "x.mcap"),
+            "--out",
+            str(tmp_path / "o"),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert done.returncode == 2 and "not an MCAP file" in done.stderr
     assert "Traceback" not in done.stderr

@@ -1,4 +1,5 @@
 """McapScanReader on whole recordings: poses, labels, topics, pose sources, foxglove logs."""
+
 from __future__ import annotations
 
 import re
@@ -12,8 +13,7 @@ from tisem.io.mcap_reader import McapOptions, McapScanReader
 from tisem.io.mcap_writer import Ros2McapWriter, pose_msg
 from tisem.io.stamps import ros_time
 from tisem.labels import raw_to_train
-from tisem.synth.mcap_log import (T_BASE_LIDAR, synthetic_points, synthetic_pose,
-                                  write_synthetic_log)
+from tisem.synth.mcap_log import T_BASE_LIDAR, synthetic_points, synthetic_pose, write_synthetic_log
 
 T0 = 100_000_000_000
 
@@ -30,8 +30,9 @@ def test_scans_carry_header_stamp_poses_labels_and_names(tmp_path, compression):
     assert (reader.topic, reader.frame_id, reader.total) == ("/velodyne_points", "velodyne", 4)
     scans = list(reader)
     assert [s.index for s in scans] == [0, 1, 2, 3]
-    for s, stamp, T, pts in zip(scans, truth["stamps_ns"], truth["T_world_sensor"],
-                                truth["points"]):
+    for s, stamp, T, pts in zip(
+        scans, truth["stamps_ns"], truth["T_world_sensor"], truth["points"]
+    ):
         # the pose is the tf chain at the header stamp, interpolated between 50 Hz samples; at
         # the log time (35 ms later, 5 m/s) it would be 0.175 m off
         assert np.abs(s.T_world_sensor - T).max() < 1e-9
@@ -73,15 +74,16 @@ def test_train_label_space_probabilities_and_ground_truth(tmp_path):
         arr["train"] = rng.integers(0, 20, len(arr))
         arr["train"][:2] = [20, 255]
         arr["gt"] = arr["label"].astype(np.uint32) | (7 << 16)
-        arr["gt"][0] = 1234                                   # not a SemanticKITTI id
+        arr["gt"][0] = 1234  # not a SemanticKITTI id
         arr["probs"] = rng.random((len(arr), 20))
     with Ros2McapWriter(path) as w:
         w.write_transforms([("map", "velodyne", 0, np.eye(4))], 0, static=True)
         for i, arr in enumerate(arrays):
             w.write_cloud("/points", arr, "velodyne", (i + 1) * 10**8, (i + 1) * 10**8)
 
-    reader = McapScanReader(path, McapOptions(label_field="train", label_space="train",
-                                              gt_field="gt"))
+    reader = McapScanReader(
+        path, McapOptions(label_field="train", label_space="train", gt_field="gt")
+    )
     scans = list(reader)
     # the GT field follows the label space: here train ids, so raw GT values are out of range
     assert reader.report.unknown_labels == 4
@@ -104,9 +106,12 @@ def test_a_probability_field_of_the_wrong_width_skips_with_a_reason(tmp_path):
 
 def test_missing_label_field_lists_the_fields_the_cloud_has(tmp_path):
     write_synthetic_log(tmp_path / "log.mcap", n_scans=2, n_points=10)
-    with pytest.raises(DatasetError, match=r"no 'class' label field \(--label-field\); their "
-                       r"fields are: x:float32, y:float32, z:float32, intensity:float32, "
-                       r"label:uint16"):
+    with pytest.raises(
+        DatasetError,
+        match=r"no 'class' label field \(--label-field\); their "
+        r"fields are: x:float32, y:float32, z:float32, intensity:float32, "
+        r"label:uint16",
+    ):
         McapScanReader(tmp_path / "log.mcap", McapOptions(label_field="class"))
     with pytest.raises(DatasetError, match="no 'gt' ground-truth field"):
         McapScanReader(tmp_path / "log.mcap", McapOptions(gt_field="gt"))
@@ -119,8 +124,11 @@ def test_topic_choice(tmp_path):
         w.write_transforms([("map", "a", 0, np.eye(4)), ("map", "b", 0, np.eye(4))], 0, static=True)
         for topic, frame in (("/front/points", "a"), ("/rear/points", "b")):
             w.write_cloud(topic, synthetic_points(10, rng), frame, 5, 5)
-    with pytest.raises(DatasetError, match=r"several point-cloud topics, choose one with --topic: "
-                       r"/front/points \(sensor_msgs/msg/PointCloud2, 1 msgs\), /rear/points"):
+    with pytest.raises(
+        DatasetError,
+        match=r"several point-cloud topics, choose one with --topic: "
+        r"/front/points \(sensor_msgs/msg/PointCloud2, 1 msgs\), /rear/points",
+    ):
         McapScanReader(path)
     assert McapScanReader(path, McapOptions(topic="/rear/points")).frame_id == "b"
     with pytest.raises(DatasetError, match="no topic '/lidar'; point-cloud topics: /front"):
@@ -133,15 +141,21 @@ def test_no_cloud_topic(tmp_path):
     path = tmp_path / "tf_only.mcap"
     with Ros2McapWriter(path) as w:
         w.write_transforms([("map", "a", 0, np.eye(4))], 0)
-    with pytest.raises(DatasetError, match=r"no point-cloud messages found; topics: /tf "
-                       r"\(tf2_msgs/msg/TFMessage, 1 msgs\)"):
+    with pytest.raises(
+        DatasetError,
+        match=r"no point-cloud messages found; topics: /tf "
+        r"\(tf2_msgs/msg/TFMessage, 1 msgs\)",
+    ):
         McapScanReader(path)
 
 
 def test_no_transform_path_to_the_map_frame(tmp_path):
     write_synthetic_log(tmp_path / "log.mcap", n_scans=2, n_points=10)
-    with pytest.raises(DatasetError, match=r"no transform from the map frame 'world' to the "
-                       r"cloud frame 'velodyne'.*known frames: base_link, map, velodyne"):
+    with pytest.raises(
+        DatasetError,
+        match=r"no transform from the map frame 'world' to the "
+        r"cloud frame 'velodyne'.*known frames: base_link, map, velodyne",
+    ):
         McapScanReader(tmp_path / "log.mcap", McapOptions(map_frame="world"))
     # base_link works as a map frame: the static mount only
     s = scans_of(tmp_path / "log.mcap", map_frame="base_link")[0]
@@ -162,9 +176,12 @@ def test_scans_outside_the_tf_range_are_skipped_with_the_reason(tmp_path):
 
 def _odometry(T, stamp, child="base_link"):
     zeros = {"x": 0.0, "y": 0.0, "z": 0.0}
-    return {"header": {"stamp": ros_time(stamp), "frame_id": "map"}, "child_frame_id": child,
-            "pose": {"pose": pose_msg(T), "covariance": [0.0] * 36},
-            "twist": {"twist": {"linear": zeros, "angular": zeros}, "covariance": [0.0] * 36}}
+    return {
+        "header": {"stamp": ros_time(stamp), "frame_id": "map"},
+        "child_frame_id": child,
+        "pose": {"pose": pose_msg(T), "covariance": [0.0] * 36},
+        "twist": {"twist": {"linear": zeros, "angular": zeros}, "covariance": [0.0] * 36},
+    }
 
 
 @pytest.mark.parametrize("kind", ["odometry", "pose_stamped"])
@@ -174,17 +191,21 @@ def test_pose_topic_instead_of_tf(tmp_path, kind):
     stamps = [T0 + k * 20_000_000 for k in range(30)]
     with Ros2McapWriter(path) as w:
         w.write_transforms([("base_link", "velodyne", T0, T_BASE_LIDAR)], T0, static=True)
-        w.write_transforms([("map", "base_link", T0, np.eye(4))], T0)        # ignored
+        w.write_transforms([("map", "base_link", T0, np.eye(4))], T0)  # ignored
         for t in stamps:
             T = synthetic_pose((t - T0) / 1e9)
             if kind == "odometry":
                 w.write("/odom", "nav_msgs/msg/Odometry", _odometry(T, t), t)
-            else:   # no child frame in the message: the top of the sensor's static mount
-                w.write("/pose", "geometry_msgs/msg/PoseStamped",
-                        {"header": {"stamp": ros_time(t), "frame_id": "map"},
-                         "pose": pose_msg(T)}, t)
-        w.write_cloud("/points", synthetic_points(10, rng), "velodyne", T0 + 123_000_000,
-                      T0 + 150_000_000)
+            else:  # no child frame in the message: the top of the sensor's static mount
+                w.write(
+                    "/pose",
+                    "geometry_msgs/msg/PoseStamped",
+                    {"header": {"stamp": ros_time(t), "frame_id": "map"}, "pose": pose_msg(T)},
+                    t,
+                )
+        w.write_cloud(
+            "/points", synthetic_points(10, rng), "velodyne", T0 + 123_000_000, T0 + 150_000_000
+        )
     topic = "/odom" if kind == "odometry" else "/pose"
     reader = McapScanReader(path, McapOptions(pose_topic=topic))
     (s,) = list(reader)
@@ -207,28 +228,42 @@ def test_foxglove_point_cloud_and_frame_transforms(tmp_path):
 
     def frame_transform(parent, child, t, T):
         q = matrix_to_quat(T[:3, :3])
-        return FrameTransform(timestamp=Timestamp(seconds=t // 10**9, nanos=t % 10**9),
-                              parent_frame_id=parent, child_frame_id=child,
-                              translation=Vector3(x=T[0, 3], y=T[1, 3], z=T[2, 3]),
-                              rotation=Quaternion(x=q[0], y=q[1], z=q[2], w=q[3]))
+        return FrameTransform(
+            timestamp=Timestamp(seconds=t // 10**9, nanos=t % 10**9),
+            parent_frame_id=parent,
+            child_frame_id=child,
+            translation=Vector3(x=T[0, 3], y=T[1, 3], z=T[2, 3]),
+            rotation=Quaternion(x=q[0], y=q[1], z=q[2], w=q[3]),
+        )
 
     path = tmp_path / "fox.mcap"
     rng = np.random.default_rng(0)
     T_cloud = np.eye(4)
-    T_cloud[:3, 3] = [0.0, 0.0, 0.25]                      # the cloud's own `pose` field
+    T_cloud[:3, 3] = [0.0, 0.0, 0.25]  # the cloud's own `pose` field
     arr = synthetic_points(40, rng)
     with open(path, "wb") as f, Writer(f) as w:
         # the mount is logged once: no static flag in foxglove, promoted because it never changes
-        w.write_message("/tf", frame_transform("base_link", "lidar_top", T0, T_BASE_LIDAR),
-                        log_time=T0, publish_time=T0)
+        w.write_message(
+            "/tf",
+            frame_transform("base_link", "lidar_top", T0, T_BASE_LIDAR),
+            log_time=T0,
+            publish_time=T0,
+        )
         for k in range(20):
             t = T0 + k * 20_000_000
-            w.write_message("/tf", frame_transform("map", "base_link", t,
-                                                   synthetic_pose((t - T0) / 1e9)),
-                            log_time=t, publish_time=t)
+            w.write_message(
+                "/tf",
+                frame_transform("map", "base_link", t, synthetic_pose((t - T0) / 1e9)),
+                log_time=t,
+                publish_time=t,
+            )
         t = T0 + 210_000_000
-        w.write_message("/lidar_top", array_to_foxglove_cloud(arr, "lidar_top", t, T_cloud),
-                        log_time=t, publish_time=t)
+        w.write_message(
+            "/lidar_top",
+            array_to_foxglove_cloud(arr, "lidar_top", t, T_cloud),
+            log_time=t,
+            publish_time=t,
+        )
     reader = McapScanReader(path)
     (s,) = list(reader)
     expect = synthetic_pose(0.21) @ T_BASE_LIDAR @ T_cloud
@@ -243,11 +278,22 @@ def test_pose_stamped_of_the_sensor_itself(tmp_path):
     with Ros2McapWriter(path) as w:
         for k in range(3):
             t = T0 + k * 50_000_000
-            w.write("/pose", "geometry_msgs/msg/PoseStamped",
-                    {"header": {"stamp": ros_time(t), "frame_id": ""},     # empty: the map
-                     "pose": pose_msg(synthetic_pose(k * 0.05))}, t)
-        w.write_cloud("/points", synthetic_points(10, np.random.default_rng(0)), "velodyne",
-                      T0 + 75_000_000, T0 + 75_000_000)
+            w.write(
+                "/pose",
+                "geometry_msgs/msg/PoseStamped",
+                {
+                    "header": {"stamp": ros_time(t), "frame_id": ""},  # empty: the map
+                    "pose": pose_msg(synthetic_pose(k * 0.05)),
+                },
+                t,
+            )
+        w.write_cloud(
+            "/points",
+            synthetic_points(10, np.random.default_rng(0)),
+            "velodyne",
+            T0 + 75_000_000,
+            T0 + 75_000_000,
+        )
     (s,) = scans_of(path, pose_topic="/pose")
     assert np.abs(s.T_world_sensor - synthetic_pose(0.075)).max() < 1e-9
 
@@ -257,6 +303,7 @@ def test_stopping_early_leaves_nothing_behind(tmp_path, monkeypatch, variant):
     """A consumer may stop mid-way (an error, Ctrl-C): closing the generators must be clean."""
     import gc
     import sys
+
     unraisable = []
     monkeypatch.setattr(sys, "unraisablehook", unraisable.append)
     write_synthetic_log(tmp_path / "log.mcap", n_scans=3, n_points=20, **variant)
@@ -270,22 +317,35 @@ def test_stopping_early_leaves_nothing_behind(tmp_path, monkeypatch, variant):
 
 # ---- clouds that cannot be what they say, errors that say why -------------------------------
 
+
 def _hook(k, change):
     return lambda i, msg: change(msg) if i == k else msg
 
 
-@pytest.mark.parametrize("change,reason", [
-    (lambda m: dict(m, height=0), "height 0 x width 30 declares no points, but the cloud "
-                                  "carries 540 bytes of data"),
-    (lambda m: dict(m, width=29, row_step=29 * 18), "data has 540 bytes; height 1 x row_step "
-                                                    "522 (width 29 x point_step 18) needs 522"),
-    (lambda m: dict(m, width=31, row_step=31 * 18), "data has 540 bytes; height 1 x row_step "
-                                                    "558 (width 31 x point_step 18) needs 558"),
-    (lambda m: dict(m, width=0, row_step=0, data=b""), "the cloud has 0 points"),
-    (lambda m: dict(m, fields=[dict(f, offset=2) if f["name"] == "x" else f
-                               for f in m["fields"]]), "fields 'x' (bytes 2-6) and 'y' (bytes "
-                                                       "4-8) overlap"),
-])
+@pytest.mark.parametrize(
+    "change,reason",
+    [
+        (
+            lambda m: dict(m, height=0),
+            "height 0 x width 30 declares no points, but the cloud carries 540 bytes of data",
+        ),
+        (
+            lambda m: dict(m, width=29, row_step=29 * 18),
+            "data has 540 bytes; height 1 x row_step 522 (width 29 x point_step 18) needs 522",
+        ),
+        (
+            lambda m: dict(m, width=31, row_step=31 * 18),
+            "data has 540 bytes; height 1 x row_step 558 (width 31 x point_step 18) needs 558",
+        ),
+        (lambda m: dict(m, width=0, row_step=0, data=b""), "the cloud has 0 points"),
+        (
+            lambda m: dict(
+                m, fields=[dict(f, offset=2) if f["name"] == "x" else f for f in m["fields"]]
+            ),
+            "fields 'x' (bytes 2-6) and 'y' (bytes 4-8) overlap",
+        ),
+    ],
+)
 def test_clouds_whose_layout_disagrees_with_their_data_are_skipped(tmp_path, change, reason):
     """Points neither dropped nor invented: the scan is skipped, saying why."""
     path = tmp_path / "log.mcap"
@@ -299,41 +359,47 @@ def test_clouds_whose_layout_disagrees_with_their_data_are_skipped(tmp_path, cha
 
 def test_a_log_of_empty_clouds_skips_every_scan_with_the_reason(tmp_path):
     path = tmp_path / "log.mcap"
-    write_synthetic_log(path, n_scans=3, n_points=10,
-                        cloud_hook=lambda i, m: dict(m, width=0, row_step=0, data=b""))
+    write_synthetic_log(
+        path, n_scans=3, n_points=10, cloud_hook=lambda i, m: dict(m, width=0, row_step=0, data=b"")
+    )
     reader = McapScanReader(path)
     items = list(reader)
-    assert [(type(i).__name__, i.reason) for i in items] == [("SkippedScan",
-                                                             "the cloud has 0 points")] * 3
+    assert [(type(i).__name__, i.reason) for i in items] == [
+        ("SkippedScan", "the cloud has 0 points")
+    ] * 3
     assert [s.index for s in reader.report.skipped] == [0, 1, 2]
 
 
 def test_labels_that_are_no_labels_become_unknown_and_are_counted(tmp_path):
     """Float labels of NaN, inf, 1e300, -1 or 0.5 are no SemanticKITTI id: 0 (no evidence),
     counted once per point however often the log is read."""
-    bad = [np.nan, np.inf, 1e300, -1.0, 0.5, 2.0 ** 32]
+    bad = [np.nan, np.inf, 1e300, -1.0, 0.5, 2.0**32]
 
     def labels(i, msg):
-        arr = np.frombuffer(msg["data"], np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"),
-                                                    ("intensity", "<f4"),
-                                                    ("label", "<f8")])).copy()
+        arr = np.frombuffer(
+            msg["data"],
+            np.dtype(
+                [("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("intensity", "<f4"), ("label", "<f8")]
+            ),
+        ).copy()
         if i == 1:
-            arr["label"][:len(bad)] = bad
+            arr["label"][: len(bad)] = bad
         return dict(msg, data=arr.tobytes())
 
     path = tmp_path / "log.mcap"
-    truth = write_synthetic_log(path, n_scans=2, n_points=20, label_dtype="<f8",
-                                cloud_hook=labels)
+    truth = write_synthetic_log(path, n_scans=2, n_points=20, label_dtype="<f8", cloud_hook=labels)
     reader = McapScanReader(path)
-    for _ in range(2):                                  # the final pass reads the log again
+    for _ in range(2):  # the final pass reads the log again
         first, second = list(reader)
-    assert second.labels[:len(bad)].tolist() == [0] * len(bad)
-    expect = raw_to_train(truth["points"][1]["label"][len(bad):].astype(np.uint32))[0]
-    assert np.array_equal(second.labels[len(bad):], expect)
+    assert second.labels[: len(bad)].tolist() == [0] * len(bad)
+    expect = raw_to_train(truth["points"][1]["label"][len(bad) :].astype(np.uint32))[0]
+    assert np.array_equal(second.labels[len(bad) :], expect)
     assert second.source.unknown_raw_ids == len(bad) and first.source.unknown_raw_ids == 0
     assert reader.report.unknown_labels == len(bad)
-    assert f"{len(bad)} point(s) with an unknown label id (or an invalid value) mapped to 0" in \
-        reader.report.lines()
+    assert (
+        f"{len(bad)} point(s) with an unknown label id (or an invalid value) mapped to 0"
+        in reader.report.lines()
+    )
 
 
 def test_probabilities_that_are_no_probabilities_give_no_evidence(tmp_path):
@@ -346,7 +412,7 @@ def test_probabilities_that_are_no_probabilities_give_no_evidence(tmp_path):
     arr["probs"][2, 5] = -0.1
     with Ros2McapWriter(path) as w:
         w.write_transforms([("map", "velodyne", 0, np.eye(4))], 0, static=True)
-        w.write_cloud("/points", arr, "velodyne", 10 ** 8, 10 ** 8)
+        w.write_cloud("/points", arr, "velodyne", 10**8, 10**8)
     reader = McapScanReader(path, McapOptions(prob_field="probs"))
     (s,) = list(reader)
     assert np.all(s.probs[:3] == 0) and np.all(s.probs[3:] == np.float32(0.05))
@@ -355,11 +421,15 @@ def test_probabilities_that_are_no_probabilities_give_no_evidence(tmp_path):
 
 def test_when_no_cloud_decodes_the_error_says_why(tmp_path):
     path = tmp_path / "log.mcap"
-    write_synthetic_log(path, n_scans=3, n_points=10,
-                        cloud_hook=lambda i, m: dict(m, point_step=0, row_step=0))
-    with pytest.raises(DatasetError, match=r"none of the 3 messages on /velodyne_points could "
-                       r"be decoded \(the first: CloudFormatError: point_step 0 is not in "
-                       r"1..65536\)"):
+    write_synthetic_log(
+        path, n_scans=3, n_points=10, cloud_hook=lambda i, m: dict(m, point_step=0, row_step=0)
+    )
+    with pytest.raises(
+        DatasetError,
+        match=r"none of the 3 messages on /velodyne_points could "
+        r"be decoded \(the first: CloudFormatError: point_step 0 is not in "
+        r"1..65536\)",
+    ):
         McapScanReader(path)
 
 
@@ -367,17 +437,30 @@ def test_a_missing_map_frame_names_the_transforms_that_were_ignored(tmp_path):
     path = tmp_path / "log.mcap"
     with Ros2McapWriter(path) as w:
         for k in range(16):
-            w.write("/tf", "tf2_msgs/msg/TFMessage", {"transforms": [{
-                "header": {"stamp": ros_time(T0 + k * 10 ** 8), "frame_id": "map"},
-                "child_frame_id": "velodyne",
-                "transform": {"translation": {"x": 0.0, "y": 0.0, "z": 0.0},
-                              "rotation": {"x": 0.0, "y": 0.0, "z": 0.0, "w": 0.0}}}]},
-                    T0 + k * 10 ** 8)
-        w.write_cloud("/points", synthetic_points(10, np.random.default_rng(0)), "velodyne",
-                      T0, T0)
-    with pytest.raises(DatasetError, match=r"frame 'map' does not appear in any transform; "
-                       r"known frames: none; ignored 16 transform\(s\) map -> velodyne with a "
-                       r"zero quaternion"):
+            w.write(
+                "/tf",
+                "tf2_msgs/msg/TFMessage",
+                {
+                    "transforms": [
+                        {
+                            "header": {"stamp": ros_time(T0 + k * 10**8), "frame_id": "map"},
+                            "child_frame_id": "velodyne",
+                            "transform": {
+                                "translation": {"x": 0.0, "y": 0.0, "z": 0.0},
+                                "rotation": {"x": 0.0, "y": 0.0, "z": 0.0, "w": 0.0},
+                            },
+                        }
+                    ]
+                },
+                T0 + k * 10**8,
+            )
+        w.write_cloud("/points", synthetic_points(10, np.random.default_rng(0)), "velodyne", T0, T0)
+    with pytest.raises(
+        DatasetError,
+        match=r"frame 'map' does not appear in any transform; "
+        r"known frames: none; ignored 16 transform\(s\) map -> velodyne with a "
+        r"zero quaternion",
+    ):
         McapScanReader(path)
 
 
@@ -387,23 +470,29 @@ def test_an_error_caused_by_damage_says_what_was_lost(tmp_path):
     path = tmp_path / "log.mcap"
     write_synthetic_log(path, n_scans=4, n_points=200, chunk_size=3_000)
     data = bytearray(path.read_bytes())
-    first = 8 + 9 + struct.unpack_from("<Q", data, 9)[0]         # after the header record
+    first = 8 + 9 + struct.unpack_from("<Q", data, 9)[0]  # after the header record
     data[first + 200] ^= 0x40
     path.write_bytes(bytes(data))
-    with pytest.raises(DatasetError, match=r"frame 'velodyne' does not appear in any "
-                       r"transform.*; the file is damaged: chunk at byte \d+ .*chunk skipped"):
+    with pytest.raises(
+        DatasetError,
+        match=r"frame 'velodyne' does not appear in any "
+        r"transform.*; the file is damaged: chunk at byte \d+ .*chunk skipped",
+    ):
         McapScanReader(path)
 
 
-@pytest.mark.parametrize("options,message", [
-    (dict(tf_tolerance_s=float("nan")), "tf_tolerance_s must be a finite number >= 0, got nan"),
-    (dict(tf_tolerance_s=float("inf")), "tf_tolerance_s must be a finite number >= 0, got inf"),
-    (dict(tf_tolerance_s=-1.0), "tf_tolerance_s must be a finite number >= 0, got -1.0"),
-    (dict(first=-1), "first must be a whole number >= 0, got -1"),
-    (dict(first=3, last=2), "last must be a whole number >= first (3) or None, got 2"),
-    (dict(num_classes=1), "num_classes must be a whole number >= 2, got 1"),
-    (dict(label_field=""), "label_field must be a non-empty string"),
-])
+@pytest.mark.parametrize(
+    "options,message",
+    [
+        (dict(tf_tolerance_s=float("nan")), "tf_tolerance_s must be a finite number >= 0, got nan"),
+        (dict(tf_tolerance_s=float("inf")), "tf_tolerance_s must be a finite number >= 0, got inf"),
+        (dict(tf_tolerance_s=-1.0), "tf_tolerance_s must be a finite number >= 0, got -1.0"),
+        (dict(first=-1), "first must be a whole number >= 0, got -1"),
+        (dict(first=3, last=2), "last must be a whole number >= first (3) or None, got 2"),
+        (dict(num_classes=1), "num_classes must be a whole number >= 2, got 1"),
+        (dict(label_field=""), "label_field must be a non-empty string"),
+    ],
+)
 def test_options_are_checked_with_the_value_and_what_is_allowed(options, message):
     with pytest.raises(ValueError, match=re.escape(message)):
         McapOptions(**options).validate()

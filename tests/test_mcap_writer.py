@@ -1,5 +1,6 @@
 """map.mcap read back with the plain `mcap` library: the same voxels, labels, colours and
 probabilities as the snapshot; scans round-trip through our own reader."""
+
 from __future__ import annotations
 
 import json
@@ -10,8 +11,7 @@ from mcap.reader import make_reader
 from mcap_protobuf.decoder import DecoderFactory
 
 from tisem.io.mcap_reader import McapOptions, McapScanReader
-from tisem.io.mcap_writer import (MAP_TOPIC, SCANS_TOPIC, Ros2McapWriter, ros2_msgdef,
-                                  write_map_mcap)
+from tisem.io.mcap_writer import MAP_TOPIC, SCANS_TOPIC, Ros2McapWriter, ros2_msgdef, write_map_mcap
 from tisem.io.pointcloud2 import foxglove_cloud_to_array
 from tisem.labels import CLASS_COLORS_RGB, class_table
 from tisem.scan import Scan
@@ -20,12 +20,17 @@ from tisem.snapshot import MapSnapshot
 
 def snapshot(n: int = 500, seed: int = 0, resolution_m: float = 0.2) -> MapSnapshot:
     rng = np.random.default_rng(seed)
-    keys = np.unique(rng.integers(-400, 400, (n, 3)), axis=0)        # negative keys included
+    keys = np.unique(rng.integers(-400, 400, (n, 3)), axis=0)  # negative keys included
     counts = rng.random((len(keys), 20)).astype(np.float32) ** 4
-    counts[:5] = 0                                                     # voxels without evidence
+    counts[:5] = 0  # voxels without evidence
     order = MapSnapshot.sort_order(keys)
-    return MapSnapshot(keys=keys[order], counts=counts, t_last=rng.random(len(keys)) + 5,
-                       ell_m=np.full(len(keys), 0.4, np.float32), resolution_m=resolution_m)
+    return MapSnapshot(
+        keys=keys[order],
+        counts=counts,
+        t_last=rng.random(len(keys)) + 5,
+        ell_m=np.full(len(keys), 0.4, np.float32),
+        resolution_m=resolution_m,
+    )
 
 
 def read_back(path):
@@ -46,8 +51,17 @@ def test_map_reads_back_as_the_same_voxels_and_labels(tmp_path, resolution_m):
     assert topic == MAP_TOPIC and msg.frame_id == "map"
     assert log_time == int(round(snap.t_last.max() * 1e9))
     pts = foxglove_cloud_to_array(msg)
-    assert pts.dtype.names == ("x", "y", "z", "red", "green", "blue", "alpha", "label",
-                               "probability")
+    assert pts.dtype.names == (
+        "x",
+        "y",
+        "z",
+        "red",
+        "green",
+        "blue",
+        "alpha",
+        "label",
+        "probability",
+    )
     xyz = np.stack([pts["x"], pts["y"], pts["z"]], 1).astype(np.float64)
     assert np.array_equal(np.floor(xyz / resolution_m).astype(np.int64), snap.keys)
     assert np.abs(xyz - snap.centers()).max() < 1e-4
@@ -67,19 +81,35 @@ def test_scans_are_written_with_their_pose_and_read_back(tmp_path):
     for k in range(3):
         T = np.eye(4)
         T[:3, 3] = [k, 2.0 * k, 0.5]
-        scans.append(Scan(points_sensor=rng.normal(size=(50, 3)) * 5, T_world_sensor=T,
-                          stamp_s=10.0 + 0.1 * k, labels=rng.integers(1, 20, 50),
-                          gt_labels=rng.integers(0, 20, 50), index=k))
+        scans.append(
+            Scan(
+                points_sensor=rng.normal(size=(50, 3)) * 5,
+                T_world_sensor=T,
+                stamp_s=10.0 + 0.1 * k,
+                labels=rng.integers(1, 20, 50),
+                gt_labels=rng.integers(0, 20, 50),
+                index=k,
+            )
+        )
     mapped = [rng.integers(0, 20, 50) for _ in scans]
-    info = write_map_mcap(tmp_path / "map.mcap", snapshot(50), frame_id="odom",
-                          scans=((s, m) for s, m in zip(scans, mapped)))
+    info = write_map_mcap(
+        tmp_path / "map.mcap",
+        snapshot(50),
+        frame_id="odom",
+        scans=((s, m) for s, m in zip(scans, mapped)),
+    )
     assert info["scans"] == 3
     messages, _ = read_back(tmp_path / "map.mcap")
     assert [t for t, *_ in messages] == [MAP_TOPIC] + [SCANS_TOPIC] * 3
-    assert messages[0][1] == 10_000_000_000                    # the map is there from the start
-    back = list(McapScanReader(tmp_path / "map.mcap",
-                               McapOptions(topic=SCANS_TOPIC, map_frame="odom",
-                                           label_space="train", gt_field="gt_label")))
+    assert messages[0][1] == 10_000_000_000  # the map is there from the start
+    back = list(
+        McapScanReader(
+            tmp_path / "map.mcap",
+            McapOptions(
+                topic=SCANS_TOPIC, map_frame="odom", label_space="train", gt_field="gt_label"
+            ),
+        )
+    )
     for s, b, m in zip(scans, back, mapped):
         assert np.abs(b.T_world_sensor - s.T_world_sensor).max() < 1e-12
         assert np.array_equal(b.labels, m) and np.array_equal(b.gt_labels, s.gt_labels)
@@ -89,8 +119,13 @@ def test_scans_are_written_with_their_pose_and_read_back(tmp_path):
 
 
 def test_an_empty_map_and_a_mismatched_scan(tmp_path):
-    empty = MapSnapshot(np.zeros((0, 3), np.int64), np.zeros((0, 20), np.float32), np.zeros(0),
-                        np.zeros(0, np.float32), 0.2)
+    empty = MapSnapshot(
+        np.zeros((0, 3), np.int64),
+        np.zeros((0, 20), np.float32),
+        np.zeros(0),
+        np.zeros(0, np.float32),
+        0.2,
+    )
     write_map_mcap(tmp_path / "empty.mcap", empty)
     ((_, _, msg),), _ = read_back(tmp_path / "empty.mcap")
     assert len(foxglove_cloud_to_array(msg)) == 0

@@ -1,5 +1,6 @@
 """Merging maps and tiled maps, without Ray: the merge rule against a per-voxel oracle, seeds
 taken back out, transforms, lazy tiles, and `merge_maps` on files (frames refused)."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -9,8 +10,7 @@ from tisem.io.mapfile import save_map
 from tisem.merge import contribution, merge_snapshots, transform_snapshot
 from tisem.merge_files import merge_maps, parse_transform
 from tisem.snapshot import MapSnapshot
-from tisem.tiles import (TileIndex, TiledMap, split_by_tile, tile_ids, write_index,
-                         write_tile)
+from tisem.tiles import TiledMap, TileIndex, split_by_tile, tile_ids, write_index, write_tile
 
 C = 5
 RES = 0.2
@@ -21,9 +21,13 @@ def random_map(rng, n: int, spread: int = 40, t_range=(0.0, 10.0)) -> MapSnapsho
     keys = np.unique(rng.integers(-spread, spread, (n, 3)), axis=0)
     keys = keys[MapSnapshot.sort_order(keys)]
     m = len(keys)
-    return MapSnapshot(keys, rng.uniform(0, 3, (m, C)).astype(np.float32),
-                       rng.uniform(*t_range, m), rng.uniform(0.4, 1.2, m).astype(np.float32),
-                       RES)
+    return MapSnapshot(
+        keys,
+        rng.uniform(0, 3, (m, C)).astype(np.float32),
+        rng.uniform(*t_range, m),
+        rng.uniform(0.4, 1.2, m).astype(np.float32),
+        RES,
+    )
 
 
 def oracle_merge(parts, taus):
@@ -68,13 +72,18 @@ def test_merge_of_a_split_history_is_the_serial_map():
     deltas = rng.uniform(0, 1, (40, C))
     owner = rng.integers(0, 2, 40)
 
-    def fold(rows):       # lazy decay, update by update, as the mapper does
+    def fold(rows):  # lazy decay, update by update, as the mapper does
         sigma, t_last = np.zeros(C), None
         for t, d in zip(times[rows], deltas[rows]):
             sigma = (np.exp(-(t - t_last) / tau) * sigma if t_last is not None else 0) + d
             t_last = t
-        return MapSnapshot(np.zeros((1, 3), np.int64), sigma[None].astype(np.float32),
-                           np.array([t_last]), np.ones(1, np.float32), RES)
+        return MapSnapshot(
+            np.zeros((1, 3), np.int64),
+            sigma[None].astype(np.float32),
+            np.array([t_last]),
+            np.ones(1, np.float32),
+            RES,
+        )
 
     serial = fold(np.arange(40))
     merged = merge_snapshots([fold(owner == 0), fold(owner == 1)], tau)
@@ -118,21 +127,24 @@ def test_tiled_map_queries_lazily_what_the_snapshot_holds(tmp_path):
     snap = random_map(rng, 3000, spread=100)
     tiled = write_tiled(tmp_path / "tiled", snap)
     assert tiled.voxels == len(snap) and len(tiled.tile_keys) > 4
-    assert tiled.tiles_loaded == 0                       # only the index so far
+    assert tiled.tiles_loaded == 0  # only the index so far
     # points inside a few voxels of one tile, and points in no voxel
     pick = rng.choice(len(snap), 50, replace=False)
     inside = snap.keys[pick]
     one_tile = tile_ids(inside, 32)
     chosen = inside[np.all(one_tile == one_tile[0], axis=1)]
-    points = np.vstack([(chosen + rng.uniform(0.01, 0.99, chosen.shape)) * RES,
-                        [[1e3, 1e3, 1e3], [np.nan, 0, 0]]])
+    points = np.vstack(
+        [(chosen + rng.uniform(0.01, 0.99, chosen.shape)) * RES, [[1e3, 1e3, 1e3], [np.nan, 0, 0]]]
+    )
     labels, probs = tiled.query(points)
     assert tiled.tiles_loaded == 1
-    rows = np.searchsorted(np.ravel_multi_index((snap.keys + 200).T, (400,) * 3),
-                           np.ravel_multi_index((chosen + 200).T, (400,) * 3))
-    assert np.array_equal(labels[:len(chosen)], snap.labels()[rows])
-    np.testing.assert_allclose(probs[:len(chosen)], snap.probabilities()[rows], rtol=1e-6)
-    assert np.all(labels[len(chosen):] == 0) and np.all(probs[len(chosen):] == 0)
+    rows = np.searchsorted(
+        np.ravel_multi_index((snap.keys + 200).T, (400,) * 3),
+        np.ravel_multi_index((chosen + 200).T, (400,) * 3),
+    )
+    assert np.array_equal(labels[: len(chosen)], snap.labels()[rows])
+    np.testing.assert_allclose(probs[: len(chosen)], snap.probabilities()[rows], rtol=1e-6)
+    assert np.all(labels[len(chosen) :] == 0) and np.all(probs[len(chosen) :] == 0)
     whole = tiled.snapshot()
     assert np.array_equal(whole.keys, snap.keys) and np.array_equal(whole.counts, snap.counts)
     with pytest.raises(MemoryError):
@@ -153,10 +165,14 @@ def test_merge_maps_refuses_other_frames_unless_transformed(tmp_path):
     assert result.voxels == len(expected) == merged.voxels
     np.testing.assert_allclose(merged.snapshot().counts, expected.counts, rtol=1e-6)
     assert (tmp_path / "same" / "map.npz").is_file() and merged.world_frame == "world-a"
-    moved = merge_maps([tmp_path / "a.npz", tmp_path / "b.npz"], tmp_path / "moved",
-                       transforms={1: parse_transform(f"{10 * RES},0,0")})
-    assert moved.voxels == len(merge_snapshots([a, transform_snapshot(
-        b, parse_transform(f"{10 * RES},0,0"))], 2.0))
+    moved = merge_maps(
+        [tmp_path / "a.npz", tmp_path / "b.npz"],
+        tmp_path / "moved",
+        transforms={1: parse_transform(f"{10 * RES},0,0")},
+    )
+    assert moved.voxels == len(
+        merge_snapshots([a, transform_snapshot(b, parse_transform(f"{10 * RES},0,0"))], 2.0)
+    )
 
 
 def test_merge_maps_refuses_other_resolutions(tmp_path):
@@ -171,6 +187,7 @@ def test_merge_maps_refuses_other_resolutions(tmp_path):
 
 def test_load_map_gives_a_tiled_map_read_lazily(tmp_path):
     import tisem
+
     rng = np.random.default_rng(7)
     snap = random_map(rng, 2000, spread=100)
     write_tiled(tmp_path / "tiled", snap)
@@ -185,6 +202,7 @@ def test_load_map_gives_a_tiled_map_read_lazily(tmp_path):
 
 def test_merge_app_refuses_other_frames_in_one_line(tmp_path, capsys):
     from test_pipeline import load_app
+
     module = load_app("merge_maps")
     rng = np.random.default_rng(8)
     save_map(tmp_path / "a.npz", random_map(rng, 50), CONFIG, {"world_frame": "world-a"})
@@ -199,6 +217,7 @@ def test_merge_app_refuses_other_frames_in_one_line(tmp_path, capsys):
 def test_merge_cost_benchmark_runs():
     """benchmarks/merge_cost.py with a tiny map (so it never rots); no timing is checked."""
     from benchmarks import merge_cost
+
     result = merge_cost.run(merge_cost.parse_args(["--voxels", "3000"]))
-    assert result["rows"] > result["voxels"] > 0.9 * result["rows"]     # half the area shared
+    assert result["rows"] > result["voxels"] > 0.9 * result["rows"]  # half the area shared
     assert result["bytes_per_voxel"] > 0

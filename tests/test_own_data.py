@@ -1,5 +1,6 @@
 """Own data in: the KITTI odometry layout, --poses trajectories (KITTI and TUM), a label space
 from a YAML file, and what a missing predictions/ folder suggests."""
+
 from __future__ import annotations
 
 import importlib.util
@@ -22,10 +23,17 @@ from tisem.synth.sequence import write_semantickitti
 
 REPO = Path(__file__).resolve().parents[1]
 # five classes: the synthetic street's cars, road, buildings and vegetation, the rest unlabeled
-FIVE = {"labels": {0: "unlabeled", 10: "car", 40: "road", 50: "building", 70: "vegetation"},
-        "color_map": {0: [0, 0, 0], 10: [245, 150, 100], 40: [255, 0, 255], 50: [0, 200, 255],
-                      70: [0, 175, 0]},
-        "learning_map": {**{raw: 0 for raw in LEARNING_MAP}, 10: 1, 40: 2, 50: 3, 70: 4}}
+FIVE = {
+    "labels": {0: "unlabeled", 10: "car", 40: "road", 50: "building", 70: "vegetation"},
+    "color_map": {
+        0: [0, 0, 0],
+        10: [245, 150, 100],
+        40: [255, 0, 255],
+        50: [0, 200, 255],
+        70: [0, 175, 0],
+    },
+    "learning_map": {**{raw: 0 for raw in LEARNING_MAP}, 10: 1, 40: 2, 50: 3, 70: 4},
+}
 
 
 def map_kitti():
@@ -44,8 +52,7 @@ def run_map_kitti(argv) -> int:
 
 def lidar_trajectory(path: Path, poses: np.ndarray, fmt: str, stamps=None) -> Path:
     if fmt == "kitti":
-        path.write_text("".join(" ".join(f"{v:.17g}" for v in T[:3].ravel()) + "\n"
-                                for T in poses))
+        path.write_text("".join(" ".join(f"{v:.17g}" for v in T[:3].ravel()) + "\n" for T in poses))
     else:
         lines = ["# timestamp tx ty tz qx qy qz qw"]
         for t, T in zip(stamps, poses):
@@ -57,11 +64,13 @@ def lidar_trajectory(path: Path, poses: np.ndarray, fmt: str, stamps=None) -> Pa
 
 @pytest.fixture(scope="module")
 def street(tmp_path_factory) -> Path:
-    return write_semantickitti(tmp_path_factory.mktemp("street") / "seq", 3,
-                               points_per_ring=128, progress=False)
+    return write_semantickitti(
+        tmp_path_factory.mktemp("street") / "seq", 3, points_per_ring=128, progress=False
+    )
 
 
 # --------------------------------------------------------------------------- poses
+
 
 def test_odometry_layout_reads_dataset_poses(kitti_mini, tmp_path):
     """dataset/poses/08.txt beside dataset/sequences/08/ (no poses.txt) gives the poses."""
@@ -103,11 +112,14 @@ def test_lidar_trajectory_replaces_poses_and_calibration(street, tmp_path, fmt):
     np.testing.assert_array_equal(seq[1].points_sensor, reference[1].points_sensor)
 
 
-@pytest.mark.parametrize("text, problem", [
-    ("1 2 3\n", r"traj\.txt:1: 3 numbers"),
-    ("0 1 2 3 0 0 0 0\n", r"traj\.txt:1: expected 8 finite numbers"),
-    ("0 1 2 3 0 0 0 1\n0 1 nan 3 0 0 0 1\n", r"traj\.txt:2: expected 8 finite"),
-])
+@pytest.mark.parametrize(
+    "text, problem",
+    [
+        ("1 2 3\n", r"traj\.txt:1: 3 numbers"),
+        ("0 1 2 3 0 0 0 0\n", r"traj\.txt:1: expected 8 finite numbers"),
+        ("0 1 2 3 0 0 0 1\n0 1 nan 3 0 0 0 1\n", r"traj\.txt:2: expected 8 finite"),
+    ],
+)
 def test_bad_trajectory_lines_name_file_and_line(tmp_path, text, problem):
     path = tmp_path / "traj.txt"
     path.write_text(text)
@@ -125,12 +137,16 @@ def test_missing_predictions_suggest_input_labels(street, tmp_path):
     seq_dir.mkdir()
     for name in ("velodyne", "labels", "poses.txt", "calib.txt"):
         (seq_dir / name).symlink_to(street / name)
-    with pytest.raises(DatasetError, match=r"predictions: input label folder missing.*--input "
-                                           r"labels"):
+    with pytest.raises(
+        DatasetError,
+        match=r"predictions: input label folder missing.*--input "
+        r"labels",
+    ):
         SemanticKittiSequence(seq_dir)
 
 
 # --------------------------------------------------------------------------- label space
+
 
 def test_label_space_from_yaml(tmp_path):
     path = tmp_path / "five.yaml"
@@ -138,28 +154,35 @@ def test_label_space_from_yaml(tmp_path):
     space = load_label_space(path)
     assert space.num_classes == 5
     assert space.names == ("unlabeled", "car", "road", "building", "vegetation")
-    np.testing.assert_array_equal(space.colors_rgb[1], [100, 150, 245])      # BGR -> RGB
+    np.testing.assert_array_equal(space.colors_rgb[1], [100, 150, 245])  # BGR -> RGB
     np.testing.assert_array_equal(space.learning_map_inv, [0, 10, 40, 50, 70])
     use_label_space(space)
     try:
         train, unknown = raw_to_train(np.array([10, 40, 48, 70 | (3 << 16), 7]))
         np.testing.assert_array_equal(train, [1, 2, 0, 4, 0])
-        assert unknown == 1                                       # raw id 7 is in no map
+        assert unknown == 1  # raw id 7 is in no map
         np.testing.assert_array_equal(train_to_raw(np.array([4, 1])), [70, 10])
     finally:
         use_label_space(None)
-    assert raw_to_train(np.array([40]))[0][0] == 9                # SemanticKITTI's again
+    assert raw_to_train(np.array([40]))[0][0] == 9  # SemanticKITTI's again
 
 
-@pytest.mark.parametrize("change, problem", [
-    ({"learning_map": {0: 0, 10: 2}}, r"maps no raw id to train ids \[1\]"),
-    ({"labels": {0: "unlabeled"}}, r"'labels' has no name for raw id 10"),
-    ({"color_map": {0: [0, 0, 0], 10: [1, 2]}}, r"colour of raw id 10"),
-    ({"learning_map": "car"}, r"'learning_map' must be a mapping"),
-])
+@pytest.mark.parametrize(
+    "change, problem",
+    [
+        ({"learning_map": {0: 0, 10: 2}}, r"maps no raw id to train ids \[1\]"),
+        ({"labels": {0: "unlabeled"}}, r"'labels' has no name for raw id 10"),
+        ({"color_map": {0: [0, 0, 0], 10: [1, 2]}}, r"colour of raw id 10"),
+        ({"learning_map": "car"}, r"'learning_map' must be a mapping"),
+    ],
+)
 def test_bad_label_space_is_one_line_naming_the_key(tmp_path, change, problem):
-    data = {"labels": {0: "unlabeled", 10: "car"}, "color_map": {0: [0, 0, 0], 10: [1, 2, 3]},
-            "learning_map": {0: 0, 10: 1}, **change}
+    data = {
+        "labels": {0: "unlabeled", 10: "car"},
+        "color_map": {0: [0, 0, 0], 10: [1, 2, 3]},
+        "learning_map": {0: 0, 10: 1},
+        **change,
+    }
     path = tmp_path / "bad.yaml"
     path.write_text(yaml.safe_dump(data))
     with pytest.raises(ValueError, match=problem):
@@ -173,12 +196,29 @@ def test_map_kitti_with_own_classes_and_poses(street, tmp_path, capsys):
     classes = tmp_path / "five.yaml"
     classes.write_text(yaml.safe_dump(FIVE))
     reference = SemanticKittiSequence(street)
-    poses = lidar_trajectory(tmp_path / "traj.tum", reference.poses_lidar, "tum",
-                             0.1 * np.arange(len(reference)))
+    poses = lidar_trajectory(
+        tmp_path / "traj.tum", reference.poses_lidar, "tum", 0.1 * np.arange(len(reference))
+    )
     out = tmp_path / "run"
-    assert run_map_kitti(["--data", street, "--classes", classes, "--poses", poses,
-                          "--input", "labels", "--out", out, "--no-progress",
-                          "--per-class"]) == 0
+    assert (
+        run_map_kitti(
+            [
+                "--data",
+                street,
+                "--classes",
+                classes,
+                "--poses",
+                poses,
+                "--input",
+                "labels",
+                "--out",
+                out,
+                "--no-progress",
+                "--per-class",
+            ]
+        )
+        == 0
+    )
     printed = capsys.readouterr().out
     assert "| labels (input) " in printed and "IoU per class" in printed
     metrics = json.loads((out / "metrics.json").read_text())
@@ -188,13 +228,24 @@ def test_map_kitti_with_own_classes_and_poses(street, tmp_path, capsys):
     assert set(np.unique(raw)) <= {0, 10, 40, 50, 70}
     run = json.loads((out / "run.json").read_text())
     assert Path(run["classes"]) == classes.resolve() and Path(run["poses"]) == poses.resolve()
-    assert raw_to_train(np.array([40]))[0][0] == 9                # the run's space is undone
+    assert raw_to_train(np.array([40]))[0][0] == 9  # the run's space is undone
 
 
 def test_num_classes_that_disagrees_with_classes_is_refused(street, tmp_path, caplog):
     classes = tmp_path / "five.yaml"
     classes.write_text(yaml.safe_dump(FIVE))
-    rc = run_map_kitti(["--data", street, "--classes", classes, "--set", "num_classes=20",
-                        "--out", tmp_path / "run", "--no-progress"])
+    rc = run_map_kitti(
+        [
+            "--data",
+            street,
+            "--classes",
+            classes,
+            "--set",
+            "num_classes=20",
+            "--out",
+            tmp_path / "run",
+            "--no-progress",
+        ]
+    )
     assert rc == 2 and "defines 5 classes" in caplog.text
     assert not (tmp_path / "run").exists()

@@ -1,24 +1,34 @@
 """The package as a user installs it: the console script and its subcommands, `--version`,
 the package list of pyproject.toml, help on every option, and the line a missing extra gives.
 Nothing is built: the entry points are resolved from pyproject.toml and imported."""
+
 from __future__ import annotations
 
 import argparse
 import importlib
 import subprocess
 import sys
-import tomllib
 from pathlib import Path
 
 import pytest
+import tomllib
 
 import tisem
 from tisem.commands import COMMANDS, load, main
 
 REPO = Path(__file__).resolve().parents[1]
 PYPROJECT = tomllib.loads((REPO / "pyproject.toml").read_text())
-ISSUE_COMMANDS = {"map-kitti", "map-mcap", "kitti-to-mcap", "render", "make-synthetic",
-                  "dump-config", "merge-maps", "fleet", "batch"}
+ISSUE_COMMANDS = {
+    "map-kitti",
+    "map-mcap",
+    "kitti-to-mcap",
+    "render",
+    "make-synthetic",
+    "dump-config",
+    "merge-maps",
+    "fleet",
+    "batch",
+}
 
 
 def resolve(target: str):
@@ -42,8 +52,13 @@ def test_console_scripts_resolve_and_print_the_version(capsys):
 
 
 def test_python_m_tisem_prints_the_version():
-    done = subprocess.run([sys.executable, "-m", "tisem", "--version"], capture_output=True,
-                          text=True, timeout=120, cwd=REPO)
+    done = subprocess.run(
+        [sys.executable, "-m", "tisem", "--version"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        cwd=REPO,
+    )
     assert done.returncode == 0, done.stderr
     assert done.stdout.strip() == f"tisem {tisem.__version__}"
 
@@ -58,8 +73,9 @@ def test_every_subcommand_has_a_module_a_launcher_and_help_on_every_option(capsy
         for action in parser._actions:
             if isinstance(action, argparse._HelpAction):
                 continue
-            assert action.help, f"tisem {command}: {action.option_strings or action.dest} " \
-                                f"has no help text"
+            assert action.help, (
+                f"tisem {command}: {action.option_strings or action.dest} has no help text"
+            )
         with pytest.raises(SystemExit) as stop:
             main([command, "--help"])
         assert stop.value.code == 0
@@ -68,33 +84,39 @@ def test_every_subcommand_has_a_module_a_launcher_and_help_on_every_option(capsy
 
 def test_help_shows_defaults():
     text = load("map-kitti").build_parser().format_help()
-    assert "(default: 2)" in text and "(default: cpu)" in text          # --threads, --arch
+    assert "(default: 2)" in text and "(default: cpu)" in text  # --threads, --arch
 
 
 def test_pyproject_lists_every_package_and_maps_the_kernels():
     setuptools = PYPROJECT["tool"]["setuptools"]
     assert setuptools["package-dir"]["tisem.kernels"] == "kernels"
-    folders = {".".join(p.parent.relative_to(REPO).parts)
-               for p in (REPO / "tisem").rglob("__init__.py")}
+    folders = {
+        ".".join(p.parent.relative_to(REPO).parts) for p in (REPO / "tisem").rglob("__init__.py")
+    }
     assert set(setuptools["packages"]) == folders | {"tisem.kernels"}
-    assert not any(p.split(".")[0] in ("kernels", "benchmarks", "apps", "tests")
-                   for p in setuptools["packages"])
+    assert not any(
+        p.split(".")[0] in ("kernels", "benchmarks", "apps", "tests")
+        for p in setuptools["packages"]
+    )
 
 
 def test_the_kernels_are_one_package_named_tisem_kernels():
     import tisem.kernels.layout as layout
+
     assert Path(layout.__file__).parent == REPO / "kernels"
     assert "kernels" not in sys.modules and "kernels.layout" not in sys.modules
 
 
 def test_a_missing_extra_is_one_line_naming_it(monkeypatch, tmp_path, capsys):
-    monkeypatch.setitem(sys.modules, "matplotlib", None)      # import matplotlib fails
+    monkeypatch.setitem(sys.modules, "matplotlib", None)  # import matplotlib fails
     monkeypatch.delitem(sys.modules, "tisem.viz.compare", raising=False)
     (tmp_path / "run.json").write_text("{}")
     assert main(["render", str(tmp_path)]) == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert err == ["tisem: pictures (matplotlib) need the 'viz' extra (module 'matplotlib' is "
-                   "not installed): pip install \"tisem[viz]\""]
+    assert err == [
+        "tisem: pictures (matplotlib) need the 'viz' extra (module 'matplotlib' is "
+        'not installed): pip install "tisem[viz]"'
+    ]
 
 
 def test_extras_cover_the_optional_stacks():
@@ -106,26 +128,44 @@ def test_extras_cover_the_optional_stacks():
 
 def test_results_table_is_aligned_and_names_the_input():
     from tisem.report import results_table
-    summary = {"miou": 0.41, "accuracy": 0.86, "wiou": 0.78, "oa_paper": 0.76, "points": 10,
-               "per_class_iou": {"car": 0.8, "road": 0.9, "truck": 0.0, "person": None},
-               "present_classes": ["car", "road"]}
-    metrics = {"evaluated": True, "mode": "st", "input": summary, "final": summary,
-               "online": summary, "scans": 5, "skipped": [], "seconds_per_scan": 0.07,
-               "active_voxels": 1000}
+
+    summary = {
+        "miou": 0.41,
+        "accuracy": 0.86,
+        "wiou": 0.78,
+        "oa_paper": 0.76,
+        "points": 10,
+        "per_class_iou": {"car": 0.8, "road": 0.9, "truck": 0.0, "person": None},
+        "present_classes": ["car", "road"],
+    }
+    metrics = {
+        "evaluated": True,
+        "mode": "st",
+        "input": summary,
+        "final": summary,
+        "online": summary,
+        "scans": 5,
+        "skipped": [],
+        "seconds_per_scan": 0.07,
+        "active_voxels": 1000,
+    }
     text = results_table(metrics, per_class=True, input_name="labels (input)")
-    tables = [[line for line in block.splitlines() if line.startswith("|")]
-              for block in text.split("\n\n")]
+    tables = [
+        [line for line in block.splitlines() if line.startswith("|")]
+        for block in text.split("\n\n")
+    ]
     main, per_class = tables[0], tables[1]
     assert len({len(line) for line in main}) == 1 and len({len(line) for line in per_class}) == 1
     assert main[2].startswith("| labels (input) ")
     names = [line.split("|")[1].strip() for line in per_class[2:]]
-    assert names == ["car", "road", "truck *", "**mIoU (GT-present)**"]   # person: undefined
+    assert names == ["car", "road", "truck *", "**mIoU (GT-present)**"]  # person: undefined
 
 
 def test_verbose_shows_tisem_debug_lines_not_the_libraries():
     import logging
 
     from tisem.cli import setup_logging
+
     setup_logging(verbose=True)
     try:
         assert logging.getLogger("tisem.map_kitti").isEnabledFor(logging.DEBUG)

@@ -4,6 +4,7 @@ A tiny synthetic sequence (`write_semantickitti(..., points_per_ring=128)`) is d
 every way a real one can be, one scan per problem, and mapped once through the app's `main`;
 the tests then read what came out: exit code, log, metrics.json, predictions.
 """
+
 from __future__ import annotations
 
 import importlib.util
@@ -21,7 +22,7 @@ from tisem.synth.sequence import write_semantickitti
 
 REPO = Path(__file__).resolve().parents[1]
 SUMMARY_KEYS = {"miou", "miou_all", "accuracy", "wiou", "oa_paper", "per_class_iou"}
-FAR_POINT = 7            # the point of scan 5 moved 10 km away
+FAR_POINT = 7  # the point of scan 5 moved 10 km away
 
 
 def load_app(name: str = "map_kitti"):
@@ -55,7 +56,7 @@ def run_app(argv) -> tuple[int, Records]:
     finally:
         root.removeHandler(rec)
         root.setLevel(old)
-        ti.reset()      # leave no map behind in the runtime main() started
+        ti.reset()  # leave no map behind in the runtime main() started
     return rc, rec
 
 
@@ -69,6 +70,7 @@ def bin_points(seq: Path, i: int) -> int:
 
 
 # --------------------------------------------------------------------------- bad inputs
+
 
 @pytest.fixture(scope="module")
 def damaged(tmp_path_factory):
@@ -107,16 +109,19 @@ def damaged(tmp_path_factory):
     (seq / "poses.txt").write_text("\n".join(lines[:8]) + "\n")
 
     out = root / "out"
-    rc, rec = run_app(["--data", seq, "--out", out, "--no-progress", "--arch", "cpu",
-                       "--threads", 2])
+    rc, rec = run_app(
+        ["--data", seq, "--out", out, "--no-progress", "--arch", "cpu", "--threads", 2]
+    )
     metrics = json.loads((out / "metrics.json").read_text()) if rc == 0 else None
     return seq, out, rc, rec, metrics
 
 
-SKIPPED = {1: ("000001.bin", "not a multiple of 16"),
-           2: ("000002.label", "label count differs from point count"),
-           6: ("000006.bin", "empty scan"),
-           8: ("poses.txt", "no pose for scan 8")}
+SKIPPED = {
+    1: ("000001.bin", "not a multiple of 16"),
+    2: ("000002.label", "label count differs from point count"),
+    6: ("000006.bin", "empty scan"),
+    8: ("poses.txt", "no pose for scan 8"),
+}
 MAPPED = [0, 3, 4, 5, 7]
 
 
@@ -133,7 +138,8 @@ def test_bad_scans_are_skipped_and_reported_the_rest_mapped(damaged):
         about = [w for w in warnings if re.match(rf"skipped scan {i}\b", w)]
         assert len(about) == 1, f"scan {i} should be reported once, not {len(about)} times"
         assert fname in about[0] and problem in about[0], (
-            f"the warning does not name {fname} and '{problem}': {about[0]}")
+            f"the warning does not name {fname} and '{problem}': {about[0]}"
+        )
     # the others are mapped: a predictions file each, raw ids, one label per point
     pred_dir = out / "sequences" / "08" / "predictions"
     assert sorted(p.name for p in pred_dir.iterdir()) == [f"{i:06d}.label" for i in MAPPED]
@@ -169,23 +175,31 @@ def test_dropped_points_are_reported_with_their_file(damaged):
     _, _, rc, rec, _ = damaged
     assert rc == 0
     text = [t.lower() for t in rec.text(logging.INFO)]
-    for i, words in ((3, ("non-finite", "nan")), (4, ("unknown",)),
-                     (5, ("range", "window", "far", "outside"))):
+    for i, words in (
+        (3, ("non-finite", "nan")),
+        (4, ("unknown",)),
+        (5, ("range", "window", "far", "outside")),
+    ):
         assert any(f"{i:06d}." in t and any(w in t for w in words) for t in text), (
-            f"nothing in the log says what was dropped from scan {i}")
+            f"nothing in the log says what was dropped from scan {i}"
+        )
 
 
-@pytest.mark.parametrize("damage,fname,problem", [
-    ("calib_without_tr", "calib.txt", "no 'Tr:' line"),
-    ("no_poses", "poses.txt", "poses file not found"),
-    ("bad_pose_line", "poses.txt", "malformed pose line"),
-])
+@pytest.mark.parametrize(
+    "damage,fname,problem",
+    [
+        ("calib_without_tr", "calib.txt", "no 'Tr:' line"),
+        ("no_poses", "poses.txt", "poses file not found"),
+        ("bad_pose_line", "poses.txt", "malformed pose line"),
+    ],
+)
 def test_whole_sequence_problems_exit_2_with_one_line(tmp_path, damage, fname, problem):
     seq = tiny_sequence(tmp_path / "08", 1)
     if damage == "calib_without_tr":
         text = (seq / "calib.txt").read_text()
-        (seq / "calib.txt").write_text("".join(l + "\n" for l in text.splitlines()
-                                               if not l.startswith("Tr:")))
+        (seq / "calib.txt").write_text(
+            "".join(line + "\n" for line in text.splitlines() if not line.startswith("Tr:"))
+        )
     elif damage == "no_poses":
         (seq / "poses.txt").unlink()
     else:
@@ -200,12 +214,15 @@ def test_whole_sequence_problems_exit_2_with_one_line(tmp_path, damage, fname, p
     assert not (tmp_path / "out" / "metrics.json").exists()
 
 
-@pytest.mark.parametrize("app,argv,flag", [
-    ("map_kitti", ["--resume", "r", "--input", "labels"], "--input"),
-    ("map_kitti", ["--resume", "r", "--set", "tau_s=1"], "--set"),
-    ("map_mcap", ["--resume", "r", "--topic", "/points"], "--topic"),
-    ("map_mcap", ["--resume", "r", "--mode", "csm", "--label-space", "train"], "--label-space"),
-])
+@pytest.mark.parametrize(
+    "app,argv,flag",
+    [
+        ("map_kitti", ["--resume", "r", "--input", "labels"], "--input"),
+        ("map_kitti", ["--resume", "r", "--set", "tau_s=1"], "--set"),
+        ("map_mcap", ["--resume", "r", "--topic", "/points"], "--topic"),
+        ("map_mcap", ["--resume", "r", "--mode", "csm", "--label-space", "train"], "--label-space"),
+    ],
+)
 def test_resume_refuses_options_the_checkpoint_holds(app, argv, flag, capsys):
     """A resumed run goes on with the config and input it started with: overriding them is a
     usage error (exit status 2) that names the option, before anything is read."""
@@ -217,6 +234,7 @@ def test_resume_refuses_options_the_checkpoint_holds(app, argv, flag, capsys):
 
 
 # --------------------------------------------------------------------------- embedded default
+
 
 def test_embedded_default_beats_the_network_input(tmp_path, monkeypatch):
     """`python apps/map_kitti.py --arch cpu --synthetic-scans 6 --out DIR --no-progress`."""
@@ -232,7 +250,7 @@ def test_embedded_default_beats_the_network_input(tmp_path, monkeypatch):
     assert m["final"]["miou"] > m["input"]["miou"]
     assert m["online"]["accuracy"] > m["input"]["accuracy"]
     seq = Path(json.loads((out / "run.json").read_text())["data"])
-    assert seq.parent == tmp_path / "cache"          # the street is cached, not in the results
+    assert seq.parent == tmp_path / "cache"  # the street is cached, not in the results
     pred = out / "sequences" / "00" / "predictions"
     for i in range(6):
         labels = np.fromfile(pred / f"{i:06d}.label", "<u4")

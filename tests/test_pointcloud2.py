@@ -3,6 +3,7 @@
 tisem's decoder — is the map of map.npz (voxel centres, labels, colours as RViz's packed
 `rgb`, probabilities) and the scans in the map frame; /semantic_map is offered
 transient_local."""
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -36,10 +37,14 @@ def decoded_clouds(bag: Path) -> dict[str, list[np.ndarray]]:
         for conn, _, data in reader.messages():
             msg = HUMBLE.deserialize_cdr(data, conn.msgtype)
             order = ">" if msg.is_bigendian else "<"
-            dtype = np.dtype({"names": [f.name for f in msg.fields],
-                              "formats": [order + POINTFIELD_TYPES[f.datatype] for f in msg.fields],
-                              "offsets": [f.offset for f in msg.fields],
-                              "itemsize": msg.point_step})
+            dtype = np.dtype(
+                {
+                    "names": [f.name for f in msg.fields],
+                    "formats": [order + POINTFIELD_TYPES[f.datatype] for f in msg.fields],
+                    "offsets": [f.offset for f in msg.fields],
+                    "itemsize": msg.point_step,
+                }
+            )
             assert msg.row_step == msg.point_step * msg.width and msg.height == 1
             out.setdefault(conn.topic, []).append(np.frombuffer(msg.data.tobytes(), dtype))
     return out
@@ -57,11 +62,15 @@ def synthetic_snapshot(n: int = 300, seed: int = 0) -> MapSnapshot:
     rng = np.random.default_rng(seed)
     keys = np.unique(rng.integers(-500, 500, (n, 3)), axis=0)
     counts = rng.random((len(keys), 20)).astype(np.float32) ** 4
-    counts[::7] = 0.0                              # voxels without evidence: label 0
+    counts[::7] = 0.0  # voxels without evidence: label 0
     order = MapSnapshot.sort_order(keys)
-    return MapSnapshot(keys=keys[order], counts=counts[order],
-                       t_last=rng.uniform(1.0, 9.0, len(keys)),
-                       ell_m=np.full(len(keys), 0.3, np.float32), resolution_m=0.2)
+    return MapSnapshot(
+        keys=keys[order],
+        counts=counts[order],
+        t_last=rng.uniform(1.0, 9.0, len(keys)),
+        ell_m=np.full(len(keys), 0.3, np.float32),
+        resolution_m=0.2,
+    )
 
 
 def test_map_bag_decodes_into_the_map_of_map_npz(tmp_path):
@@ -71,18 +80,24 @@ def test_map_bag_decodes_into_the_map_of_map_npz(tmp_path):
     pose[:3, 3] = [10.0, -5.0, 1.5]
     pose[:2, :2] = [[0.0, -1.0], [1.0, 0.0]]
     rng = np.random.default_rng(1)
-    scan = Scan(points_sensor=rng.uniform(-5, 5, (50, 3)).astype(np.float32),
-                T_world_sensor=pose, stamp_s=2.5, labels=rng.integers(0, 20, 50).astype(np.int32),
-                gt_labels=rng.integers(0, 20, 50).astype(np.int32), index=0)
+    scan = Scan(
+        points_sensor=rng.uniform(-5, 5, (50, 3)).astype(np.float32),
+        T_world_sensor=pose,
+        stamp_s=2.5,
+        labels=rng.integers(0, 20, 50).astype(np.int32),
+        gt_labels=rng.integers(0, 20, 50).astype(np.int32),
+        index=0,
+    )
     mapped = rng.integers(0, 20, 50)
     info = write_map_bag(tmp_path / "map_ros2", snap, "map", scans=[(scan, mapped)])
     assert info["voxels"] == len(snap) and info["scans"] == 1
 
     with Reader(tmp_path / "map_ros2") as reader:
-        durability = {c.topic: c.ext.offered_qos_profiles[0].durability
-                      for c in reader.connections}
-    assert durability == {"/semantic_map": QosDurability.TRANSIENT_LOCAL,
-                          "/semantic_scans": QosDurability.VOLATILE}
+        durability = {c.topic: c.ext.offered_qos_profiles[0].durability for c in reader.connections}
+    assert durability == {
+        "/semantic_map": QosDurability.TRANSIENT_LOCAL,
+        "/semantic_scans": QosDurability.VOLATILE,
+    }
     clouds = decoded_clouds(tmp_path / "map_ros2")
     (cloud,) = clouds["/semantic_map"]
     assert cloud.dtype.names == ("x", "y", "z", "rgb", "label", "probability")
@@ -112,13 +127,20 @@ def test_recording_maps_are_written_in_one_pass_and_cleared_by_overwrite(tmp_pat
 
     snap = synthetic_snapshot(120)
     rng = np.random.default_rng(2)
-    scans = (Scan(points_sensor=rng.uniform(-5, 5, (30, 3)).astype(np.float32),
-                  T_world_sensor=np.eye(4), stamp_s=1.0 + k, index=k,
-                  labels=rng.integers(0, 20, 30).astype(np.int32)) for k in range(3))
+    scans = (
+        Scan(
+            points_sensor=rng.uniform(-5, 5, (30, 3)).astype(np.float32),
+            T_world_sensor=np.eye(4),
+            stamp_s=1.0 + k,
+            index=k,
+            labels=rng.integers(0, 20, 30).astype(np.int32),
+        )
+        for k in range(3)
+    )
     passed = []
 
     def once():
-        for scan in scans:                       # a generator: it can be read only once
+        for scan in scans:  # a generator: it can be read only once
             passed.append(scan.index)
             yield scan, scan.labels
 
@@ -130,5 +152,5 @@ def test_recording_maps_are_written_in_one_pass_and_cleared_by_overwrite(tmp_pat
         topics = [ch.topic for _, ch, _ in make_reader(f).iter_messages()]
     assert topics.count("/semantic_map") == 1 and topics.count("/semantic_scans") == 3
     (tmp_path / "notes.txt").write_text("mine")
-    assert clear_previous_run(tmp_path) == 3           # map.mcap, metadata.yaml, the bag's mcap
+    assert clear_previous_run(tmp_path) == 3  # map.mcap, metadata.yaml, the bag's mcap
     assert sorted(p.name for p in tmp_path.iterdir()) == ["notes.txt"]

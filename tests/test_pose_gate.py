@@ -1,6 +1,7 @@
 """The run's start-up look-ahead (`tisem.pose_gate.PoseGate`): a single outlier pose, first or
 not, costs one scan; a real jump, confirmed by the scan after it, costs none. Pure Python:
 scans of one point each, poses along x."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -10,16 +11,21 @@ from tisem.errors import ScanError, SkippedScan
 from tisem.pose_gate import MAX_HELD, Anchor, PoseGate
 from tisem.scan import Scan
 
-FAR_M = 300e3       # plausible as a place on Earth, 300 km from the drive
+FAR_M = 300e3  # plausible as a place on Earth, 300 km from the drive
 
 
 def scan_at(index: int, x: float, stamp: float | None = None, scale: float = 1.0) -> Scan:
     T = np.eye(4)
     T[:3, :3] *= scale
     T[0, 3] = x
-    return Scan(points_sensor=np.zeros((1, 3)), T_world_sensor=T,
-                stamp_s=0.1 * index if stamp is None else stamp, labels=np.ones(1),
-                index=index, name=f"scan {index}")
+    return Scan(
+        points_sensor=np.zeros((1, 3)),
+        T_world_sensor=T,
+        stamp_s=0.1 * index if stamp is None else stamp,
+        labels=np.ones(1),
+        index=index,
+        name=f"scan {index}",
+    )
 
 
 def run_gate(items, gate=None):
@@ -52,7 +58,7 @@ def test_a_single_outlier_costs_one_scan(where):
 
 
 def test_a_jump_the_next_scan_confirms_costs_nothing():
-    xs = [0.0, 1.0, 2.0, 5000.0, 5001.0, 5002.0]       # a relocation, or two drives in one log
+    xs = [0.0, 1.0, 2.0, 5000.0, 5001.0, 5002.0]  # a relocation, or two drives in one log
     assert refused(run_gate([scan_at(i, x) for i, x in enumerate(xs)])) == {}
 
 
@@ -68,9 +74,14 @@ def test_skipped_scans_and_impossible_poses_keep_their_place():
     # skipped scan, which keeps its place in the stream like any other
     with pytest.raises(ScanError) as bad:
         scan_at(4, 4.0, scale=2.0)
-    items = [SkippedScan(0, "scan 0", "truncated"), scan_at(1, FAR_M),
-             SkippedScan(2, "scan 2", "no labels"), scan_at(3, 3.0),
-             SkippedScan(4, "scan 4", str(bad.value)), scan_at(5, 5.0)]
+    items = [
+        SkippedScan(0, "scan 0", "truncated"),
+        scan_at(1, FAR_M),
+        SkippedScan(2, "scan 2", "no labels"),
+        scan_at(3, 3.0),
+        SkippedScan(4, "scan 4", str(bad.value)),
+        scan_at(5, 5.0),
+    ]
     reasons = refused(run_gate(items))
     assert list(reasons) == [0, 1, 2, 4]
     assert reasons[0] == "truncated" and reasons[2] == "no labels"
@@ -87,6 +98,7 @@ def test_one_scan_or_scans_that_never_agree_map_from_the_first():
 
 def test_a_resumed_gate_goes_on_from_its_anchor():
     anchor = Anchor(9, np.array([9.0, 0.0, 0.0]), 0.9)
-    reasons = refused(run_gate([scan_at(10, 10.0), scan_at(11, FAR_M), scan_at(12, 12.0)],
-                               PoseGate(anchor)))
+    reasons = refused(
+        run_gate([scan_at(10, 10.0), scan_at(11, FAR_M), scan_at(12, 12.0)], PoseGate(anchor))
+    )
     assert list(reasons) == [11] and "from scan 12's position" in reasons[11]

@@ -1,9 +1,9 @@
 """The free-space DDA (kernels/raycast.py) against an exact numpy reference: every voxel a ray
 crosses, in order, none skipped, none extra; rays along axes, through voxel edges and corners,
 and rays shorter than their margin."""
+
 import numpy as np
 import pytest
-
 from tisem.kernels import raycast
 
 MAX_VOXELS = 2048
@@ -47,7 +47,7 @@ def kernel_voxels(origins, ends, inv_res, margin_m, margin_fraction):
     count = np.zeros(len(origins), np.int32)
     raycast.trace_rays(origins, ends, inv_res, margin_m, margin_fraction, out, count)
     assert count.max() <= MAX_VOXELS
-    return [[tuple(v) for v in out[r, :count[r]]] for r in range(len(origins))]
+    return [[tuple(v) for v in out[r, : count[r]]] for r in range(len(origins))]
 
 
 def check_rays(origins, ends, inv_res, margin_m=0.0, margin_fraction=0.0):
@@ -56,8 +56,9 @@ def check_rays(origins, ends, inv_res, margin_m=0.0, margin_fraction=0.0):
     got = kernel_voxels(origins, ends, inv_res, margin_m, margin_fraction)
     for r, voxels in enumerate(got):
         # the reference sees the float32 values the kernel sees
-        want, pieces = reference_pieces(np.float32(origins[r]), np.float32(ends[r]), inv_res,
-                                        margin_m, margin_fraction)
+        want, pieces = reference_pieces(
+            np.float32(origins[r]), np.float32(ends[r]), inv_res, margin_m, margin_fraction
+        )
         crossed = [v for v, p in zip(want, pieces) if p > 10 * raycast.TIE_T]
         touched = [v for v, p in zip(want, pieces) if p > 0]
         where = f"ray {r}: {origins[r]} -> {ends[r]}"
@@ -67,21 +68,21 @@ def check_rays(origins, ends, inv_res, margin_m=0.0, margin_fraction=0.0):
     return got
 
 
-@pytest.mark.slow   # (400 long rays, each checked against the reference in Python)
+@pytest.mark.slow  # (400 long rays, each checked against the reference in Python)
 def test_random_rays_cross_exactly_the_reference_voxels(taichi_cpu):
     rng = np.random.default_rng(16)
     origins = rng.uniform(-3, 3, (400, 3))
     ends = origins + rng.normal(0, 1, (400, 3)) * rng.uniform(0.1, 25, (400, 1))
     got = check_rays(origins, ends, 1 / 0.2, margin_m=0.3, margin_fraction=0.1)
-    assert sum(map(len, got)) > 10_000          # long rays: the test sees many steps
-    for voxels in got:                          # each step to a face neighbour or across a tie
+    assert sum(map(len, got)) > 10_000  # long rays: the test sees many steps
+    for voxels in got:  # each step to a face neighbour or across a tie
         steps = np.abs(np.diff(np.array(voxels).reshape(-1, 3), axis=0))
         assert (steps <= 1).all()
 
 
 @pytest.mark.parametrize("direction", [(1, 0, 0), (0, -1, 0), (0, 0, 1), (-1, 0, 0)])
 def test_rays_along_axes(taichi_cpu, direction):
-    o = np.array([[0.1, 0.1, 0.1], [0.2, 0.4, -0.6]])   # inside a voxel, and on voxel faces
+    o = np.array([[0.1, 0.1, 0.1], [0.2, 0.4, -0.6]])  # inside a voxel, and on voxel faces
     e = o + 7.3 * np.array(direction, float)
     got = check_rays(o, e, 1 / 0.2)
     a = int(np.flatnonzero(direction)[0])
@@ -91,11 +92,11 @@ def test_rays_along_axes(taichi_cpu, direction):
 
 
 def test_rays_through_edges_and_corners_step_every_axis_at_once(taichi_cpu):
-    res = 0.25                               # exact in float32: the ties are exact ties
-    o = np.full((3, 3), 0.125)               # a voxel centre
+    res = 0.25  # exact in float32: the ties are exact ties
+    o = np.full((3, 3), 0.125)  # a voxel centre
     e = o + res * np.array([[6, 6, 6], [-6, 6, -6], [4, 4, 1]])
     got = check_rays(o, e, 1 / res)
-    assert got[0] == [(i, i, i) for i in range(7)]           # corners: the diagonal alone
+    assert got[0] == [(i, i, i) for i in range(7)]  # corners: the diagonal alone
     assert got[1] == [(-i, i, -i) for i in range(7)]
     # edges along z: x and y step together, z once on its own
     assert got[2] == [(0, 0, 0), (1, 1, 0), (2, 2, 0), (2, 2, 1), (3, 3, 1), (4, 4, 1)]
@@ -105,5 +106,5 @@ def test_margin_stops_rays_before_the_hit(taichi_cpu):
     o = np.zeros((3, 3)) + 0.05
     e = o + np.array([[10.0, 0, 0], [0.4, 0, 0], [0, 0, 0]])
     got = check_rays(o, e, 1 / 0.2, margin_m=0.5, margin_fraction=0.1)
-    assert got[0][-1] == (45, 0, 0)          # stops 1 m (10 %) before x = 10.05
-    assert got[1] == [] and got[2] == []     # shorter than the margin; no length at all
+    assert got[0][-1] == (45, 0, 0)  # stops 1 m (10 %) before x = 10.05
+    assert got[1] == [] and got[2] == []  # shorter than the margin; no length at all

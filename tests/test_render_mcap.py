@@ -1,5 +1,6 @@
 """`tisem render` on a run of an MCAP recording draws what it draws for the same scans mapped
 from their SemanticKITTI folder: same points, same accuracies per panel."""
+
 from __future__ import annotations
 
 import pytest
@@ -19,8 +20,20 @@ def test_render_draws_an_mcap_run_like_its_kitti_twin(tmp_path):
     convert(seq, tmp_path / "seq.mcap")
     common = ["--arch", "cpu", "--threads", "1", "--no-progress"]
     assert main(["map-kitti", "--data", str(seq), "--out", str(tmp_path / "kitti"), *common]) == 0
-    assert main(["map-mcap", str(tmp_path / "seq.mcap"), "--gt-field", "gt_label",
-                 "--out", str(tmp_path / "mcap"), *common]) == 0
+    assert (
+        main(
+            [
+                "map-mcap",
+                str(tmp_path / "seq.mcap"),
+                "--gt-field",
+                "gt_label",
+                "--out",
+                str(tmp_path / "mcap"),
+                *common,
+            ]
+        )
+        == 0
+    )
     kitti = render_comparison(tmp_path / "kitti")
     mcap = render_comparison(tmp_path / "mcap")
     assert mcap["out"] == tmp_path / "mcap" / "compare.png" and mcap["out"].stat().st_size > 0

@@ -2,6 +2,7 @@
 reads the output as a rosbag2 bag with the QoS rosbag2 records (transient_local /tf_static),
 the MCAP file names the ROS distro, and header stamps are start time + times.txt to the
 nanosecond (real epoch stamps survive: no float seconds in between)."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -41,8 +42,21 @@ def test_kitti_to_mcap_writes_a_rosbag2_bag_with_qos_and_exact_stamps(tmp_path, 
     (seq / "times.txt").write_text("\n".join(TIMES) + "\n")
     app = load_app("kitti_to_mcap")
     out = tmp_path / "drive"
-    assert app.main([str(seq), str(out), "--format", "rosbag2", "--start-time", START,
-                     "--ros-distro", "jazzy"]) == 0
+    assert (
+        app.main(
+            [
+                str(seq),
+                str(out),
+                "--format",
+                "rosbag2",
+                "--start-time",
+                START,
+                "--ros-distro",
+                "jazzy",
+            ]
+        )
+        == 0
+    )
     assert "4 scans" in capsys.readouterr().out
     assert sorted(p.name for p in out.iterdir()) == ["drive_0.mcap", "metadata.yaml"]
 
@@ -59,10 +73,12 @@ def test_kitti_to_mcap_writes_a_rosbag2_bag_with_qos_and_exact_stamps(tmp_path, 
         assert all(p[0].reliability == QosReliability.RELIABLE for p in qos.values())
         for conn, _, data in reader.messages():
             msg = HUMBLE.deserialize_cdr(data, conn.msgtype)
-            headers = [t.header for t in msg.transforms] if conn.topic.startswith("/tf") \
-                else [msg.header]
+            headers = (
+                [t.header for t in msg.transforms] if conn.topic.startswith("/tf") else [msg.header]
+            )
             stamps.setdefault(conn.topic, []).extend(
-                h.stamp.sec * 10 ** 9 + h.stamp.nanosec for h in headers)
+                h.stamp.sec * 10**9 + h.stamp.nanosec for h in headers
+            )
     assert stamps["/velodyne_points"] == expected == stamps["/tf"]
     assert stamps["/tf_static"] == expected[:1]
 
@@ -71,7 +87,7 @@ def test_kitti_to_mcap_writes_a_rosbag2_bag_with_qos_and_exact_stamps(tmp_path, 
         metadata = {m.name: m.metadata for m in mcap.iter_metadata()}
         channels = mcap.get_summary().channels.values()
     assert metadata["rosbag2"] == {"ROS_DISTRO": "jazzy"}
-    for channel in channels:           # what `ros2 bag play` reads from the storage itself
+    for channel in channels:  # what `ros2 bag play` reads from the storage itself
         (profile,) = parse_qos(channel.metadata["offered_qos_profiles"])
         assert profile == qos[channel.topic][0]
 

@@ -1,4 +1,5 @@
 """tisem.io.semantickitti: pose maths, the real mini sequence, every bad input, the writer."""
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -7,16 +8,19 @@ import numpy as np
 import pytest
 
 from tisem.errors import DatasetError, ScanError, SkippedScan
-from tisem.io.semantickitti import (SemanticKittiSequence, camera_poses_to_lidar, read_calib_tr,
-                                    read_poses, write_predictions)
+from tisem.io.semantickitti import (
+    SemanticKittiSequence,
+    camera_poses_to_lidar,
+    read_calib_tr,
+    read_poses,
+    write_predictions,
+)
 from tisem.labels import LEARNING_MAP_INV, raw_to_train
 from tisem.scan import Scan, finite_rows
 
 # A KITTI-like calibration: camera x = -lidar y, camera y = -lidar z, camera z = lidar x,
 # plus a small lever arm t = (0, -0.08, -0.27).
-TR_ROWS = [0, -1, 0, 0.0,
-           0, 0, -1, -0.08,
-           1, 0, 0, -0.27]
+TR_ROWS = [0, -1, 0, 0.0, 0, 0, -1, -0.08, 1, 0, 0, -0.27]
 IDENTITY_ROWS = [1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0]
 
 
@@ -26,13 +30,12 @@ def _fmt(values) -> str:
 
 # ----------------------------------------------------------------------------- pose maths
 
+
 def test_pose_maths_hand_example(tmp_path):
     (tmp_path / "calib.txt").write_text("P0: " + _fmt(range(12)) + "\nTr: " + _fmt(TR_ROWS) + "\n")
     # Pose: camera rotated 90 deg about its y axis, R_y = [[0,0,1],[0,1,0],[-1,0,0]],
     # and moved 2 m along camera z.
-    pose_rows = [0, 0, 1, 0,
-                 0, 1, 0, 0,
-                 -1, 0, 0, 2]
+    pose_rows = [0, 0, 1, 0, 0, 1, 0, 0, -1, 0, 0, 2]
     (tmp_path / "poses.txt").write_text(_fmt(IDENTITY_ROWS) + "\n" + _fmt(pose_rows) + "\n\n")
     Tr = read_calib_tr(tmp_path / "calib.txt")
     poses = read_poses(tmp_path / "poses.txt")
@@ -40,15 +43,16 @@ def test_pose_maths_hand_example(tmp_path):
     np.testing.assert_array_equal(Tr[3], [0, 0, 0, 1])
     T = camera_poses_to_lidar(poses, Tr)
     assert T.shape == (2, 4, 4) and T.dtype == np.float64
-    np.testing.assert_allclose(T[0], np.eye(4), atol=1e-12)   # identity stays identity
+    np.testing.assert_allclose(T[0], np.eye(4), atol=1e-12)  # identity stays identity
     # Lidar point p = (1, 2, 3), by hand:
     #   Tr p          = R p + t = (-2, -3, 1) + (0, -0.08, -0.27) = (-2, -3.08, 0.73)
     #   pose (Tr p)   = R_y q + (0,0,2) = (q_z, q_y, -q_x) + (0,0,2) = (0.73, -3.08, 4)
     #   Tr^-1 (...)   = R^T (q - t) = R^T (0.73, -3.0, 4.27) = (v_z, -v_x, -v_y) = (4.27, -0.73, 3)
     np.testing.assert_allclose(T[1] @ [1, 2, 3, 1], [4.27, -0.73, 3.0, 1.0], atol=1e-12)
     # The whole matrix: a -90 deg yaw about lidar z and (2.27, 0.27, 0) m of translation.
-    np.testing.assert_allclose(T[1], [[0, 1, 0, 2.27], [-1, 0, 0, 0.27], [0, 0, 1, 0],
-                                      [0, 0, 0, 1]], atol=1e-12)
+    np.testing.assert_allclose(
+        T[1], [[0, 1, 0, 2.27], [-1, 0, 0, 0.27], [0, 0, 1, 0], [0, 0, 0, 1]], atol=1e-12
+    )
     # single pose and 3x4 input work too
     np.testing.assert_allclose(camera_poses_to_lidar(poses[1, :3], Tr), T[1], atol=1e-12)
 
@@ -61,16 +65,22 @@ def test_pose_helper_errors(tmp_path):
     with pytest.raises(DatasetError, match=r"calib.txt: no 'Tr:' line"):
         read_calib_tr(calib)
     calib.write_text("Tr: 1 0 0 0 0 1 0 0 0 0 1\n")
-    with pytest.raises(DatasetError, match=r"calib.txt:1: malformed 'Tr:' line, expected 12 numbers"
-                                           r".*got 11"):
+    with pytest.raises(
+        DatasetError,
+        match=r"calib.txt:1: malformed 'Tr:' line, expected 12 numbers"
+        r".*got 11",
+    ):
         read_calib_tr(calib)
     calib.write_text("P0: 1\nTr: 1 0 0 0 0 1 0 0 0 0 x 0\n")
     with pytest.raises(DatasetError, match=r"calib.txt:2: malformed 'Tr:' line, non-numeric"):
         read_calib_tr(calib)
     poses = tmp_path / "poses.txt"
     poses.write_text(_fmt(IDENTITY_ROWS) + "\n" + _fmt(IDENTITY_ROWS[:9]) + "\n")
-    with pytest.raises(DatasetError, match=r"poses.txt:2: malformed pose line \(pose 1\), expected "
-                                           r"12 numbers.*got 9"):
+    with pytest.raises(
+        DatasetError,
+        match=r"poses.txt:2: malformed pose line \(pose 1\), expected "
+        r"12 numbers.*got 9",
+    ):
         read_poses(poses)
     poses.write_text(_fmt(IDENTITY_ROWS) + "\n1 0 0 0 0 1 0 0 0 0 1 abc\n")
     with pytest.raises(DatasetError, match=r"poses.txt:2: malformed pose line.*non-numeric"):
@@ -82,10 +92,11 @@ def test_pose_helper_errors(tmp_path):
 
 # ----------------------------------------------------------------------------- real data
 
+
 def test_real_mini_sequence(kitti_mini):
     seq = SemanticKittiSequence(kitti_mini)
     assert len(seq) == 5 and seq.scan_ids == [0, 1, 2, 3, 4]
-    assert seq.has_ground_truth and seq.sequence_name == "00"   # folder name is not two digits
+    assert seq.has_ground_truth and seq.sequence_name == "00"  # folder name is not two digits
     assert seq.poses_lidar.shape == (5, 4, 4) and seq.poses_lidar.dtype == np.float64
     np.testing.assert_allclose(seq.times, [0, 0.1, 0.2, 0.3, 0.4])
     # the first pose is the identity; the car drives ~3 m forward (lidar x) over the 5 scans
@@ -96,7 +107,7 @@ def test_real_mini_sequence(kitti_mini):
     for s in scans:
         assert 122_856 <= s.num_points <= 123_433
         assert s.labels.dtype == np.int32 and s.gt_labels.shape == s.labels.shape
-        assert s.labels.min() >= 1 and s.labels.max() <= 19          # predictions never 0
+        assert s.labels.min() >= 1 and s.labels.max() <= 19  # predictions never 0
         assert s.source.unknown_raw_ids == 0 and finite_rows(s.points_sensor).all()
         assert Path(s.name).name == f"{s.index:06d}.bin"
     assert sum(s.num_points for s in scans) == 615_906
@@ -113,8 +124,17 @@ def test_real_mini_sequence(kitti_mini):
 
 # ----------------------------------------------------------------------------- synthetic
 
-def make_sequence(folder: Path, n_scans: int = 3, n_points: int = 50, *, gt: bool = True,
-                  predictions: bool = True, n_poses: int | None = None, seed: int = 0) -> Path:
+
+def make_sequence(
+    folder: Path,
+    n_scans: int = 3,
+    n_points: int = 50,
+    *,
+    gt: bool = True,
+    predictions: bool = True,
+    n_poses: int | None = None,
+    seed: int = 0,
+) -> Path:
     """A small, valid SemanticKITTI sequence folder; tests then break one thing in it."""
     rng = np.random.default_rng(seed)
     for sub in ["velodyne"] + (["labels"] if gt else []) + (["predictions"] if predictions else []):
@@ -123,14 +143,14 @@ def make_sequence(folder: Path, n_scans: int = 3, n_points: int = 50, *, gt: boo
     lines = []
     for i in range(n_scans if n_poses is None else n_poses):
         row = list(IDENTITY_ROWS)
-        row[11] = float(i)              # camera z forward, 1 m per scan
+        row[11] = float(i)  # camera z forward, 1 m per scan
         lines.append(_fmt(row))
     (folder / "poses.txt").write_text("\n".join(lines) + "\n")
     for i in range(n_scans):
         pts = np.concatenate([rng.uniform(-10, 10, (n_points, 3)), rng.random((n_points, 1))], 1)
         pts.astype("<f4").tofile(folder / "velodyne" / f"{i:06d}.bin")
         train = rng.integers(1, 20, n_points)
-        raw = LEARNING_MAP_INV[train] | (np.uint32(7) << 16)          # instance bits set
+        raw = LEARNING_MAP_INV[train] | (np.uint32(7) << 16)  # instance bits set
         if gt:
             raw.astype("<u4").tofile(folder / "labels" / f"{i:06d}.label")
         if predictions:
@@ -147,7 +167,7 @@ def test_synthetic_sequence_good(tmp_path):
     assert seq.sequence_name == "17" and len(seq) == 3 and seq.has_ground_truth
     s = seq[1]
     assert s.num_points == 50 and s.index == 1 and s.stamp_s == pytest.approx(0.1)
-    np.testing.assert_array_equal(s.labels, s.gt_labels)          # instance bits stripped
+    np.testing.assert_array_equal(s.labels, s.gt_labels)  # instance bits stripped
     # pose 1: camera moved 1 m along camera z = lidar x
     np.testing.assert_allclose(s.T_world_sensor[:3, 3], [1, 0, 0], atol=1e-12)
     (tmp_path / "17" / "times.txt").write_text("5.0\n5.2\n5.4\n")
@@ -159,8 +179,11 @@ def test_truncated_bin_is_skipped_and_iteration_goes_on(tmp_path):
     bin1 = d / "velodyne" / "000001.bin"
     bin1.write_bytes(bin1.read_bytes()[:-5])
     seq = SemanticKittiSequence(d)
-    with pytest.raises(ScanError, match=r"000001\.bin: truncated scan file \(795 bytes is not a "
-                                        r"multiple of 16") as ei:
+    with pytest.raises(
+        ScanError,
+        match=r"000001\.bin: truncated scan file \(795 bytes is not a "
+        r"multiple of 16",
+    ) as ei:
         seq[1]
     assert ei.value.index == 1 and ei.value.name.endswith("000001.bin")
     items = list(seq)
@@ -175,8 +198,11 @@ def test_label_count_mismatch(tmp_path):
     lab = d / "predictions" / "000000.label"
     lab.write_bytes(lab.read_bytes()[:-8])
     seq = SemanticKittiSequence(d)
-    with pytest.raises(ScanError, match=r"predictions/000000\.label: label count differs from "
-                                        r"point count: 48 labels for 50 points"):
+    with pytest.raises(
+        ScanError,
+        match=r"predictions/000000\.label: label count differs from "
+        r"point count: 48 labels for 50 points",
+    ):
         seq[0]
     # the GT file too
     gt = d / "labels" / "000002.label"
@@ -194,8 +220,11 @@ def test_missing_label_file(tmp_path):
     d = make_sequence(tmp_path / "seq")
     (d / "predictions" / "000001.label").unlink()
     seq = SemanticKittiSequence(d)
-    with pytest.raises(ScanError, match=r"predictions/000001\.label: predictions label file "
-                                        r"missing for scan 1"):
+    with pytest.raises(
+        ScanError,
+        match=r"predictions/000001\.label: predictions label file "
+        r"missing for scan 1",
+    ):
         seq[1]
     assert _kinds(seq) == ["Scan", "SkippedScan", "Scan"]
     (d / "labels" / "000002.label").unlink()
@@ -208,8 +237,11 @@ def test_short_poses_file(tmp_path):
     seq = SemanticKittiSequence(d)
     assert seq.num_poses == 2 and list(seq.has_pose) == [True, True, False, False]
     assert np.isnan(seq.poses_lidar[2]).all()
-    with pytest.raises(ScanError, match=r"poses\.txt: no pose for scan 2 \(000002\.bin\); "
-                                        r"poses\.txt has 2 poses"):
+    with pytest.raises(
+        ScanError,
+        match=r"poses\.txt: no pose for scan 2 \(000002\.bin\); "
+        r"poses\.txt has 2 poses",
+    ):
         seq[2]
     items = list(seq)
     assert _kinds(items) == ["Scan", "Scan", "SkippedScan", "SkippedScan"]
@@ -221,8 +253,9 @@ def test_short_times_file(tmp_path):
     (d / "times.txt").write_text("0.0\n0.1\n")
     seq = SemanticKittiSequence(d)
     assert np.isnan(seq.times[2])
-    with pytest.raises(ScanError,
-                       match=r"times\.txt: no time for scan 2; times\.txt has 2 entries"):
+    with pytest.raises(
+        ScanError, match=r"times\.txt: no time for scan 2; times\.txt has 2 entries"
+    ):
         seq[2]
     assert _kinds(seq) == ["Scan", "Scan", "SkippedScan"]
     (d / "times.txt").write_text("0.0\nabc\n0.2\n")
@@ -261,7 +294,7 @@ def test_nonfinite_points_kept_in_place_for_the_mapper(tmp_path):
     pts[3, 0] = np.nan
     pts[10, 2] = np.inf
     pts[11, 1] = -np.inf
-    pts[20, 3] = np.nan            # NaN remission only: the point is finite
+    pts[20, 3] = np.nan  # NaN remission only: the point is finite
     pts.tofile(path)
     gt_as_input = SemanticKittiSequence(d, input="labels")
     s = SemanticKittiSequence(d)[0]
@@ -310,8 +343,11 @@ def test_dataset_root_and_folder_errors(tmp_path):
     root = tmp_path / "kitti"
     make_sequence(root / "sequences" / "08")
     make_sequence(root / "sequences" / "11", n_scans=2)
-    with pytest.raises(DatasetError, match=r"kitti: is a dataset root; choose a sequence.*found: "
-                                           r"08, 11"):
+    with pytest.raises(
+        DatasetError,
+        match=r"kitti: is a dataset root; choose a sequence.*found: "
+        r"08, 11",
+    ):
         SemanticKittiSequence(root)
     seq = SemanticKittiSequence(root, sequence=8)
     assert seq.sequence_name == "08" and seq.sequence_dir == root / "sequences" / "08"
@@ -325,10 +361,13 @@ def test_dataset_root_and_folder_errors(tmp_path):
         SemanticKittiSequence(tmp_path / "empty")
     # missing input folder
     d = make_sequence(tmp_path / "nopred", predictions=False)
-    with pytest.raises(DatasetError, match=r"nopred/predictions: input label folder missing "
-                                           r"\(input='predictions'\)"):
+    with pytest.raises(
+        DatasetError,
+        match=r"nopred/predictions: input label folder missing "
+        r"\(input='predictions'\)",
+    ):
         SemanticKittiSequence(d)
-    seq = SemanticKittiSequence(d, input="labels")      # GT as input still works
+    seq = SemanticKittiSequence(d, input="labels")  # GT as input still works
     assert seq[0].labels is not None
     with pytest.raises(ValueError, match="input must be one of"):
         SemanticKittiSequence(d, input="probs")
@@ -337,8 +376,11 @@ def test_dataset_root_and_folder_errors(tmp_path):
     seq = SemanticKittiSequence(d)
     assert not seq.has_ground_truth and seq[0].gt_labels is None
     # empty frame range
-    with pytest.raises(DatasetError, match=r"velodyne: empty frame range first=5 last=9; scans "
-                                           r"present: 0\.\.2"):
+    with pytest.raises(
+        DatasetError,
+        match=r"velodyne: empty frame range first=5 last=9; scans "
+        r"present: 0\.\.2",
+    ):
         SemanticKittiSequence(d, first=5, last=9)
     for f in (d / "velodyne").iterdir():
         f.unlink()
@@ -347,6 +389,7 @@ def test_dataset_root_and_folder_errors(tmp_path):
 
 
 # ----------------------------------------------------------------------------- writer
+
 
 def test_write_predictions_round_trip(tmp_path):
     d = make_sequence(tmp_path / "in", n_scans=2)
@@ -360,6 +403,7 @@ def test_write_predictions_round_trip(tmp_path):
         np.testing.assert_array_equal(raw, LEARNING_MAP_INV[scan.labels])
     # reading the written predictions back gives the same train ids
     import shutil
+
     for sub in ("velodyne", "labels"):
         shutil.copytree(d / sub, out / "sequences" / "08" / sub)
     shutil.copy(d / "calib.txt", out / "sequences" / "08")

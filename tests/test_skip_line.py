@@ -1,7 +1,9 @@
 """The one line a run logs for a skipped scan (`SkippedScan.line`)."""
+
 from __future__ import annotations
 
 from test_semantickitti import make_sequence
+
 from tisem.errors import SkippedScan
 from tisem.io.semantickitti import SemanticKittiSequence
 

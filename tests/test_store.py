@@ -1,5 +1,6 @@
 """The host store alone (tisem/store.py): exact round trips, blocks in pieces, compact payload
 kept on disk, a bounded spill file, a full disk survived."""
+
 from __future__ import annotations
 
 import os
@@ -12,13 +13,18 @@ from tisem.config import MapperConfig
 from tisem.mapper import Mapper
 from tisem.store import KEY_LIMIT, BlockStore, pack
 
+
 def random_voxels(rng, n, lo=-300, hi=300, C=20):
     keys = np.unique(rng.integers(lo, hi, (n, 3)), axis=0)
     keys = keys[rng.permutation(len(keys))]
     dense = rng.random((len(keys), C)).astype(np.float32)
     counts = np.where(rng.random((len(keys), C)) < 0.25, dense, 0).astype(np.float32)
-    return (keys, counts, rng.random(len(keys)).astype(np.float32),
-            rng.random(len(keys)).astype(np.float32))
+    return (
+        keys,
+        counts,
+        rng.random(len(keys)).astype(np.float32),
+        rng.random(len(keys)).astype(np.float32),
+    )
 
 
 def sort_rows(arrays):
@@ -30,12 +36,12 @@ def test_store_round_trip_split_and_lookup():
     rng = np.random.default_rng(0)
     want = random_voxels(rng, 30000)
     store = BlockStore(20)
-    west = want[0][:, 0] < 0       # two puts, one block set each
+    west = want[0][:, 0] < 0  # two puts, one block set each
     store.put(*(a[west] for a in want))
     store.put(*(a[~west] for a in want))
     assert len(store) == len(want[0])
     for got, exp in zip(sort_rows(store.arrays()), sort_rows(want)):
-        np.testing.assert_array_equal(got, exp)       # exact: keys, counters, t_last, ell
+        np.testing.assert_array_equal(got, exp)  # exact: keys, counters, t_last, ell
 
     # a voxel box that cuts blocks: exactly the voxels inside come out, the rest stay
     center, half = np.array([13, -6, 2]), np.array([41, 37, 29])
@@ -84,7 +90,7 @@ def test_store_blocks_in_pieces():
     want = random_voxels(rng, 20000, lo=-40, hi=40)
     store = BlockStore(20)
     x = want[0][:, 0]
-    for cx in range(-41, 41, 3):            # a window sliding +x: voxels leave through its face
+    for cx in range(-41, 41, 3):  # a window sliding +x: voxels leave through its face
         box = (np.array([cx + 200, 0, 0]), np.array([200, 100, 100]))
         leaving = (x >= cx - 3) & (x < cx)
         store.put(*(a[leaving] for a in want), box=box)
@@ -93,7 +99,7 @@ def test_store_blocks_in_pieces():
     assert found.all()
     np.testing.assert_array_equal(counts, want[1])
     got = []
-    for cx in range(-60, 60, 2):          # and a window coming back takes them out in pieces
+    for cx in range(-60, 60, 2):  # and a window coming back takes them out in pieces
         part = store.take_box(np.array([cx, 0, 0]), np.array([1, 100, 100]))
         if part is not None:
             got.append(part)
@@ -106,19 +112,25 @@ def clustered_voxels(rng, blocks, per_block, C=20, classes=5):
     """`per_block` distinct random voxels in each of the given blocks, each with `classes` of C
     counters non-zero (as a drive leaves them: ~5 of 20)."""
     local = np.argsort(rng.random((len(blocks), 64)), axis=1)[:, :per_block]
-    keys = (blocks[:, None, :] * 4 + np.stack([local // 16, local // 4 % 4, local % 4], -1)
-            ).reshape(-1, 3)
+    keys = (
+        blocks[:, None, :] * 4 + np.stack([local // 16, local // 4 % 4, local % 4], -1)
+    ).reshape(-1, 3)
     nz = np.argsort(rng.random((len(keys), C)), axis=1)[:, :classes]
     counts = np.zeros((len(keys), C), np.float32)
     np.put_along_axis(counts, nz, rng.random(nz.shape).astype(np.float32) + 0.5, axis=1)
-    return (keys, counts, rng.random(len(keys)).astype(np.float32),
-            rng.random(len(keys)).astype(np.float32))
+    return (
+        keys,
+        counts,
+        rng.random(len(keys)).astype(np.float32),
+        rng.random(len(keys)).astype(np.float32),
+    )
 
 
 def street_blocks(rng, n, length=1500):
     """n distinct leaf blocks along a street: long in x, 60 blocks wide, 10 high."""
-    blocks = np.unique(np.column_stack([rng.integers(0, e, 2 * n) for e in (length, 60, 10)]),
-                       axis=0)
+    blocks = np.unique(
+        np.column_stack([rng.integers(0, e, 2 * n) for e in (length, 60, 10)]), axis=0
+    )
     return blocks[rng.permutation(len(blocks))[:n]]
 
 
@@ -127,7 +139,8 @@ def test_store_is_compact():
     store holds well under half of the field's ~100 B per voxel, memory and disk together."""
     rng = np.random.default_rng(2)
     keys, counts, t_last, ell = clustered_voxels(
-        rng, np.unique(rng.integers(-2000, 2000, (5000, 3)), axis=0), 8)
+        rng, np.unique(rng.integers(-2000, 2000, (5000, 3)), axis=0), 8
+    )
     store = BlockStore(20)
     store.put(keys, counts, t_last, ell)
     assert (store.nbytes + store.disk_bytes) / len(store) < 45
@@ -138,27 +151,31 @@ def test_store_keeps_its_payload_on_disk(tmp_path):
     holds in memory, by its own count and by what Python allocated, is a few % of its payload,
     which is in the spill file."""
     import tracemalloc
+
     rng = np.random.default_rng(5)
     want = clustered_voxels(rng, street_blocks(rng, 20000), 16)
-    slabs = [np.flatnonzero((want[0][:, 0] >= x) & (want[0][:, 0] < x + 24))
-             for x in range(0, 6000, 24)]
+    slabs = [
+        np.flatnonzero((want[0][:, 0] >= x) & (want[0][:, 0] < x + 24)) for x in range(0, 6000, 24)
+    ]
     tracemalloc.start()
     try:
         before = tracemalloc.get_traced_memory()[0]
         store = BlockStore(20, spill_dir=tmp_path)
-        for x, idx in zip(range(0, 6000, 24), slabs):   # a window sliding +x, 24 voxels a scan
+        for x, idx in zip(range(0, 6000, 24), slabs):  # a window sliding +x, 24 voxels a scan
             store.put(*(a[idx] for a in want), box=(np.array([x + 524, 0, 0]), np.full(3, 500)))
         held = tracemalloc.get_traced_memory()[0] - before
     finally:
         tracemalloc.stop()
     n = len(store)
     assert n == len(want[0])
-    print(f"per stored voxel: {store.nbytes / n:.2f} B in memory (store.nbytes), "
-          f"{held / n:.2f} B allocated, {store.disk_bytes / n:.2f} B on disk")
+    print(
+        f"per stored voxel: {store.nbytes / n:.2f} B in memory (store.nbytes), "
+        f"{held / n:.2f} B allocated, {store.disk_bytes / n:.2f} B on disk"
+    )
     assert 30 < store.disk_bytes / n < 40
     assert store.nbytes < 0.05 * store.disk_bytes
     assert held < 0.15 * store.disk_bytes
-    assert os.listdir(tmp_path) == []           # the spill file has no name
+    assert os.listdir(tmp_path) == []  # the spill file has no name
 
 
 def test_store_round_trip_through_the_spill_file():
@@ -167,14 +184,14 @@ def test_store_round_trip_through_the_spill_file():
     rng = np.random.default_rng(6)
     want = clustered_voxels(rng, np.unique(rng.integers(-40, 40, (4000, 3)), axis=0), 10)
     keys = want[0]
-    here = np.zeros(len(keys), bool)             # the model: which voxels are stored
+    here = np.zeros(len(keys), bool)  # the model: which voxels are stored
     order = np.argsort(pack(keys))
 
     def rows(k):
         return order[np.searchsorted(pack(keys)[order], pack(k))]
 
     store = BlockStore(20, rewrite_floor=1 << 14, segment_voxels=3000)
-    store.put(*want)                             # cut into k-d pieces of <= 3000 voxels
+    store.put(*want)  # cut into k-d pieces of <= 3000 voxels
     here[:] = True
     assert store.num_segments > len(keys) / 3000
     for step in range(40):
@@ -219,7 +236,7 @@ def test_store_file_stays_bounded():
     rng = np.random.default_rng(7)
     want = clustered_voxels(rng, street_blocks(rng, 6000, length=600), 12)
     x = want[0][:, 0]
-    gap = x % 40 > 36            # what the narrow windows below never take: stored once
+    gap = x % 40 > 36  # what the narrow windows below never take: stored once
     floor = 256 << 10
     store = BlockStore(20, rewrite_floor=floor)
     written, most, biggest = 0, 0, 0
@@ -227,17 +244,19 @@ def test_store_file_stays_bounded():
         for x0 in range(0, 2400, 200):
             sel = (x >= x0) & (x < x0 + 200) & (~gap if lap else True)
             before = store.disk_bytes
-            store.put(*(a[sel] for a in want), box=(np.array([x0 + 1200, 0, 0]),
-                                                   np.array([1000, 500, 500])))
+            store.put(
+                *(a[sel] for a in want),
+                box=(np.array([x0 + 1200, 0, 0]), np.array([1000, 500, 500])),
+            )
             written += store.disk_bytes - before
             most = max(most, store.disk_bytes)
             biggest = max(biggest, store.spill_file_bytes)
             assert store.spill_file_bytes <= max(2 * store.disk_bytes, store.disk_bytes + floor)
-        for x0 in range(0, 2400, 40):   # back over it: windows that cut blocks, gaps between
+        for x0 in range(0, 2400, 40):  # back over it: windows that cut blocks, gaps between
             store.take_box(np.array([x0 + 18, 0, 0]), np.array([18, 500, 500]))
         assert len(store) == gap.sum()
     assert biggest <= 2 * most + floor
-    assert written > 3 * (2 * most + floor)     # without the rewrites the file would be this big
+    assert written > 3 * (2 * most + floor)  # without the rewrites the file would be this big
     assert store.spill_rewrites > 0
 
 
@@ -270,6 +289,6 @@ def test_store_refuses_a_missing_spill_dir_and_survives_a_full_disk(tmp_path):
     assert len(store) == west.sum()
     for g, e in zip(sort_rows(store.arrays()), snapshot):
         np.testing.assert_array_equal(g, e)
-    store.put(*(a[~west] for a in want))          # and it goes on once there is room
+    store.put(*(a[~west] for a in want))  # and it goes on once there is room
     for g, e in zip(sort_rows(store.arrays()), sort_rows(want)):
         np.testing.assert_array_equal(g, e)

@@ -1,4 +1,5 @@
 """The synthetic sequence generator: determinism, geometry, label noise, files, the loop."""
+
 from __future__ import annotations
 
 import importlib.util
@@ -11,8 +12,8 @@ from tisem.labels import LEARNING_MAP_INV, raw_to_train
 from tisem.synth import SyntheticSequence, iter_synthetic, to_scan, write_semantickitti
 from tisem.synth.lidar import Lidar, ray_distances
 from tisem.synth.scene import MOVING_CAR, PERSON_INSTANCE, make_rng
-from tisem.synth.shapes import SHAPE_KINDS, Boxes, Cylinders, Ellipsoids, ShapeSet
 from tisem.synth.sequence import kitti08_tr
+from tisem.synth.shapes import SHAPE_KINDS, Boxes, Cylinders, Ellipsoids, ShapeSet
 
 SCENE_RAW_IDS = {10, 252, 30, 40, 44, 48, 50, 51, 70, 71, 72, 80, 81}
 
@@ -24,15 +25,18 @@ def street():
 
 
 def _same(a, b) -> bool:
-    return all(np.array_equal(getattr(a, k), getattr(b, k))
-               for k in ("points", "remission", "gt_raw", "pred_raw", "T_world_lidar", "instance"))
+    return all(
+        np.array_equal(getattr(a, k), getattr(b, k))
+        for k in ("points", "remission", "gt_raw", "pred_raw", "T_world_lidar", "instance")
+    )
 
 
 # ----------------------------------------------------------------------------- determinism
 
+
 def test_deterministic_per_seed_and_scan():
     a = SyntheticSequence(4, seed=7, points_per_ring=256)[2]
-    b = list(iter_synthetic(4, seed=7, points_per_ring=256))[2]     # in order, tiles cached
+    b = list(iter_synthetic(4, seed=7, points_per_ring=256))[2]  # in order, tiles cached
     assert _same(a, b)
     # the street's scan i does not depend on how many scans the drive has
     assert _same(a, SyntheticSequence(40, seed=7, points_per_ring=256)[2])
@@ -42,7 +46,7 @@ def test_deterministic_per_seed_and_scan():
 
 
 def test_rng_streams_are_independent_per_key():
-    draw = lambda *k: make_rng(*k).random(4)                           # noqa: E731
+    draw = lambda *k: make_rng(*k).random(4)  # noqa: E731
     np.testing.assert_array_equal(draw(0, "tile", 3), draw(0, "tile", 3))
     assert not np.array_equal(draw(0, "tile", 3), draw(0, "tile", -3))
     assert not np.array_equal(draw(0, "tile", 3), draw(1, "tile", 3))
@@ -59,22 +63,40 @@ def test_bad_arguments():
 
 # ----------------------------------------------------------------------------- geometry
 
+
 def test_culled_cast_matches_brute_force_intersection():
     """The azimuth/elevation culling must not lose a hit: compare with every ray against
     every primitive, on random primitives around a sensor, with the range noise off."""
     rng = np.random.default_rng(1)
     n = 40
-    u = lambda lo, hi, k=n: rng.uniform(lo, hi, k)                     # noqa: E731
-    lab = lambda: np.full(n, 50, dtype=np.uint32)                       # noqa: E731
+    u = lambda lo, hi, k=n: rng.uniform(lo, hi, k)  # noqa: E731
+    lab = lambda: np.full(n, 50, dtype=np.uint32)  # noqa: E731
     xy = np.column_stack([u(-40, 40), u(-40, 40)])
-    shapes = ShapeSet({
-        Boxes: Boxes(label=lab(), instance=lab() * 0, center=np.column_stack([xy, u(0, 3)]),
-                     half=np.column_stack([u(0.05, 6), u(0.05, 3), u(0.2, 3)]), yaw=u(-3, 3)),
-        Cylinders: Cylinders(label=lab(), instance=lab() * 0, center=xy[::-1] * 0.7,
-                             radius=u(0.05, 0.6), z0=u(-0.5, 0.5), z1=u(0.6, 8)),
-        Ellipsoids: Ellipsoids(label=lab(), instance=lab() * 0,
-                               center=np.column_stack([-xy, u(0.5, 5)]),
-                               radii=np.column_stack([u(0.3, 3), u(0.3, 3), u(0.3, 2)]))})
+    shapes = ShapeSet(
+        {
+            Boxes: Boxes(
+                label=lab(),
+                instance=lab() * 0,
+                center=np.column_stack([xy, u(0, 3)]),
+                half=np.column_stack([u(0.05, 6), u(0.05, 3), u(0.2, 3)]),
+                yaw=u(-3, 3),
+            ),
+            Cylinders: Cylinders(
+                label=lab(),
+                instance=lab() * 0,
+                center=xy[::-1] * 0.7,
+                radius=u(0.05, 0.6),
+                z0=u(-0.5, 0.5),
+                z1=u(0.6, 8),
+            ),
+            Ellipsoids: Ellipsoids(
+                label=lab(),
+                instance=lab() * 0,
+                center=np.column_stack([-xy, u(0.5, 5)]),
+                radii=np.column_stack([u(0.3, 3), u(0.3, 3), u(0.3, 2)]),
+            ),
+        }
+    )
     lidar = Lidar(points_per_ring=128, range_noise_m=0.0)
     T = np.eye(4)
     T[:3, 3] = [0.3, -0.2, lidar.mount_height_m]
@@ -99,24 +121,46 @@ def test_primitive_distances_are_analytic():
     o = np.array([0.0, 0.0, 1.0])
     x = np.array([[1.0, 0.0, 0.0]])
     one = np.zeros(1, dtype=np.uint32)
-    box = Boxes(label=one, instance=one, center=np.array([[10.0, 0.0, 1.0]]),
-                half=np.array([[2.0, 1.0, 1.0]]), yaw=np.array([np.pi / 2]))   # turned: 1 m deep
-    cyl = Cylinders(label=one, instance=one, center=np.array([[6.0, 0.0]]), radius=np.array([0.5]),
-                    z0=np.array([0.0]), z1=np.array([3.0]))
-    ell = Ellipsoids(label=one, instance=one, center=np.array([[20.0, 0.0, 1.0]]),
-                     radii=np.array([[2.0, 1.0, 1.0]]))
+    box = Boxes(
+        label=one,
+        instance=one,
+        center=np.array([[10.0, 0.0, 1.0]]),
+        half=np.array([[2.0, 1.0, 1.0]]),
+        yaw=np.array([np.pi / 2]),
+    )  # turned: 1 m deep
+    cyl = Cylinders(
+        label=one,
+        instance=one,
+        center=np.array([[6.0, 0.0]]),
+        radius=np.array([0.5]),
+        z0=np.array([0.0]),
+        z1=np.array([3.0]),
+    )
+    ell = Ellipsoids(
+        label=one,
+        instance=one,
+        center=np.array([[20.0, 0.0, 1.0]]),
+        radii=np.array([[2.0, 1.0, 1.0]]),
+    )
     idx = np.zeros(1, dtype=np.int64)
     assert ray_distances(box, idx, o, x)[0] == pytest.approx(9.0)
     assert ray_distances(cyl, idx, o, x)[0] == pytest.approx(5.5)
     assert ray_distances(ell, idx, o, x)[0] == pytest.approx(18.0)
-    assert np.isinf(ray_distances(box, idx, o, -x)[0])                 # behind the sensor
-    down = np.array([[0.0, 0.0, -1.0]])                                # onto a cylinder's top
-    cap = Cylinders(label=one, instance=one, center=np.array([[0.0, 0.0]]), radius=np.array([0.3]),
-                    z0=np.array([0.0]), z1=np.array([0.4]))
+    assert np.isinf(ray_distances(box, idx, o, -x)[0])  # behind the sensor
+    down = np.array([[0.0, 0.0, -1.0]])  # onto a cylinder's top
+    cap = Cylinders(
+        label=one,
+        instance=one,
+        center=np.array([[0.0, 0.0]]),
+        radius=np.array([0.3]),
+        z0=np.array([0.0]),
+        z1=np.array([0.4]),
+    )
     assert ray_distances(cap, idx, o, down)[0] == pytest.approx(0.6)
 
 
 # ----------------------------------------------------------------------------- scene content
+
 
 def test_every_class_appears_and_points_are_sane(street):
     seen = set()
@@ -130,7 +174,7 @@ def test_every_class_appears_and_points_are_sane(street):
         assert np.all(np.isfinite(f.points)) and np.all((f.remission >= 0) & (f.remission <= 1))
         r = np.linalg.norm(f.points, axis=1)
         assert r.max() <= 80.0 + 1e-3 and r.min() >= 1.0 - 1e-3
-        assert np.all(np.isin(f.pred_raw, LEARNING_MAP_INV[1:]))      # a network: never 0
+        assert np.all(np.isin(f.pred_raw, LEARNING_MAP_INV[1:]))  # a network: never 0
         assert f.stamp_s == pytest.approx(0.1 * f.index)
         cars = np.isin(f.gt_raw, (10, 252))
         assert np.all(f.instance[cars] > 0) and np.all(f.instance[~cars & (f.gt_raw != 30)] == 0)
@@ -148,14 +192,15 @@ def test_moving_car_and_person_move(street):
         return (p @ f.T_world_lidar[:3, :3].T + f.T_world_lidar[:3, 3]).mean(axis=0)
 
     # the moving car, seen in the data: it travels metres in 0.4 s
-    shift = np.linalg.norm(world_centroid(street[4], MOVING_CAR)
-                           - world_centroid(street[0], MOVING_CAR))
+    shift = np.linalg.norm(
+        world_centroid(street[4], MOVING_CAR) - world_centroid(street[0], MOVING_CAR)
+    )
     assert shift > 2.0
     # the person walks (their primitives move between scan times)
     seq = SyntheticSequence(5, seed=0)
     person = [seq.world.actors(t).parts[Cylinders] for t in (0.0, 0.4)]
     c = [p.center[p.instance == PERSON_INSTANCE][0] for p in person]
-    assert 0.3 < np.linalg.norm(c[1] - c[0]) < 1.0                    # ~1.3 m/s walking
+    assert 0.3 < np.linalg.norm(c[1] - c[0]) < 1.0  # ~1.3 m/s walking
     # and both are left out of a static render
     static = seq.frame(0, dynamic=False)
     assert not np.isin(static.gt_raw, (MOVING_CAR, 30)).any()
@@ -189,38 +234,40 @@ def test_noisy_labels_accuracy_range_and_boundaries():
 
 # ----------------------------------------------------------------------------- the loop
 
+
 def test_loop_goes_far_and_comes_back():
     seq = SyntheticSequence(4000, seed=0, route="loop")
     xy = seq.poses()[:, :2, 3]
     from_start = np.linalg.norm(xy - xy[0], axis=1)
-    assert from_start.max() > 800.0                                     # a long excursion
-    assert from_start[3000:].min() < 20.0                               # back at the start ...
-    assert from_start[-1] > 50.0                                        # ... and on past it
+    assert from_start.max() > 800.0  # a long excursion
+    assert from_start[3000:].min() < 20.0  # back at the start ...
+    assert from_start[-1] > 50.0  # ... and on past it
     step = np.linalg.norm(np.diff(xy, axis=0), axis=1)
-    assert np.allclose(step, 1.0, atol=0.02)        # 10 m/s (a little more in the outer lane)
+    assert np.allclose(step, 1.0, atol=0.02)  # 10 m/s (a little more in the outer lane)
 
 
 def test_loop_revisit_sees_the_same_scene():
-    seq = SyntheticSequence(1100, seed=3, route="loop", points_per_ring=256)   # a 1 km loop
+    seq = SyntheticSequence(1100, seed=3, route="loop", points_per_ring=256)  # a 1 km loop
     revisit = 1000
     np.testing.assert_allclose(seq.poses([revisit])[0], seq.poses([0])[0], atol=1e-9)
     first = seq.frame(0, dynamic=False)
-    for i in (250, 500, 750):                 # round the loop: the start's tiles leave the cache
+    for i in (250, 500, 750):  # round the loop: the start's tiles leave the cache
         seq.frame(i, dynamic=False)
     assert seq.world.tile_id(0.0) not in seq.world.cached_tile_ids
     again = seq.frame(revisit, dynamic=False)
     np.testing.assert_array_equal(again.gt_raw, first.gt_raw)
-    np.testing.assert_allclose(again.points, first.points, atol=0.2)   # only range noise differs
+    np.testing.assert_allclose(again.points, first.points, atol=0.2)  # only range noise differs
     # fresh label noise at the revisit: errors come in coherent patches that move between scans
     gt = raw_to_train(first.gt_raw)[0]
     err = [raw_to_train(f.pred_raw)[0] != gt for f in (first, again)]
     overlap = (err[0] & err[1]).sum() / (err[0] | err[1]).sum()
     assert overlap < 0.5, overlap
-    for e in err:       # points are in ring-major order: the next point is the next column
+    for e in err:  # points are in ring-major order: the next point is the next column
         assert e[1:][e[:-1]].mean() > 1.5 * e.mean()
 
 
 # ----------------------------------------------------------------------------- outputs
+
 
 def test_to_scan(street):
     f = street[3]
@@ -271,7 +318,19 @@ def test_make_synthetic_app(tmp_path, caplog):
     args = parse_args(["--out", str(tmp_path / "s"), "--scans", "2", "--seed", "3"])
     assert args.route == "street" and args.points_per_ring == 1024
     caplog.set_level("INFO")
-    assert main(["--out", str(tmp_path / "s"), "--scans", "2", "--points-per-ring", "64",
-                 "--no-progress"]) == 0
+    assert (
+        main(
+            [
+                "--out",
+                str(tmp_path / "s"),
+                "--scans",
+                "2",
+                "--points-per-ring",
+                "64",
+                "--no-progress",
+            ]
+        )
+        == 0
+    )
     assert len(list((tmp_path / "s" / "velodyne").glob("*.bin"))) == 2
     assert "accuracy" in caplog.text

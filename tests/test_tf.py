@@ -1,11 +1,20 @@
 """TfBuffer against analytic poses: chains, interpolation, static edges, errors."""
+
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from tisem.io.tf import (ConnectivityError, ExtrapolationError, TfBuffer, invert, make_transform,
-                         matrix_to_quat, quat_to_matrix, slerp)
+from tisem.io.tf import (
+    ConnectivityError,
+    ExtrapolationError,
+    TfBuffer,
+    invert,
+    make_transform,
+    matrix_to_quat,
+    quat_to_matrix,
+    slerp,
+)
 
 NS = 1_000_000_000
 
@@ -27,7 +36,7 @@ def T_of(R, t) -> np.ndarray:
 
 # the analytic motion: constant velocity and a constant yaw rate, sampled at 20 Hz
 V = np.array([3.0, -1.0, 0.2])
-W = 0.7                                            # rad/s
+W = 0.7  # rad/s
 T_BASE_LIDAR = T_of(rot_z(0.3) @ quat_to_matrix([0.1, 0.0, 0.0, 1.0]), [0.5, 0.1, 1.6])
 T_MAP_ODOM = T_of(rot_z(-0.2), [10.0, 5.0, 0.0])
 
@@ -41,8 +50,14 @@ def chain() -> TfBuffer:
     """map -> odom (static) -> base_link (20 Hz, 0..2 s) -> lidar (static)."""
     tf = TfBuffer()
     tf.add("map", "odom", 0, T_MAP_ODOM[:3, 3], matrix_to_quat(T_MAP_ODOM[:3, :3]), static=True)
-    tf.add("/base_link", "lidar", 0, T_BASE_LIDAR[:3, 3], matrix_to_quat(T_BASE_LIDAR[:3, :3]),
-           static=True)                           # ROS 1 style leading '/' is stripped
+    tf.add(
+        "/base_link",
+        "lidar",
+        0,
+        T_BASE_LIDAR[:3, 3],
+        matrix_to_quat(T_BASE_LIDAR[:3, :3]),
+        static=True,
+    )  # ROS 1 style leading '/' is stripped
     for k in range(41):
         t = k * NS // 20
         tf.add("odom", "base_link", t, odom_base(t / NS)[:3, 3], yaw(W * t / NS))
@@ -107,8 +122,10 @@ def test_unconnected_and_unknown_frames(chain):
 def test_a_second_parent_is_ignored_and_reported(chain):
     chain.add("map", "base_link", 0, [0, 0, 0], [0, 0, 0, 1])
     assert any("base_link" in w and "parent" in w for w in chain.warnings)
-    assert np.abs(chain.lookup("map", "lidar", 0) -
-                  T_MAP_ODOM @ odom_base(0) @ T_BASE_LIDAR).max() < 1e-12
+    assert (
+        np.abs(chain.lookup("map", "lidar", 0) - T_MAP_ODOM @ odom_base(0) @ T_BASE_LIDAR).max()
+        < 1e-12
+    )
 
 
 def test_single_sample_edge_only_at_its_stamp():
@@ -130,7 +147,7 @@ def test_duplicate_stamps_keep_the_latest_and_unsorted_input_is_sorted():
 
 
 def test_slerp_takes_the_short_way_and_handles_sign_flips():
-    q0, q1 = yaw(0.1), -yaw(0.5)                   # same rotation as yaw(0.5), opposite sign
+    q0, q1 = yaw(0.1), -yaw(0.5)  # same rotation as yaw(0.5), opposite sign
     q = slerp(q0[None], q1[None], np.array([0.5]))[0]
     assert np.allclose(quat_to_matrix(q), rot_z(0.3), atol=1e-12)
     same = slerp(q0[None], q0[None], np.array([0.3]))[0]
@@ -157,7 +174,7 @@ def test_bad_transforms_are_ignored_with_a_warning():
     tf.add("map", "a", 0, [np.nan, 0, 0], [0, 0, 0, 1])
     tf.add("map", "b", 0, [0, 0, 0], [0, 0, 0, 0])
     tf.add("map", "map", 0, [0, 0, 0], [0, 0, 0, 1])
-    tf.add("map", "c", 2 ** 63, [0, 0, 0], [0, 0, 0, 1])
+    tf.add("map", "c", 2**63, [0, 0, 0], [0, 0, 0, 1])
     assert len(tf.warnings) == 4 and tf.frames == set()
 
 
@@ -169,9 +186,12 @@ def test_ignored_transforms_are_counted_and_named_when_a_frame_is_missing():
         tf.add("map", "base_link", k * NS, [0, 0, 0], [0, 0, 0, 0])
     tf.add("base_link", "lidar", 0, [0, 0, 1], [0, 0, 0, 1], static=True)
     assert tf.warnings == ["ignored 16 transform(s) map -> base_link with a zero quaternion"]
-    with pytest.raises(ConnectivityError, match=r"frame 'map' does not appear in any transform; "
-                       r"known frames: base_link, lidar; ignored 16 transform\(s\) map -> "
-                       r"base_link with a zero quaternion"):
+    with pytest.raises(
+        ConnectivityError,
+        match=r"frame 'map' does not appear in any transform; "
+        r"known frames: base_link, lidar; ignored 16 transform\(s\) map -> "
+        r"base_link with a zero quaternion",
+    ):
         tf.lookup("map", "lidar", 0)
 
 
@@ -184,6 +204,8 @@ def test_an_interpolation_across_missing_samples_is_found(chain):
         tf.add("map", "odom", t, [t / NS, 0, 0], [0, 0, 0, 1])
     assert tf.interpolation_gap("map", "base_link", int(0.3 * NS)) is None
     gap = tf.interpolation_gap("map", "base_link", int(0.55 * NS))
-    assert gap == ("edge map -> odom has no samples from 0.450000 s to 0.650000 s around the "
-                   "stamp (its median spacing is 50.0 ms)")
-    assert tf.interpolation_gap("base_link", "map", int(0.61 * NS)) == gap   # either direction
+    assert gap == (
+        "edge map -> odom has no samples from 0.450000 s to 0.650000 s around the "
+        "stamp (its median spacing is 50.0 ms)"
+    )
+    assert tf.interpolation_gap("base_link", "map", int(0.61 * NS)) == gap  # either direction

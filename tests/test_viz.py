@@ -1,4 +1,5 @@
 """Pictures: the top-down map PNG and the 3-panel region comparison."""
+
 from __future__ import annotations
 
 import importlib.util
@@ -27,17 +28,19 @@ def road_and_building(res: float = 0.2) -> MapSnapshot:
     i, j = np.meshgrid(np.arange(n), np.arange(n), indexing="ij")
     road = np.stack([i.ravel(), j.ravel(), np.zeros(i.size, int)], 1)
     b = np.arange(round(2 / res))
-    bi, bj, bk = np.meshgrid(b + round(2 / res), b + round(6 / res), np.arange(1, 15),
-                             indexing="ij")
+    bi, bj, bk = np.meshgrid(
+        b + round(2 / res), b + round(6 / res), np.arange(1, 15), indexing="ij"
+    )
     building = np.stack([bi.ravel(), bj.ravel(), bk.ravel()], 1)
     empty = np.array([[round(7 / res), round(3 / res), 30]])
     keys = np.concatenate([road, building, empty]).astype(np.int64)
     counts = np.zeros((len(keys), 20), np.float32)
-    counts[:len(road), ROAD] = 3.0
-    counts[len(road):len(road) + len(building), BUILDING] = 2.0
+    counts[: len(road), ROAD] = 3.0
+    counts[len(road) : len(road) + len(building), BUILDING] = 2.0
     order = MapSnapshot.sort_order(keys)
-    return MapSnapshot(keys[order], counts[order], np.zeros(len(keys)),
-                       np.full(len(keys), 0.4, np.float32), res)
+    return MapSnapshot(
+        keys[order], counts[order], np.zeros(len(keys)), np.full(len(keys), 0.4, np.float32), res
+    )
 
 
 def png_pixel(img: np.ndarray, georef: dict, x: float, y: float) -> tuple:
@@ -52,16 +55,18 @@ def test_top_labels_keeps_the_highest_item_per_cell():
     grid = TopDownGrid.covering(0, 0, 2, 1, 1.0)
     assert (grid.width, grid.height) == (2, 1)
     xy = np.array([[0.5, 0.5], [0.2, 0.7], [0.9, 0.1], [1.5, 0.5], [5.0, 0.5]])
-    image = top_labels(grid, xy, z=np.array([1.0, 3.0, 2.0, 0.0, 9.0]),
-                       labels=np.array([1, 2, 3, 4, 5]))
-    assert image.tolist() == [[2, 4]]                 # the point outside the grid is ignored
+    image = top_labels(
+        grid, xy, z=np.array([1.0, 3.0, 2.0, 0.0, 9.0]), labels=np.array([1, 2, 3, 4, 5])
+    )
+    assert image.tolist() == [[2, 4]]  # the point outside the grid is ignored
 
 
 def test_bev_png_size_and_class_colours(tmp_path):
     snap = road_and_building()
     out = tmp_path / "map_bev.png"
-    cell = render_bev(snap, out, trajectory_xy=[(0.5, 5.0), (6.0, 5.0), (12.0, 5.0)],
-                      title="road + building")
+    cell = render_bev(
+        snap, out, trajectory_xy=[(0.5, 5.0), (6.0, 5.0), (12.0, 5.0)], title="road + building"
+    )
     assert cell == pytest.approx(0.2)
     with Image.open(out) as im:
         georef = json.loads(im.text[PNG_KEY])
@@ -73,13 +78,13 @@ def test_bev_png_size_and_class_colours(tmp_path):
     assert georef["zoom"] >= 1 and img.shape[0] >= 50 * georef["zoom"]
 
     road, building = tuple(CLASS_COLORS_RGB[ROAD]), tuple(CLASS_COLORS_RGB[BUILDING])
-    for x, y in [(8.1, 2.1), (5.3, 3.3), (9.9, 9.9), (7.1, 3.1)]:   # (7.1, 3.1): under the
-        assert png_pixel(img, georef, x, y) == road, (x, y)         # evidence-less voxel
-    for x, y in [(2.1, 6.1), (3.0, 7.0), (3.9, 7.9)]:               # highest voxel wins
+    for x, y in [(8.1, 2.1), (5.3, 3.3), (9.9, 9.9), (7.1, 3.1)]:  # (7.1, 3.1): under the
+        assert png_pixel(img, georef, x, y) == road, (x, y)  # evidence-less voxel
+    for x, y in [(2.1, 6.1), (3.0, 7.0), (3.9, 7.9)]:  # highest voxel wins
         assert png_pixel(img, georef, x, y) == building, (x, y)
-    for x, y in [(11.0, 2.0), (12.0, 9.0)]:                          # beyond the map
+    for x, y in [(11.0, 2.0), (12.0, 9.0)]:  # beyond the map
         assert png_pixel(img, georef, x, y) == WHITE, (x, y)
-    assert png_pixel(img, georef, 9.0, 5.0) not in (road, WHITE)     # the trajectory line
+    assert png_pixel(img, georef, 9.0, 5.0) not in (road, WHITE)  # the trajectory line
 
 
 def test_bev_coarsens_to_max_pixels(tmp_path):
@@ -97,8 +102,13 @@ def test_bev_coarsens_to_max_pixels(tmp_path):
 
 
 def test_bev_of_an_empty_map_on_black(tmp_path):
-    snap = MapSnapshot(np.zeros((0, 3), np.int64), np.zeros((0, 20), np.float32),
-                       np.zeros(0), np.zeros(0, np.float32), 0.2)
+    snap = MapSnapshot(
+        np.zeros((0, 3), np.int64),
+        np.zeros((0, 20), np.float32),
+        np.zeros(0),
+        np.zeros(0, np.float32),
+        0.2,
+    )
     out = tmp_path / "empty.png"
     assert render_bev(snap, out, background="black") == pytest.approx(0.2)
     with Image.open(out) as im:
@@ -108,6 +118,7 @@ def test_bev_of_an_empty_map_on_black(tmp_path):
 
 
 # --------------------------------------------------------------------------- comparison
+
 
 def _write_labels(path: Path, train_ids: np.ndarray) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -144,23 +155,30 @@ def results_dir(tmp_path) -> Path:
         gt = np.where(pts[:, 0] + i < 0, ROAD, SIDEWALK)
         _write_labels(seq / "labels" / f"{i:06d}.label", gt)
         _write_labels(seq / "predictions" / f"{i:06d}.label", np.where(k % 4 == 1, VEGETATION, gt))
-        _write_labels(tmp_path / "results" / "sequences" / "08" / "predictions" / f"{i:06d}.label",
-                      np.where(k % 20 == 3, VEGETATION, gt))
+        _write_labels(
+            tmp_path / "results" / "sequences" / "08" / "predictions" / f"{i:06d}.label",
+            np.where(k % 20 == 3, VEGETATION, gt),
+        )
     (seq / "poses.txt").write_text("\n".join(poses) + "\n")
 
     res = tmp_path / "results"
-    (res / "run.json").write_text(json.dumps({"data": str(seq), "sequence": "08", "first": 0,
-                                              "last": 2, "scan_ids": [0, 1, 2]}))
-    (res / "config.yaml").write_text(yaml.safe_dump({"mapper": {"max_range_m": 80.0},
-                                                     "input": "predictions", "first": 0,
-                                                     "last": 2}))
+    (res / "run.json").write_text(
+        json.dumps(
+            {"data": str(seq), "sequence": "08", "first": 0, "last": 2, "scan_ids": [0, 1, 2]}
+        )
+    )
+    (res / "config.yaml").write_text(
+        yaml.safe_dump(
+            {"mapper": {"max_range_m": 80.0}, "input": "predictions", "first": 0, "last": 2}
+        )
+    )
     return res
 
 
 def test_comparison_renders_with_region_accuracies(results_dir):
     result = render_comparison(results_dir)
     assert result["out"] == results_dir / "compare.png"
-    assert result["region"] == (-19.0, -20.0, 21.0, 20.0)   # 40 m around the middle sensor
+    assert result["region"] == (-19.0, -20.0, 21.0, 20.0)  # 40 m around the middle sensor
     assert result["scans"] == [0, 1, 2] and result["points"] == 3 * 1600
     assert result["accuracy"]["network"] == pytest.approx(0.75)
     assert result["accuracy"]["map"] == pytest.approx(0.95)
@@ -179,13 +197,21 @@ def _render_app():
 def test_render_app_region_scan_and_bev(results_dir, tmp_path, capsys):
     app = _render_app()
     out = tmp_path / "one.png"
-    assert app.main([str(results_dir), "--scan", "2", "--region", "0", "-5", "10", "5",
-                     "--out", str(out)]) == 0
+    assert (
+        app.main(
+            [str(results_dir), "--scan", "2", "--region", "0", "-5", "10", "5", "--out", str(out)]
+        )
+        == 0
+    )
     assert out.stat().st_size > 0
     assert "map      accuracy: 95.00 %" in capsys.readouterr().out
 
-    save_map(results_dir / "map.npz", road_and_building(), {"mode": "st"},
-             {"trajectory_xy": [[0.5, 5.0], [9.0, 5.0]]})
+    save_map(
+        results_dir / "map.npz",
+        road_and_building(),
+        {"mode": "st"},
+        {"trajectory_xy": [[0.5, 5.0], [9.0, 5.0]]},
+    )
     assert app.main([str(results_dir), "--bev"]) == 0
     assert (results_dir / "map_bev.png").stat().st_size > 0
 

@@ -7,6 +7,7 @@ arrays (`snapshot()`) and starts a fresh runtime before building the second. Sca
 hand-built streets (a few thousand labelled points, 20 m range), so a 25 m window evicts and
 reloads all the time.
 """
+
 from __future__ import annotations
 
 import logging
@@ -14,17 +15,16 @@ import math
 
 import numpy as np
 import pytest
-
 from helpers import fresh_runtime
+
 from tisem.config import MapperConfig, RunConfig
 from tisem.mapper import Mapper
-from tisem.scan import Scan
 from tisem.reference import sparse_kernel as kernel_g
+from tisem.scan import Scan
 from tisem.snapshot import MapSnapshot
 from tisem.store import pack
 
 ROAD, SIDEWALK, BUILDING, VEGETATION, POLE = 9, 11, 13, 15, 18
-
 
 
 def config(**kw) -> MapperConfig:
@@ -36,23 +36,49 @@ def config(**kw) -> MapperConfig:
 
 # --------------------------------------------------------------------------- scans
 
+
 def street(center_xy, rng, n=1500, reach=18.0):
     """World points of a street around center_xy along x: road and sidewalk, a facade, a hedge,
     poles every 5 m. Returns xyz (n, 3), ground-truth train ids (n,)."""
     cx, cy = center_xy
     k = rng.multinomial(n, [0.5, 0.2, 0.2, 0.1])
-    g = np.column_stack([cx + rng.uniform(-reach, reach, k[0]), cy + rng.uniform(-7.5, 7.5, k[0]),
-                         rng.normal(0, 0.02, k[0])])
-    b = np.column_stack([cx + rng.uniform(-reach, reach, k[1]),
-                         cy + 8.0 + rng.normal(0, 0.03, k[1]), rng.uniform(0, 3.5, k[1])])
-    v = np.column_stack([cx + rng.uniform(-reach, reach, k[2]),
-                         cy - 8.0 + rng.uniform(-0.5, 0.5, k[2]), rng.uniform(0, 2.5, k[2])])
+    g = np.column_stack(
+        [
+            cx + rng.uniform(-reach, reach, k[0]),
+            cy + rng.uniform(-7.5, 7.5, k[0]),
+            rng.normal(0, 0.02, k[0]),
+        ]
+    )
+    b = np.column_stack(
+        [
+            cx + rng.uniform(-reach, reach, k[1]),
+            cy + 8.0 + rng.normal(0, 0.03, k[1]),
+            rng.uniform(0, 3.5, k[1]),
+        ]
+    )
+    v = np.column_stack(
+        [
+            cx + rng.uniform(-reach, reach, k[2]),
+            cy - 8.0 + rng.uniform(-0.5, 0.5, k[2]),
+            rng.uniform(0, 2.5, k[2]),
+        ]
+    )
     px = np.round((cx + rng.uniform(-reach, reach, k[3])) / 5.0) * 5.0
-    p = np.column_stack([px + rng.normal(0, 0.05, k[3]), cy + 5.0 + rng.normal(0, 0.05, k[3]),
-                         rng.uniform(0, 3.0, k[3])])
-    labels = np.concatenate([np.where(np.abs(g[:, 1] - cy) < 4, ROAD, SIDEWALK),
-                             np.full(k[1], BUILDING), np.full(k[2], VEGETATION),
-                             np.full(k[3], POLE)]).astype(np.int32)
+    p = np.column_stack(
+        [
+            px + rng.normal(0, 0.05, k[3]),
+            cy + 5.0 + rng.normal(0, 0.05, k[3]),
+            rng.uniform(0, 3.0, k[3]),
+        ]
+    )
+    labels = np.concatenate(
+        [
+            np.where(np.abs(g[:, 1] - cy) < 4, ROAD, SIDEWALK),
+            np.full(k[1], BUILDING),
+            np.full(k[2], VEGETATION),
+            np.full(k[3], POLE),
+        ]
+    ).astype(np.int32)
     return np.concatenate([g, b, v, p]), labels
 
 
@@ -68,15 +94,24 @@ def scan_at(xyz_sensor, stamp, index, rng, n=1500, noise=0.1, world_shift=(0.0, 
     lab = gt.copy()
     flip = rng.random(len(lab)) < noise
     lab[flip] = rng.integers(1, 20, flip.sum())
-    return Scan(points_sensor=(xyz - T[:3, 3]) @ T[:3, :3], T_world_sensor=T, stamp_s=stamp,
-                labels=lab, gt_labels=gt, index=index, name=f"street {index}")
+    return Scan(
+        points_sensor=(xyz - T[:3, 3]) @ T[:3, :3],
+        T_world_sensor=T,
+        stamp_s=stamp,
+        labels=lab,
+        gt_labels=gt,
+        index=index,
+        name=f"street {index}",
+    )
 
 
 def drive(xs, seed=0, n=1500, t0=100.0, dt=0.1, world_shift=(0.0, 0.0, 0.0), y=0.0):
     """Scans with the sensor at x = xs[i] (1.7 m up), dt apart."""
     rng = np.random.default_rng(seed)
-    return [scan_at((x, y, 1.7), t0 + dt * i, i, rng, n, world_shift=world_shift)
-            for i, x in enumerate(xs)]
+    return [
+        scan_at((x, y, 1.7), t0 + dt * i, i, rng, n, world_shift=world_shift)
+        for i, x in enumerate(xs)
+    ]
 
 
 def out_and_back(n_out=8, step_m=10.0):
@@ -88,6 +123,7 @@ def out_and_back(n_out=8, step_m=10.0):
 
 # --------------------------------------------------------------------------- comparisons
 
+
 def assert_same_voxels(a, b, rtol=0.0, atol=0.0):
     """Same voxels, counters, times and lengths (rtol=atol=0: bitwise), same labels."""
     np.testing.assert_array_equal(a.keys, b.keys)
@@ -98,8 +134,9 @@ def assert_same_voxels(a, b, rtol=0.0, atol=0.0):
 
 
 def subset(snap, rows):
-    return MapSnapshot(snap.keys[rows], snap.counts[rows], snap.t_last[rows], snap.ell_m[rows],
-                       snap.resolution_m)
+    return MapSnapshot(
+        snap.keys[rows], snap.counts[rows], snap.t_last[rows], snap.ell_m[rows], snap.resolution_m
+    )
 
 
 def rows_of(snap, keys):
@@ -122,6 +159,7 @@ def map_drive(cfg, scans, check=None):
 
 
 # --------------------------------------------------------------------------- window and store
+
 
 def test_evict_and_reload_round_trip_exactly(taichi_cpu):
     cfg = config()
@@ -151,11 +189,11 @@ def test_evict_and_reload_round_trip_exactly(taichi_cpu):
     rep = mapper.integrate(empty)
     assert rep.reloaded_voxels == len(before)
     assert mapper.live_voxels == len(before)
-    live = mapper.live_snapshot()                # only what the Taichi field holds
+    live = mapper.live_snapshot()  # only what the Taichi field holds
     np.testing.assert_array_equal(live.keys, before.keys)
-    np.testing.assert_array_equal(live.counts, before.counts)                    # counters
+    np.testing.assert_array_equal(live.counts, before.counts)  # counters
     np.testing.assert_array_equal(live.t_last, before.t_last)
-    np.testing.assert_array_equal(live.ell_m, before.ell_m)                      # lengths
+    np.testing.assert_array_equal(live.ell_m, before.ell_m)  # lengths
 
 
 def test_points_on_voxel_faces_find_the_same_voxel_live_and_stored(taichi_cpu):
@@ -167,13 +205,14 @@ def test_points_on_voxel_faces_find_the_same_voxel_live_and_stored(taichi_cpu):
     for s in drive([0.0, 1.0], seed=3):
         mapper.integrate(s)
     snap = mapper.snapshot()
-    corner = snap.keys.astype(np.float64) * cfg.resolution_m     # lower corners, world metres
+    corner = snap.keys.astype(np.float64) * cfg.resolution_m  # lower corners, world metres
     half = cfg.resolution_m / 2
-    faces = np.concatenate([corner, corner + [half, half, 0.0], corner + [0.0, half, half],
-                            corner + [half, 0.0, half]])
+    faces = np.concatenate(
+        [corner, corner + [half, half, 0.0], corner + [0.0, half, half], corner + [half, 0.0, half]]
+    )
     live_labels, live_probs = mapper.query(faces)
     assert mapper.stored_voxels == 0
-    mapper.integrate(drive([300.0], seed=4, t0=101.0)[0])     # everything goes to the store
+    mapper.integrate(drive([300.0], seed=4, t0=101.0)[0])  # everything goes to the store
     assert mapper.stored_voxels == len(snap)
     stored_labels, stored_probs = mapper.query(faces)
     np.testing.assert_array_equal(stored_labels, live_labels)
@@ -218,16 +257,18 @@ def test_cap_shrinks_the_window_and_the_map_stays_correct(taichi_cpu, caplog):
     del ref
 
     fresh_runtime()
-    cap = 3300        # 2/3 of what the drive needs; a scan alone adds ~1000 blocks
+    cap = 3300  # 2/3 of what the drive needs; a scan alone adds ~1000 blocks
     assert peak > 1.5 * cap
     seen = []
     with caplog.at_level(logging.WARNING, logger="tisem.live_window"):
         capped, _ = map_drive(
-            config(window_xy_m=64.0, max_live_blocks=cap), scans,
-            check=lambda m: seen.append((m.live_blocks, int(m.window.half_vox[0]))))
+            config(window_xy_m=64.0, max_live_blocks=cap),
+            scans,
+            check=lambda m: seen.append((m.live_blocks, int(m.window.half_vox[0]))),
+        )
     assert "shrunk" in caplog.text
     assert max(b for b, _ in seen) <= cap
-    assert min(h for _, h in seen) < 200            # 64 m = 320 voxels: it did shrink
+    assert min(h for _, h in seen) < 200  # 64 m = 320 voxels: it did shrink
     assert capped.stored_voxels > 0
     assert_same_voxels(capped.snapshot(), want, rtol=1e-5, atol=1e-6)
     labels, probs = capped.query(q)
@@ -236,14 +277,21 @@ def test_cap_shrinks_the_window_and_the_map_stays_correct(taichi_cpu, caplog):
 
 
 def test_cap_too_small_for_the_scans_cuts_them_and_a_map_that_cannot_fit_is_refused(
-        taichi_cpu, tmp_path, caplog):
+    taichi_cpu, tmp_path, caplog
+):
     from tisem.pipeline import run_pipeline
+
     scans = drive([0.0, 1.0, 2.0], seed=7)
     # a scan alone needs ~1000 blocks: each keeps the points in live blocks and in the nearest
     # new blocks it has room for, with one warning line; the cap holds and nothing is skipped
     with caplog.at_level(logging.WARNING, logger="tisem.mapper"):
-        result = run_pipeline(scans, RunConfig(mapper=config(max_live_blocks=50)), tmp_path,
-                              progress=False, write_outputs=False)
+        result = run_pipeline(
+            scans,
+            RunConfig(mapper=config(max_live_blocks=50)),
+            tmp_path,
+            progress=False,
+            write_outputs=False,
+        )
     assert result.metrics["scans"] == 3 and not result.metrics["skipped"]
     assert caplog.text.count("too dense for the block cap") == 3
     mapper = result.mapper
@@ -266,28 +314,33 @@ def test_far_origin_jumps_and_refusal(taichi_cpu):
         mapper.integrate(s)
     home = mapper.snapshot()
     assert np.all(np.abs(home.keys[:, 0] * home.resolution_m - utm[0]) < 30)
-    for s in scans[3:5]:                          # the bad fix: 5 km east
+    for s in scans[3:5]:  # the bad fix: 5 km east
         mapper.integrate(s)
     assert mapper.stored_voxels == len(home)
-    empty = Scan(np.zeros((0, 3)), scans[2].T_world_sensor, scans[4].stamp_s + 0.1,
-                 labels=np.zeros(0, np.int32), index=9)
-    mapper.integrate(empty)                       # back home: home is live again, untouched
+    empty = Scan(
+        np.zeros((0, 3)),
+        scans[2].T_world_sensor,
+        scans[4].stamp_s + 0.1,
+        labels=np.zeros(0, np.int32),
+        index=9,
+    )
+    mapper.integrate(empty)  # back home: home is live again, untouched
     snap = mapper.snapshot()
     x = snap.keys[:, 0] * snap.resolution_m - utm[0]
-    assert np.all((np.abs(x) < 30) | (np.abs(x - 5000) < 30))   # nothing anywhere else
+    assert np.all((np.abs(x) < 30) | (np.abs(x - 5000) < 30))  # nothing anywhere else
     assert_same_voxels(subset(snap, np.flatnonzero(np.abs(x) < 30)), home)
     assert mapper.live_voxels == len(home)
-    mapper.integrate(scans[5])                    # and mapping goes on there
+    mapper.integrate(scans[5])  # and mapping goes on there
     near = np.concatenate([s.points_world() for s in (scans[:3] + scans[5:])])
-    assert (mapper.query(near)[0] > 0).mean() > 0.95         # live
-    assert (mapper.query(scans[4].points_world())[0] > 0).mean() > 0.95   # 5 km away: stored
+    assert (mapper.query(near)[0] > 0).mean() > 0.95  # live
+    assert (mapper.query(scans[4].points_world())[0] > 0).mean() > 0.95  # 5 km away: stored
 
     bad = drive([300_000.0], seed=9, t0=101.0, world_shift=utm)[0]
     whole = mapper.snapshot()
     with pytest.raises(ValueError, match="km from the map origin"):
         mapper.integrate(bad)
     assert_same_voxels(mapper.snapshot(), whole)
-    labels, _ = mapper.query(bad.points_world())   # far queries: nothing there, no crash
+    labels, _ = mapper.query(bad.points_world())  # far queries: nothing there, no crash
     assert not labels.any()
 
 
@@ -296,36 +349,42 @@ def test_decay_covers_the_time_away(taichi_cpu):
     last update, time away included. The return scan is a few labelled points of one class, one
     per voxel, so its evidence is known: sigma0 sum g(d / ell) for that class, 0 for others."""
     tau, c = 5.0, POLE
-    cfg = config(tau_s=tau, thin_classes=[])    # the return's evidence: g(d / ell), uncapped
+    cfg = config(tau_s=tau, thin_classes=[])  # the return's evidence: g(d / ell), uncapped
     mapper = Mapper(cfg)
     home = drive([0.0], seed=10, t0=100.0, n=4000)[0]
     mapper.integrate(home)
-    mapper.integrate(drive([300.0], seed=11, t0=101.0)[0])     # away: home is stored
+    mapper.integrate(drive([300.0], seed=11, t0=101.0)[0])  # away: home is stored
     before = mapper.snapshot()
     near_home = np.abs(before.keys[:, 0] * 0.2) < 30
     assert mapper.stored_voxels == near_home.sum() == len(before) - mapper.live_voxels
     gx, gy = np.meshgrid(np.arange(2.55, 6.1, 0.5), np.arange(-1.45, 1.6, 0.5))
-    p = np.column_stack([gx.ravel(), gy.ravel(), np.full(gx.size, 0.03)])   # on the road
+    p = np.column_stack([gx.ravel(), gy.ravel(), np.full(gx.size, 0.03)])  # on the road
     T = home.T_world_sensor
-    mapper.integrate(Scan((p - T[:3, 3]) @ T[:3, :3], T, 104.0,
-                          labels=np.full(len(p), c, np.int32), index=3))
+    mapper.integrate(
+        Scan((p - T[:3, 3]) @ T[:3, :3], T, 104.0, labels=np.full(len(p), c, np.int32), index=3)
+    )
     after = mapper.snapshot()
-    assert mapper.stored_voxels == len(before) - near_home.sum()           # home is back
+    assert mapper.stored_voxels == len(before) - near_home.sum()  # home is back
 
     rows = rows_of(after, before.keys)
     hit = np.isin(pack(before.keys), pack(np.floor(p / 0.2).astype(np.int64)))
     reached = (after.t_last[rows] == 104.0) & ~hit
     assert reached.sum() > 50
     r0, r1 = np.flatnonzero(reached), rows[reached]
-    assert np.all(before.t_last[r0] == 100.0)       # 4 s since, 3 of them in the store
+    assert np.all(before.t_last[r0] == 100.0)  # 4 s since, 3 of them in the store
     alpha = np.exp(-(104.0 - before.t_last[r0]) / tau)
     others = np.arange(20) != c
-    np.testing.assert_allclose(after.counts[r1][:, others],
-                               alpha[:, None] * before.counts[r0][:, others], rtol=1e-6, atol=1e-12)
+    np.testing.assert_allclose(
+        after.counts[r1][:, others],
+        alpha[:, None] * before.counts[r0][:, others],
+        rtol=1e-6,
+        atol=1e-12,
+    )
     d = np.linalg.norm(before.centers()[r0, None, :] - p[None], axis=2)
     g = kernel_g(d / before.ell_m[r0, None]).sum(axis=1)
-    np.testing.assert_allclose(after.counts[r1, c], alpha * before.counts[r0, c] + cfg.sigma0 * g,
-                               rtol=1e-5, atol=1e-5)
+    np.testing.assert_allclose(
+        after.counts[r1, c], alpha * before.counts[r0, c] + cfg.sigma0 * g, rtol=1e-5, atol=1e-5
+    )
     # voxels it did not reach kept their counters and times (decay is lazy)
     kept = after.t_last[rows] < 104.0
     assert kept.sum() > 100
@@ -335,9 +394,23 @@ def test_decay_covers_the_time_away(taichi_cpu):
 
 def test_long_drive_benchmark_runs(tmp_path):
     from benchmarks import long_drive
-    args = long_drive.parse_args(["--scans", "12", "--every", "4", "--points-per-ring", "64",
-                                  "--start-scans", "3", "--json", str(tmp_path / "r.json"),
-                                  "--png", str(tmp_path / "r.png")])
+
+    args = long_drive.parse_args(
+        [
+            "--scans",
+            "12",
+            "--every",
+            "4",
+            "--points-per-ring",
+            "64",
+            "--start-scans",
+            "3",
+            "--json",
+            str(tmp_path / "r.json"),
+            "--png",
+            str(tmp_path / "r.png"),
+        ]
+    )
     r = long_drive.run(args)
     assert [row["scan"] for row in r["rows"]] == [4, 8, 12]
     assert {"rss_mb", "ms_per_scan", "live_voxels", "stored_voxels"} <= set(r["rows"][0])

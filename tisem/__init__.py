@@ -8,6 +8,7 @@
 The names below are imported on first use, so `import tisem` stays cheap (no Taichi until a
 mapper, `load_map` or `init_taichi` is needed).
 """
+
 from __future__ import annotations
 
 import importlib
@@ -27,15 +28,15 @@ def _kernels_of_checkout() -> None:
     under one name."""
     package = Path(__file__).resolve().parent
     checkout = package.parent / "kernels" / "__init__.py"
-    if (package / "kernels").is_dir() or "tisem.kernels" in sys.modules \
-            or not checkout.is_file():
+    if (package / "kernels").is_dir() or "tisem.kernels" in sys.modules or not checkout.is_file():
         return
     spec = importlib.util.spec_from_file_location(
-        "tisem.kernels", checkout, submodule_search_locations=[str(checkout.parent)])
+        "tisem.kernels", checkout, submodule_search_locations=[str(checkout.parent)]
+    )
     module = importlib.util.module_from_spec(spec)
     sys.modules["tisem.kernels"] = module
     spec.loader.exec_module(module)
-    globals()["kernels"] = module          # what the import system does for a subpackage
+    globals()["kernels"] = module  # what the import system does for a subpackage
 
 
 _kernels_of_checkout()
@@ -60,7 +61,7 @@ def __getattr__(name: str):
     if module is None:
         raise AttributeError(f"module 'tisem' has no attribute {name!r}")
     value = getattr(importlib.import_module(module), name)
-    globals()[name] = value   # later look-ups skip this function
+    globals()[name] = value  # later look-ups skip this function
     return value
 
 

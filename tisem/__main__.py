@@ -1,4 +1,5 @@
 """`python -m tisem COMMAND ...` is the `tisem` command."""
+
 from tisem.commands import console
 
 if __name__ == "__main__":

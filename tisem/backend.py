@@ -1,4 +1,5 @@
 """Taichi start-up: one place that picks the backend and its limits."""
+
 from __future__ import annotations
 
 import logging
@@ -12,7 +13,7 @@ _ARCHS = {"cpu": ti.cpu, "cuda": ti.cuda}
 # Every ti.init starts a new "generation": fields of an older one must never be touched again
 # (taichi aborts the process), so each map remembers the generation it was built in.
 _generation = 0
-_map_owner: int | None = None   # generation that already holds a map
+_map_owner: int | None = None  # generation that already holds a map
 
 
 def generation() -> int:
@@ -34,7 +35,8 @@ def claim_map_slot() -> int:
         raise RuntimeError(
             "a tisem map already lives in this Taichi runtime; taichi 1.7.4 cannot hold two "
             "sparse maps safely. Call tisem.init_taichi() to start a fresh runtime (the old map "
-            "becomes unusable), or run the second map in another process.")
+            "becomes unusable), or run the second map in another process."
+        )
     _map_owner = _generation
     return _generation
 
@@ -56,18 +58,24 @@ def usable_threads(requested: int) -> int:
     available, the cores available (each Taichi CPU thread is an OS thread: 100,000 of them
     exhaust the machine's process limit), with one warning saying so."""
     if isinstance(requested, bool) or not isinstance(requested, int) or requested < 1:
-        raise ValueError(f"--threads {requested}: expected a whole number >= 1 (the CPU "
-                         f"threads of the kernels)")
+        raise ValueError(
+            f"--threads {requested}: expected a whole number >= 1 (the CPU threads of the kernels)"
+        )
     cores = available_cores()
     if requested > cores:
-        log.warning("--threads %d: this machine has %d cores available; using %d threads",
-                    requested, cores, cores)
+        log.warning(
+            "--threads %d: this machine has %d cores available; using %d threads",
+            requested,
+            cores,
+            cores,
+        )
         return cores
     return requested
 
 
-def init_taichi(arch: str = "cpu", threads: int | None = 2, debug: bool = False,
-                device_memory_gb: float = 4.0) -> str:
+def init_taichi(
+    arch: str = "cpu", threads: int | None = 2, debug: bool = False, device_memory_gb: float = 4.0
+) -> str:
     """Initialise Taichi on `arch` ("cpu" or "cuda"); returns the arch actually running.
 
     `threads`: CPU threads for the kernels (None: Taichi's default), refused below 1 and
@@ -88,8 +96,9 @@ def init_taichi(arch: str = "cpu", threads: int | None = 2, debug: bool = False,
     _generation += 1
     running = ti.lang.impl.current_cfg().arch.name
     if running != _ARCHS[arch].name:
-        raise RuntimeError(f"asked for --arch {arch} but Taichi started on {running} "
-                           f"(no {arch} device available?)")
+        raise RuntimeError(
+            f"asked for --arch {arch} but Taichi started on {running} (no {arch} device available?)"
+        )
     return running
 
 
@@ -97,13 +106,14 @@ def ensure_initialized() -> None:
     global _generation
     if not is_initialized():
         init_taichi("cpu", threads=None)
-    elif _generation == 0:        # initialised by the user with ti.init directly
+    elif _generation == 0:  # initialised by the user with ti.init directly
         _generation = 1
 
 
 def describe() -> str:
     """A one-line description of the running backend, for logs and benchmark tables."""
     import platform
+
     cfg = ti.lang.impl.current_cfg()
     arch = cfg.arch.name
     if arch == "x64" or arch == "arm64":

@@ -12,6 +12,7 @@ A cell is one log mapped under one config: the base `overrides` plus one value o
 kept, so a re-run does only what is missing (and starts no cluster when nothing is).
 `batch.json` and the table hold every cell's metrics and seconds per scan.
 """
+
 from __future__ import annotations
 
 import itertools
@@ -28,8 +29,15 @@ from tisem.logs import LogSpec, discover_logs, open_log
 
 log = logging.getLogger(__name__)
 
-__all__ = ["BatchOptions", "BatchResult", "parse_sweeps", "plan_cells", "run_batch",
-           "batch_table", "run_cell"]
+__all__ = [
+    "BatchOptions",
+    "BatchResult",
+    "parse_sweeps",
+    "plan_cells",
+    "run_batch",
+    "batch_table",
+    "run_cell",
+]
 
 CELL_FILE = "cell.json"
 
@@ -72,8 +80,12 @@ def _slug(text: str) -> str:
     return re.sub(r"[^A-Za-z0-9._=-]+", "_", text).strip("_")
 
 
-def plan_cells(logs: list[LogSpec], overrides: list[str], sweeps: list[str],
-               config_path: str | Path | None = None) -> list[dict]:
+def plan_cells(
+    logs: list[LogSpec],
+    overrides: list[str],
+    sweeps: list[str],
+    config_path: str | Path | None = None,
+) -> list[dict]:
     """Every (log, config) cell: its name, folder name and overrides, each config checked."""
     parsed = parse_sweeps(sweeps)
     combos = list(itertools.product(*[[(k, v) for v in vs] for k, vs in parsed])) or [()]
@@ -81,11 +93,17 @@ def plan_cells(logs: list[LogSpec], overrides: list[str], sweeps: list[str],
     for combo in combos:
         assignments = [f"{k}={v}" for k, v in combo]
         name = ",".join(assignments) or "default"
-        cfg = load_config(config_path, [*overrides, *assignments])   # bad keys fail here
+        cfg = load_config(config_path, [*overrides, *assignments])  # bad keys fail here
         for spec in logs:
-            cells.append({"log": spec.to_dict(), "cell": name, "folder": f"{spec.name}/"
-                          f"{_slug(name)}", "overrides": [*overrides, *assignments],
-                          "config": to_dict(cfg)})
+            cells.append(
+                {
+                    "log": spec.to_dict(),
+                    "cell": name,
+                    "folder": f"{spec.name}/{_slug(name)}",
+                    "overrides": [*overrides, *assignments],
+                    "config": to_dict(cfg),
+                }
+            )
     return cells
 
 
@@ -107,29 +125,52 @@ def run_cell(cell: dict, folder: str, threads: int, arch: str, map_files: bool) 
     from tisem.backend import init_taichi
     from tisem.config import run_config_from_dict
     from tisem.pipeline import run_pipeline
+
     cfg = run_config_from_dict(cell["config"])
     spec = LogSpec(**cell["log"])
     scans = open_log(spec, cfg.first, cfg.last, input=cfg.input)
     init_taichi(arch, threads=threads)
     started = time.perf_counter()
-    result = run_pipeline(scans, cfg, folder, progress=False, write_outputs=map_files,
-                          sequence_name=spec.name, total=len(scans),
-                          source_info={"data" if spec.kind == "kitti" else "mcap": spec.path,
-                                       "cell": cell["cell"], "threads": threads})
+    result = run_pipeline(
+        scans,
+        cfg,
+        folder,
+        progress=False,
+        write_outputs=map_files,
+        sequence_name=spec.name,
+        total=len(scans),
+        source_info={
+            "data" if spec.kind == "kitti" else "mcap": spec.path,
+            "cell": cell["cell"],
+            "threads": threads,
+        },
+    )
     m = result.metrics
-    row = {"log": spec.name, "cell": cell["cell"], "scans": m["scans"],
-           "skipped": len(m["skipped"]), "seconds_per_scan": m["seconds_per_scan"],
-           "wall_seconds": time.perf_counter() - started, "evaluated": m["evaluated"],
-           **{f"{k}": m["final"][k] for k in ("miou", "accuracy", "wiou")},
-           "input_miou": m["input"]["miou"], "input_accuracy": m["input"]["accuracy"]}
+    row = {
+        "log": spec.name,
+        "cell": cell["cell"],
+        "scans": m["scans"],
+        "skipped": len(m["skipped"]),
+        "seconds_per_scan": m["seconds_per_scan"],
+        "wall_seconds": time.perf_counter() - started,
+        "evaluated": m["evaluated"],
+        **{f"{k}": m["final"][k] for k in ("miou", "accuracy", "wiou")},
+        "input_miou": m["input"]["miou"],
+        "input_accuracy": m["input"]["accuracy"],
+    }
     (Path(folder) / CELL_FILE).write_text(json.dumps({**cell, "row": row}, indent=1))
     return row
 
 
-def run_batch(logs: list[LogSpec] | list[str], out_dir: str | Path, *,
-              overrides: list[str] = (), sweeps: list[str] = (),
-              options: BatchOptions | None = None,
-              config_path: str | Path | None = None) -> BatchResult:
+def run_batch(
+    logs: list[LogSpec] | list[str],
+    out_dir: str | Path,
+    *,
+    overrides: list[str] = (),
+    sweeps: list[str] = (),
+    options: BatchOptions | None = None,
+    config_path: str | Path | None = None,
+) -> BatchResult:
     """Run every missing cell (module docstring); write batch.json; return the rows.
     `config_path`: a YAML config under the overrides (default: the defaults)."""
     options = options or BatchOptions()
@@ -148,37 +189,68 @@ def run_batch(logs: list[LogSpec] | list[str], out_dir: str | Path, *,
     failed: dict[str, str] = {}
     if todo:
         with cluster.ray_cluster(options.address, options.num_cpus):
-            refs = {key: cluster.submit(run_cell, cpus=options.threads, retries=options.retries,
-                                        args=(cell, str(out_dir / key), options.threads,
-                                              options.arch, options.map_files))
-                    for key, cell in todo.items()}
+            refs = {
+                key: cluster.submit(
+                    run_cell,
+                    cpus=options.threads,
+                    retries=options.retries,
+                    args=(
+                        cell,
+                        str(out_dir / key),
+                        options.threads,
+                        options.arch,
+                        options.map_files,
+                    ),
+                )
+                for key, cell in todo.items()
+            }
             done, failed = cluster.gather(refs)
         rows.update({key: {**row, "status": "ran"} for key, row in done.items()})
         for key, reason in failed.items():
             cell = todo[key]
-            rows[key] = {"log": cell["log"]["name"], "cell": cell["cell"], "status": "failed",
-                         "reason": reason}
+            rows[key] = {
+                "log": cell["log"]["name"],
+                "cell": cell["cell"],
+                "status": "failed",
+                "reason": reason,
+            }
     ordered = [rows[c["folder"]] for c in cells]
     ran = sum(r["status"] == "ran" for r in ordered)
     kept = sum(r["status"] == "kept" for r in ordered)
     out_dir.mkdir(parents=True, exist_ok=True)
-    (out_dir / "batch.json").write_text(json.dumps(
-        {"options": asdict(options), "overrides": list(overrides), "sweeps": list(sweeps),
-         "cells": ordered, "ran": ran, "kept": kept, "failed": failed}, indent=1))
+    (out_dir / "batch.json").write_text(
+        json.dumps(
+            {
+                "options": asdict(options),
+                "overrides": list(overrides),
+                "sweeps": list(sweeps),
+                "cells": ordered,
+                "ran": ran,
+                "kept": kept,
+                "failed": failed,
+            },
+            indent=1,
+        )
+    )
     return BatchResult(out_dir, ordered, ran, kept, failed)
 
 
 def batch_table(rows: list[dict]) -> str:
     """A markdown table: one row per cell."""
-    out = ["| log | cell | mIoU | accuracy | wIoU | network mIoU | s / scan | scans | status |",
-           "| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | --- |"]
+    out = [
+        "| log | cell | mIoU | accuracy | wIoU | network mIoU | s / scan | scans | status |",
+        "| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | --- |",
+    ]
 
     def num(r, k, fmt="{:.4f}"):
         v = r.get(k)
         return "–" if v is None else fmt.format(v)
+
     for r in rows:
-        out.append(f"| {r['log']} | {r['cell']} | {num(r, 'miou')} | {num(r, 'accuracy')} | "
-                   f"{num(r, 'wiou')} | {num(r, 'input_miou')} | "
-                   f"{num(r, 'seconds_per_scan', '{:.3f}')} | {r.get('scans', '–')} | "
-                   f"{r['status']}{': ' + r['reason'] if r.get('reason') else ''} |")
+        out.append(
+            f"| {r['log']} | {r['cell']} | {num(r, 'miou')} | {num(r, 'accuracy')} | "
+            f"{num(r, 'wiou')} | {num(r, 'input_miou')} | "
+            f"{num(r, 'seconds_per_scan', '{:.3f}')} | {r.get('scans', '–')} | "
+            f"{r['status']}{': ' + r['reason'] if r.get('reason') else ''} |"
+        )
     return "\n".join(out)

@@ -10,6 +10,7 @@ same place still find room), keeping every point in a block already live and in 
 nearest the sensor; the rest is dropped, with the numbers in one line. A scan left with no
 point at all is refused.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -26,28 +27,33 @@ from tisem.kernels.window import flag_new_blocks
 class Cut:
     """Which points a too-dense scan keeps, and the numbers its message gives."""
 
-    keep: np.ndarray       # (N,) bool over the scan's points
-    new_blocks: int        # new leaf blocks the whole scan would have made live
-    kept_blocks: int       # of them, the ones kept (the nearest)
-    free_blocks: int       # room under the cap before the scan
-    reach_m: float         # how far from the sensor's block the farthest kept new block lies
+    keep: np.ndarray  # (N,) bool over the scan's points
+    new_blocks: int  # new leaf blocks the whole scan would have made live
+    kept_blocks: int  # of them, the ones kept (the nearest)
+    free_blocks: int  # room under the cap before the scan
+    reach_m: float  # how far from the sensor's block the farthest kept new block lies
 
     def describe(self, where: str, cap: int, used: int) -> str:
         kept = int(np.count_nonzero(self.keep))
-        return (f"{where}: too dense for the block cap: its {used:,} points need "
-                f"{self.new_blocks:,} new leaf blocks, {self.free_blocks:,} of "
-                f"max_live_blocks={cap:,} are free; kept the points in live blocks and in the "
-                f"{self.kept_blocks:,} nearest new blocks (within {self.reach_m:.1f} m): "
-                f"{kept:,} points mapped, {used - kept:,} dropped")
+        return (
+            f"{where}: too dense for the block cap: its {used:,} points need "
+            f"{self.new_blocks:,} new leaf blocks, {self.free_blocks:,} of "
+            f"max_live_blocks={cap:,} are free; kept the points in live blocks and in the "
+            f"{self.kept_blocks:,} nearest new blocks (within {self.reach_m:.1f} m): "
+            f"{kept:,} points mapped, {used - kept:,} dropped"
+        )
 
     def refusal(self, where: str, cap: int, used: int) -> str:
-        return (f"{where}: too dense for the block cap: its {used:,} points need "
-                f"{self.new_blocks:,} new leaf blocks and only {self.free_blocks:,} of "
-                f"max_live_blocks={cap:,} are free, none of them in a live block; skipped")
+        return (
+            f"{where}: too dense for the block cap: its {used:,} points need "
+            f"{self.new_blocks:,} new leaf blocks and only {self.free_blocks:,} of "
+            f"max_live_blocks={cap:,} are free, none of them in a live block; skipped"
+        )
 
 
-def new_blocks_beyond(fields: MapFields, params: ArgPack, cells: np.ndarray,
-                      free_blocks: int) -> np.ndarray | None:
+def new_blocks_beyond(
+    fields: MapFields, params: ArgPack, cells: np.ndarray, free_blocks: int
+) -> np.ndarray | None:
     """None when the scan's occupied table cells (`cells`) cannot make more than `free_blocks`
     leaf blocks live; else per cell 1 where it would add a new block (kernels/window.py).
     Only a scan with more occupied cells than room pays for the test."""
@@ -64,9 +70,15 @@ def blocks_allowed(free_blocks: int) -> int:
     return max(int(free_blocks), 0) // 2
 
 
-def cut_to_nearest(point_cell: np.ndarray, cells: np.ndarray, new: np.ndarray,
-                   table_shape: tuple, table_half: tuple, free_blocks: int,
-                   resolution_m: float) -> Cut:
+def cut_to_nearest(
+    point_cell: np.ndarray,
+    cells: np.ndarray,
+    new: np.ndarray,
+    table_shape: tuple,
+    table_half: tuple,
+    free_blocks: int,
+    resolution_m: float,
+) -> Cut:
     """The points to keep: those in occupied table cells (`cells`, sorted ids) that are not
     new (`new` 0) and those in the `blocks_allowed(free_blocks)` new cells nearest the sensor's
     block (ties by cell id: deterministic). `point_cell` is each point's cell id (DROPPED: not

@@ -23,6 +23,7 @@ The mapper config itself is the file's `mapper_config_yaml`, the map its snapsho
     labels, probs = mapper.query(points_world)
     tiled = tisem.load_map("results/fleet/maps/x")  # a tiled map: a TiledMap, read lazily
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -34,22 +35,36 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from tisem.config import (ConfigError, MapperConfig, RunConfig, mapper_config_from_dict,
-                          run_config_from_dict, to_dict)
+from tisem.config import (
+    ConfigError,
+    MapperConfig,
+    RunConfig,
+    mapper_config_from_dict,
+    run_config_from_dict,
+    to_dict,
+)
 from tisem.io import mapfile
 from tisem.progress import RunProgress
 from tisem.snapshot import MapSnapshot
 
-if TYPE_CHECKING:                      # (importing the mapper starts Taichi)
+if TYPE_CHECKING:  # (importing the mapper starts Taichi)
     from tisem.mapper import Mapper
     from tisem.tiles import TiledMap
 
 log = logging.getLogger(__name__)
 
-__all__ = ["CHECKPOINT_DIR", "Checkpoint", "checkpoint_file", "load_checkpoint",
-           "save_checkpoint", "open_checkpoint", "load_map", "mapper_from_file"]
+__all__ = [
+    "CHECKPOINT_DIR",
+    "Checkpoint",
+    "checkpoint_file",
+    "load_checkpoint",
+    "save_checkpoint",
+    "open_checkpoint",
+    "load_map",
+    "mapper_from_file",
+]
 
-CHECKPOINT_DIR = "checkpoint"          # <results>/checkpoint/checkpoint.npz
+CHECKPOINT_DIR = "checkpoint"  # <results>/checkpoint/checkpoint.npz
 MAP_NAME = "map.npz"
 
 
@@ -61,9 +76,11 @@ def checkpoint_file(path: str | os.PathLike) -> Path:
     for cand in (path / CHECKPOINT_DIR / mapfile.CHECKPOINT_NAME, path / mapfile.CHECKPOINT_NAME):
         if cand.is_file():
             return cand
-    raise FileNotFoundError(f"{path}: no checkpoint to resume from (looked for "
-                            f"{CHECKPOINT_DIR}/{mapfile.CHECKPOINT_NAME} and "
-                            f"{mapfile.CHECKPOINT_NAME} in it)")
+    raise FileNotFoundError(
+        f"{path}: no checkpoint to resume from (looked for "
+        f"{CHECKPOINT_DIR}/{mapfile.CHECKPOINT_NAME} and "
+        f"{mapfile.CHECKPOINT_NAME} in it)"
+    )
 
 
 def _map_file(path: str | os.PathLike) -> Path:
@@ -78,8 +95,10 @@ def _map_file(path: str | os.PathLike) -> Path:
             return checkpoint_file(path)
         except FileNotFoundError:
             pass
-    raise FileNotFoundError(f"{path}: no map file (expected a .npz, or a folder with {MAP_NAME} "
-                            f"or {CHECKPOINT_DIR}/{mapfile.CHECKPOINT_NAME})")
+    raise FileNotFoundError(
+        f"{path}: no map file (expected a .npz, or a folder with {MAP_NAME} "
+        f"or {CHECKPOINT_DIR}/{mapfile.CHECKPOINT_NAME})"
+    )
 
 
 def _state_from_snapshot(snapshot: MapSnapshot) -> dict:
@@ -90,9 +109,15 @@ def _state_from_snapshot(snapshot: MapSnapshot) -> dict:
     # imported here: the rule comes from the SNode layout, and `import tisem; tisem.load_map`
     # must not start Taichi
     from tisem.geometry import block_aligned_origin
+
     origin = block_aligned_origin(np.median(snapshot.keys, axis=0).astype(np.int64))
-    return {"origin_vox": origin.tolist(), "t0": float(snapshot.t_last.min()),
-            "center_vox": [0, 0, 0], "scans": 0, "last_stamp_s": None}
+    return {
+        "origin_vox": origin.tolist(),
+        "t0": float(snapshot.t_last.min()),
+        "center_vox": [0, 0, 0],
+        "scans": 0,
+        "last_stamp_s": None,
+    }
 
 
 @dataclass
@@ -109,8 +134,9 @@ class Checkpoint:
         """`Scan.index` of the last scan integrated before the checkpoint (None: unknown)."""
         v = self.meta.get("last_index")
         if v is not None and (isinstance(v, bool) or not isinstance(v, int) or v < 0):
-            raise mapfile.MapFileError(f"{self.path}: last_index {v!r} is not a scan number "
-                                       f"(an integer >= 0)")
+            raise mapfile.MapFileError(
+                f"{self.path}: last_index {v!r} is not a scan number (an integer >= 0)"
+            )
         return v
 
     @property
@@ -118,8 +144,9 @@ class Checkpoint:
         # checkpoints nest the state; map.npz files (outputs.write_map_files) store it as meta
         state = self.meta.get("mapper_state", self.meta)
         if not isinstance(state, dict):
-            raise mapfile.MapFileError(f"{self.path}: the mapper state is not a mapping: "
-                                       f"{state!r}"[:200])
+            raise mapfile.MapFileError(
+                f"{self.path}: the mapper state is not a mapping: {state!r}"[:200]
+            )
         if state.get("origin_vox") is None and len(self.snapshot):
             log.warning("%s: no mapper state stored; rebuilding one from the voxels", self.path)
             return _state_from_snapshot(self.snapshot)
@@ -140,10 +167,13 @@ class Checkpoint:
         that wrote the file, is kept only where that folder exists here."""
         data = dict(self.mapper_config)
         store_dir = data.get("store_dir")
-        if store_dir is not None and not (isinstance(store_dir, str)
-                                          and os.path.isdir(store_dir)):
-            log.info("%s: its store_dir %r is not a folder here; the store spills to the "
-                     "system's temp folder", self.path, store_dir)
+        if store_dir is not None and not (isinstance(store_dir, str) and os.path.isdir(store_dir)):
+            log.info(
+                "%s: its store_dir %r is not a folder here; the store spills to the "
+                "system's temp folder",
+                self.path,
+                store_dir,
+            )
             data["store_dir"] = None
         try:
             return mapper_config_from_dict(data, f"{self.path} mapper config")
@@ -159,8 +189,9 @@ class Checkpoint:
         if not isinstance(data, dict):
             raise mapfile.MapFileError(f"{self.path}: run_config is not a mapping")
         try:
-            cfg = run_config_from_dict({k: v for k, v in data.items() if k != "mapper"},
-                                       f"{self.path} run_config")
+            cfg = run_config_from_dict(
+                {k: v for k, v in data.items() if k != "mapper"}, f"{self.path} run_config"
+            )
         except ConfigError as exc:
             raise mapfile.MapFileError(str(exc)) from None
         cfg.mapper = mapper
@@ -176,15 +207,17 @@ class Checkpoint:
         if abs(snap.resolution_m - cfg.resolution_m) > 1e-9 * cfg.resolution_m:
             raise mapfile.MapFileError(
                 f"{self.path}: its voxels are {snap.resolution_m:g} m but its mapper config "
-                f"says resolution_m = {cfg.resolution_m:g}")
+                f"says resolution_m = {cfg.resolution_m:g}"
+            )
         if snap.counts.shape[1] != cfg.num_classes:
             raise mapfile.MapFileError(
                 f"{self.path}: its voxels have {snap.counts.shape[1]} class counters but its "
-                f"mapper config says num_classes = {cfg.num_classes}")
+                f"mapper config says num_classes = {cfg.num_classes}"
+            )
         _check_state(self.path, self.mapper_state, snap)
         self.run_config()
         self.progress(cfg.num_classes)
-        self.last_index
+        _ = self.last_index  # a property that refuses a value no run wrote
 
     def build_mapper(self, profile: bool = False, store_dir: str | None = None) -> Mapper:
         """A fresh `Mapper(config)` restored to this checkpoint's map and state. `store_dir`:
@@ -192,6 +225,7 @@ class Checkpoint:
         machine that wrote the file)."""
         from tisem.backend import ensure_initialized
         from tisem.mapper import Mapper
+
         ensure_initialized()
         mapper = Mapper(dataclasses.replace(self.config(), store_dir=store_dir), profile=profile)
         mapper.restore(self.snapshot, self.mapper_state)
@@ -201,19 +235,26 @@ class Checkpoint:
     def check_run_config(self, cfg: RunConfig) -> None:
         """Refuse to resume with a different mapper config; warn about other differences."""
         # where the store spills is a place on this machine, not part of the map
-        mine, theirs = ({k: v for k, v in to_dict(c).items() if k != "store_dir"}
-                        for c in (self.config(), cfg.mapper))
+        mine, theirs = (
+            {k: v for k, v in to_dict(c).items() if k != "store_dir"}
+            for c in (self.config(), cfg.mapper)
+        )
         diff = sorted(k for k in set(mine) | set(theirs) if mine.get(k) != theirs.get(k))
         if diff:
             listed = ", ".join(f"{k}: {mine.get(k)!r} vs {theirs.get(k)!r}" for k in diff)
-            raise ValueError(f"{self.path}: the checkpoint was made with a different mapper "
-                             f"config ({listed}); resume with Checkpoint.run_config()")
+            raise ValueError(
+                f"{self.path}: the checkpoint was made with a different mapper "
+                f"config ({listed}); resume with Checkpoint.run_config()"
+            )
         stored = self.meta.get("run_config") or {}
         now = to_dict(cfg)
         other = sorted(k for k in stored if k != "mapper" and stored[k] != now.get(k))
         if other:
-            log.warning("resuming %s with a different run config: %s", self.path,
-                        ", ".join(f"{k}: {stored[k]!r} -> {now.get(k)!r}" for k in other))
+            log.warning(
+                "resuming %s with a different run config: %s",
+                self.path,
+                ", ".join(f"{k}: {stored[k]!r} -> {now.get(k)!r}" for k in other),
+            )
 
     def progress(self, num_classes: int) -> RunProgress:
         """The run's progress when the checkpoint was written (empty for a bare map file)."""
@@ -227,18 +268,20 @@ class Checkpoint:
 def _check_state(path: Path, state: dict, snapshot: MapSnapshot) -> None:
     """A mapper state (`Mapper.state()`) that can be restored, and voxels within its keys'
     range around the origin; MapFileError otherwise."""
-    from tisem.store_segments import KEY_LIMIT     # (imports the layout, and with it taichi)
+    from tisem.store_segments import KEY_LIMIT  # (imports the layout, and with it taichi)
 
     def bad(what: str) -> mapfile.MapFileError:
-        return mapfile.MapFileError(f"{path}: the mapper state is not one a map can have: "
-                                    f"{what}")
+        return mapfile.MapFileError(f"{path}: the mapper state is not one a map can have: {what}")
 
     def voxel(name: str, optional: bool) -> np.ndarray | None:
         v = state.get(name)
         if v is None and optional:
             return None
-        if (not isinstance(v, list) or len(v) != 3
-                or not all(isinstance(x, int) and not isinstance(x, bool) for x in v)):
+        if (
+            not isinstance(v, list)
+            or len(v) != 3
+            or not all(isinstance(x, int) and not isinstance(x, bool) for x in v)
+        ):
             raise bad(f"{name} {v!r} is not three integers")
         return np.asarray(v, np.int64)
 
@@ -252,24 +295,25 @@ def _check_state(path: Path, state: dict, snapshot: MapSnapshot) -> None:
     center = voxel("center_vox", optional=True)
     for name in ("t0", "last_stamp_s"):
         v = state.get(name)
-        if (v is not None or name == "t0") and (isinstance(v, bool)
-                                                or not isinstance(v, (int, float))
-                                                or not np.isfinite(v)):
+        if (v is not None or name == "t0") and (
+            isinstance(v, bool) or not isinstance(v, (int, float)) or not np.isfinite(v)
+        ):
             raise bad(f"{name} {v!r} is not a finite time")
     scans = state.get("scans", 0)
     if isinstance(scans, bool) or not isinstance(scans, int) or scans < 0:
         raise bad(f"scans {scans!r} is not a count")
-    if np.abs(origin).max() > 2 ** 62 or (center is not None
-                                          and np.abs(center).max() > KEY_LIMIT):
-        raise bad(f"origin_vox {origin.tolist()} / center_vox {state.get('center_vox')} are "
-                  f"out of range")
+    if np.abs(origin).max() > 2**62 or (center is not None and np.abs(center).max() > KEY_LIMIT):
+        raise bad(
+            f"origin_vox {origin.tolist()} / center_vox {state.get('center_vox')} are out of range"
+        )
     if len(snapshot):
         # in float64: int64 keys near their limits would wrap around
         reach = float(np.abs(snapshot.keys.astype(np.float64) - origin).max())
         if reach > KEY_LIMIT:
             raise mapfile.MapFileError(
                 f"{path}: voxel keys reach {reach:,.0f} voxels from the map origin; a map holds "
-                f"at most {KEY_LIMIT:,}")
+                f"at most {KEY_LIMIT:,}"
+            )
 
 
 def load_checkpoint(path: str | os.PathLike) -> Checkpoint:
@@ -282,9 +326,14 @@ def load_checkpoint(path: str | os.PathLike) -> Checkpoint:
     return ckpt
 
 
-def save_checkpoint(directory: str | os.PathLike, mapper: Mapper,
-                    progress: RunProgress | None = None, *,
-                    run_config: RunConfig | None = None, source: dict | None = None) -> Path:
+def save_checkpoint(
+    directory: str | os.PathLike,
+    mapper: Mapper,
+    progress: RunProgress | None = None,
+    *,
+    run_config: RunConfig | None = None,
+    source: dict | None = None,
+) -> Path:
     """Save `mapper` (snapshot + state) and the run's `progress` to `directory/checkpoint.npz`.
 
     Atomic (write, fsync, rename): a crash mid-save leaves the previous checkpoint intact.
@@ -298,8 +347,7 @@ def save_checkpoint(directory: str | os.PathLike, mapper: Mapper,
         "progress": saved,
         "source": dict(source or {}),
     }
-    return mapfile.save_checkpoint_file(directory, mapper.snapshot(), to_dict(mapper.config),
-                                        meta)
+    return mapfile.save_checkpoint_file(directory, mapper.snapshot(), to_dict(mapper.config), meta)
 
 
 def open_checkpoint(resume: Checkpoint | str | os.PathLike) -> Checkpoint:
@@ -330,6 +378,7 @@ def load_map(path: str | os.PathLike) -> Mapper | TiledMap:
     `Mapper()` refuses with a RuntimeError.
     """
     from tisem.tiles import TiledMap, is_tiled_map
+
     if is_tiled_map(path):
         return TiledMap.open(path)
     return mapper_from_file(path)[0]

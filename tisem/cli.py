@@ -19,6 +19,7 @@ Exit status: 0 done; 1 the run could not finish (a full disk: `RunError`), what 
 kept; 2 a bad command line, config or input (`AppError`, `ConfigError`, `DatasetError`); 130
 interrupted (Ctrl-C, `RunInterrupted`).
 """
+
 from __future__ import annotations
 
 import argparse
@@ -26,81 +27,127 @@ import datetime as _dt
 import logging
 import math
 import os
+from collections.abc import Callable, Iterable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Callable, Iterable, Iterator
+from typing import TYPE_CHECKING
 
 from tisem.config import MODES, RunConfig, check_run_config, load_config
 from tisem.errors import ConfigError, DatasetError, RunError, RunInterrupted
 from tisem.outputs import clear_previous_run, is_results_folder
 
-if TYPE_CHECKING:                      # (the run imports the mapper, which starts Taichi)
+if TYPE_CHECKING:  # (the run imports the mapper, which starts Taichi)
     from tisem.checkpoint import Checkpoint
     from tisem.run import MappingRun, RunResult
 
 EXIT_RUN_FAILED = 1
 EXIT_BAD_INPUT = 2
-EXIT_INTERRUPTED = 130                 # 128 + SIGINT, what a shell reports for Ctrl-C
+EXIT_INTERRUPTED = 130  # 128 + SIGINT, what a shell reports for Ctrl-C
 # options a resumed run takes from its checkpoint: dest -> flag
-CONFIG_OPTIONS = {"config": "--config", "overrides": "--set", "mode": "--mode",
-                  "classes": "--classes"}
+CONFIG_OPTIONS = {
+    "config": "--config",
+    "overrides": "--set",
+    "mode": "--mode",
+    "classes": "--classes",
+}
 RESULTS_ROOT = "results"
 
 
 # --------------------------------------------------------------------------- options
 
+
 def add_run_args(parser: argparse.ArgumentParser) -> None:
     """The options every map app has: config, frame range, output, backend, checkpoints."""
     g = parser.add_argument_group("mapping")
-    g.add_argument("--mode", choices=MODES,
-                   help="method: st (default), adaptive, spatial, bki, csm")
-    g.add_argument("--config", type=Path,
-                   help="YAML config (a RunConfig or just its mapper section)")
-    g.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
-                   help="override a config value, e.g. --set tau_s=1.5 (repeatable)")
-    g.add_argument("--classes", type=Path, metavar="YAML",
-                   help="the label space, when not SemanticKITTI's 20 classes: a "
-                        "semantic-kitti.yaml-style file (labels, color_map, learning_map); "
-                        "num_classes follows from it")
+    g.add_argument(
+        "--mode", choices=MODES, help="method: st (default), adaptive, spatial, bki, csm"
+    )
+    g.add_argument(
+        "--config", type=Path, help="YAML config (a RunConfig or just its mapper section)"
+    )
+    g.add_argument(
+        "--set",
+        dest="overrides",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="override a config value, e.g. --set tau_s=1.5 (repeatable)",
+    )
+    g.add_argument(
+        "--classes",
+        type=Path,
+        metavar="YAML",
+        help="the label space, when not SemanticKITTI's 20 classes: a "
+        "semantic-kitti.yaml-style file (labels, color_map, learning_map); "
+        "num_classes follows from it",
+    )
     g.add_argument("--first", type=int, help="first scan (inclusive)")
     g.add_argument("--last", type=int, help="last scan (inclusive)")
-    g.add_argument("--out", type=Path, help="output folder (default results/<timestamp>/); "
-                                            "must be empty or new, unless --overwrite")
-    g.add_argument("--overwrite", action="store_true",
-                   help="replace the results of a previous run in --out (its config.yaml, "
-                        "run.json, metrics.json, map files, predictions, checkpoint and "
-                        "synthetic data; nothing else in the folder is touched)")
+    g.add_argument(
+        "--out",
+        type=Path,
+        help="output folder (default results/<timestamp>/); "
+        "must be empty or new, unless --overwrite",
+    )
+    g.add_argument(
+        "--overwrite",
+        action="store_true",
+        help="replace the results of a previous run in --out (its config.yaml, "
+        "run.json, metrics.json, map files, predictions, checkpoint and "
+        "synthetic data; nothing else in the folder is touched)",
+    )
     g.add_argument("--arch", choices=("cpu", "cuda"), default="cpu", help="Taichi backend")
-    g.add_argument("--threads", type=int, default=2,
-                   help="CPU threads for the kernels (>= 1; capped at the cores available)")
+    g.add_argument(
+        "--threads",
+        type=int,
+        default=2,
+        help="CPU threads for the kernels (>= 1; capped at the cores available)",
+    )
     g.add_argument("--no-progress", action="store_true", help="no progress bar")
-    g.add_argument("--per-class", action="store_true",
-                   help="also print the IoU of every class after the results table")
+    g.add_argument(
+        "--per-class",
+        action="store_true",
+        help="also print the IoU of every class after the results table",
+    )
     g.add_argument("-v", "--verbose", action="store_true", help="also tisem's debug lines")
     g = parser.add_argument_group("checkpoints")
-    g.add_argument("--checkpoint-every", type=int, metavar="N",
-                   help="save the map and the metrics so far every N mapped scans, atomically, "
-                        "to <out>/checkpoint/ (default: never; a resumed run keeps its N)")
-    g.add_argument("--resume", type=Path, metavar="DIR",
-                   help="continue the run of results folder DIR (or its checkpoint folder) with "
-                        "its stored config and input, in that folder unless --out is given; "
-                        "--last may extend it")
+    g.add_argument(
+        "--checkpoint-every",
+        type=int,
+        metavar="N",
+        help="save the map and the metrics so far every N mapped scans, atomically, "
+        "to <out>/checkpoint/ (default: never; a resumed run keeps its N)",
+    )
+    g.add_argument(
+        "--resume",
+        type=Path,
+        metavar="DIR",
+        help="continue the run of results folder DIR (or its checkpoint folder) with "
+        "its stored config and input, in that folder unless --out is given; "
+        "--last may extend it",
+    )
 
 
-def parse_run_args(parser: argparse.ArgumentParser, argv: list[str] | None = None,
-                   kept_on_resume: dict[str, str] | None = None) -> argparse.Namespace:
+def parse_run_args(
+    parser: argparse.ArgumentParser,
+    argv: list[str] | None = None,
+    kept_on_resume: dict[str, str] | None = None,
+) -> argparse.Namespace:
     """Parse a map app's command line (`add_run_args` options included). With --resume, the
     config options and the app's `kept_on_resume` ({dest: flag}: options stored in the
     checkpoint's run.json) must be left at their defaults: the run goes on as it started."""
     args = parser.parse_args(argv)
     if args.resume is not None:
         kept = {**CONFIG_OPTIONS, **(kept_on_resume or {})}
-        given = [flag for dest, flag in kept.items()
-                 if getattr(args, dest) != parser.get_default(dest)]
+        given = [
+            flag for dest, flag in kept.items() if getattr(args, dest) != parser.get_default(dest)
+        ]
         if given:
-            parser.error(f"--resume continues with the config and input stored in the "
-                         f"checkpoint: drop {' / '.join(given)}")
+            parser.error(
+                f"--resume continues with the config and input stored in the "
+                f"checkpoint: drop {' / '.join(given)}"
+            )
     return args
 
 
@@ -119,6 +166,7 @@ def finite_number(flag: str, value: float, low: float = 0.0) -> float:
 
 
 # --------------------------------------------------------------------------- errors
+
 
 class AppError(Exception):
     """A bad command line or input: the app logs this one line and exits with status 2."""
@@ -139,8 +187,9 @@ def bad_input(prefix: str = "") -> Iterator[None]:
         raise AppError(f"{prefix}{message}") from None
 
 
-def run_app(body: Callable[[argparse.Namespace], int], args: argparse.Namespace,
-            app_log: logging.Logger) -> int:
+def run_app(
+    body: Callable[[argparse.Namespace], int], args: argparse.Namespace, app_log: logging.Logger
+) -> int:
     """Set up logging and run an app's `body(args)`; its errors are logged on `app_log` as
     one line each (no traceback), with the exit status of the module docstring."""
     setup_logging(args.verbose)
@@ -158,12 +207,14 @@ def run_app(body: Callable[[argparse.Namespace], int], args: argparse.Namespace,
     except KeyboardInterrupt:
         app_log.error("interrupted")
         return EXIT_INTERRUPTED
-    finally:                           # --classes set it for this run only
+    finally:  # --classes set it for this run only
         from tisem.labels import use_label_space
+
         use_label_space(None)
 
 
 # --------------------------------------------------------------------------- the prologue
+
 
 def run_config_from_args(args: argparse.Namespace) -> RunConfig:
     """--config, --set, --mode, --first, --last as a validated `RunConfig`."""
@@ -196,8 +247,8 @@ class RunPlan:
     device: str = ""
     threads: int = 2
     overwrite: bool = False
-    classes: Path | None = None        # --classes: the label space's file
-    link_latest: bool = False          # a results/<timestamp>/ folder: re-point results/latest
+    classes: Path | None = None  # --classes: the label space's file
+    link_latest: bool = False  # a results/<timestamp>/ folder: re-point results/latest
 
     @property
     def source(self) -> dict:
@@ -210,8 +261,9 @@ class RunPlan:
         if given is not None or self.checkpoint is None:
             return given
         if self.source.get(key) is None:
-            raise AppError(f"resume: the checkpoint does not say where its input is; give "
-                           f"{how_to_give}")
+            raise AppError(
+                f"resume: the checkpoint does not say where its input is; give {how_to_give}"
+            )
         return Path(self.source[key])
 
     def start(self, args: argparse.Namespace) -> None:
@@ -224,27 +276,43 @@ class RunPlan:
         if self.overwrite and self.out_dir.is_dir():
             removed = clear_previous_run(self.out_dir)
             if removed:
-                logging.getLogger(__name__).info("--overwrite: removed %d files of a previous "
-                                                 "run from %s", removed, self.out_dir)
+                logging.getLogger(__name__).info(
+                    "--overwrite: removed %d files of a previous run from %s", removed, self.out_dir
+                )
 
     def mapping_run(self, scans: Iterable, args: argparse.Namespace, **options) -> MappingRun:
         """The run over `scans` (new, or the checkpoint's continued), checkpointing every
         --checkpoint-every scans; `options`: `MappingRun`'s (sequence_name, total, ...)."""
         from tisem.run import MappingRun
+
         with bad_input("resume: " if self.checkpoint is not None else ""):
             if self.checkpoint is None:
-                return MappingRun(scans, self.cfg, self.out_dir,
-                                  checkpoint_every=args.checkpoint_every or 0, **options)
-            return MappingRun.resume(scans, self.checkpoint, self.cfg, self.out_dir,
-                                     checkpoint_every=args.checkpoint_every, **options)
+                return MappingRun(
+                    scans,
+                    self.cfg,
+                    self.out_dir,
+                    checkpoint_every=args.checkpoint_every or 0,
+                    **options,
+                )
+            return MappingRun.resume(
+                scans,
+                self.checkpoint,
+                self.cfg,
+                self.out_dir,
+                checkpoint_every=args.checkpoint_every,
+                **options,
+            )
 
     def finish(self, result: RunResult) -> int:
         """After the run: results/latest points to it, unless mapping stopped early (then one
         line says so); the app's exit status."""
         if result.stopped:
             logging.getLogger(__name__).error(
-                "mapping stopped %s; the %d scans mapped before it are scored and written in "
-                "%s", result.stopped, result.metrics["scans"], self.out_dir)
+                "mapping stopped %s; the %d scans mapped before it are scored and written in %s",
+                result.stopped,
+                result.metrics["scans"],
+                self.out_dir,
+            )
             return EXIT_RUN_FAILED
         if self.link_latest:
             point_latest(self.out_dir)
@@ -257,15 +325,19 @@ def plan_run(args: argparse.Namespace) -> RunPlan:
     Raises AppError / ConfigError; creates nothing."""
     with bad_input():
         from tisem.backend import usable_threads
+
         threads = usable_threads(args.threads)
     if args.checkpoint_every is not None and args.checkpoint_every < 1:
-        raise AppError(f"--checkpoint-every {args.checkpoint_every}: expected a whole number "
-                       f">= 1 (mapped scans between checkpoints)")
+        raise AppError(
+            f"--checkpoint-every {args.checkpoint_every}: expected a whole number "
+            f">= 1 (mapped scans between checkpoints)"
+        )
     if args.resume is None:
         with bad_input("config: "):
             plan = RunPlan(run_config_from_args(args))
     else:
         from tisem.checkpoint import load_checkpoint
+
         with bad_input("resume: "):
             ckpt = load_checkpoint(args.resume)
             cfg = ckpt.run_config()
@@ -277,8 +349,7 @@ def plan_run(args: argparse.Namespace) -> RunPlan:
         apply_label_space(plan.cfg, plan.classes, explicit=args.overrides)
     plan.threads = threads
     plan.overwrite = args.overwrite
-    plan.out_dir, plan.link_latest = choose_results_dir(args.out, plan.checkpoint,
-                                                        args.overwrite)
+    plan.out_dir, plan.link_latest = choose_results_dir(args.out, plan.checkpoint, args.overwrite)
     return plan
 
 
@@ -287,13 +358,19 @@ def apply_label_space(cfg: RunConfig, path: Path, explicit: Iterable[str] = ()) 
     number of classes; AppError for a bad file or a --set num_classes that disagrees."""
     from tisem.label_space import load_label_space
     from tisem.labels import use_label_space
+
     with bad_input("--classes "):
         space = load_label_space(path)
-    given = [a.split("=", 1)[1] for a in explicit if a.split("=", 1)[0].strip() in
-             ("num_classes", "mapper.num_classes")]
+    given = [
+        a.split("=", 1)[1]
+        for a in explicit
+        if a.split("=", 1)[0].strip() in ("num_classes", "mapper.num_classes")
+    ]
     if given and given[-1].strip() != str(space.num_classes):
-        raise AppError(f"--set num_classes={given[-1]}: {path} defines {space.num_classes} "
-                       f"classes; leave num_classes out, it follows from --classes")
+        raise AppError(
+            f"--set num_classes={given[-1]}: {path} defines {space.num_classes} "
+            f"classes; leave num_classes out, it follows from --classes"
+        )
     cfg.mapper.num_classes = space.num_classes
     with bad_input("config: "):
         check_run_config(cfg)
@@ -303,6 +380,7 @@ def apply_label_space(cfg: RunConfig, path: Path, explicit: Iterable[str] = ()) 
 def init_backend(arch: str, threads: int) -> str:
     """Start Taichi as the options say; a backend that cannot start raises BackendError."""
     from tisem.backend import describe, init_taichi
+
     try:
         init_taichi(arch, threads=threads)
     except RuntimeError as exc:
@@ -312,8 +390,13 @@ def init_backend(arch: str, threads: int) -> str:
 
 # --------------------------------------------------------------------------- results folder
 
-def choose_results_dir(out: Path | None, checkpoint: Checkpoint | None, overwrite: bool,
-                       root: str | Path = RESULTS_ROOT) -> tuple[Path, bool]:
+
+def choose_results_dir(
+    out: Path | None,
+    checkpoint: Checkpoint | None,
+    overwrite: bool,
+    root: str | Path = RESULTS_ROOT,
+) -> tuple[Path, bool]:
     """The folder the run will write (not made here) and whether results/latest is to point
     to it: --out; else the resumed run's folder; else a new results/<timestamp>/.
 
@@ -334,11 +417,15 @@ def choose_results_dir(out: Path | None, checkpoint: Checkpoint | None, overwrit
         return out, False
     shown = ", ".join(contents[:5]) + (", ..." if len(contents) > 5 else "")
     if not overwrite:
-        raise AppError(f"--out {out}: the folder is not empty ({shown}); give --overwrite to "
-                       f"replace a previous run's results there, or another --out")
+        raise AppError(
+            f"--out {out}: the folder is not empty ({shown}); give --overwrite to "
+            f"replace a previous run's results there, or another --out"
+        )
     if not is_results_folder(out):
-        raise AppError(f"--out {out}: the folder is not empty ({shown}) and holds no tisem "
-                       f"results (no run.json) for --overwrite to replace; choose another --out")
+        raise AppError(
+            f"--out {out}: the folder is not empty ({shown}) and holds no tisem "
+            f"results (no run.json) for --overwrite to replace; choose another --out"
+        )
     return out, False
 
 
@@ -361,4 +448,4 @@ def point_latest(out: Path) -> None:
             latest.unlink()
         os.symlink(out.name, latest)
     except OSError:
-        pass   # a filesystem without links: the timestamped folder is what counts
+        pass  # a filesystem without links: the timestamped folder is what counts

@@ -10,12 +10,14 @@ threads. A task that raises or whose process dies is retried as Ray allows (`ret
 deaths always; exceptions only for OSError, which may be a passing file-system fault), then
 reported with its reason, never raised: the rest goes on.
 """
+
 from __future__ import annotations
 
 import logging
 import os
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
-from typing import Any, Callable, Iterator
+from typing import Any
 
 from tisem.errors import RunError
 
@@ -30,6 +32,7 @@ def ray_cluster(address: str | None = None, num_cpus: int | None = None) -> Iter
     otherwise `address` joins a cluster ("auto" or host:port) and None starts a local one on
     `num_cpus` cores (default: all), shut down at the end."""
     import ray
+
     if ray.is_initialized():
         yield
         return
@@ -44,9 +47,14 @@ def ray_cluster(address: str | None = None, num_cpus: int | None = None) -> Iter
     except (ConnectionError, RuntimeError) as exc:
         where = f"join the Ray cluster at {address}" if address else "start a local Ray cluster"
         lines = str(exc).strip().splitlines()
-        raise RunError(f"cannot {where}: {lines[-1] if lines else type(exc).__name__}"
-                       + ("; a cluster with token authentication needs its token "
-                          "(RAY_AUTH_TOKEN)" if "auth" in str(exc).lower() else "")) from None
+        raise RunError(
+            f"cannot {where}: {lines[-1] if lines else type(exc).__name__}"
+            + (
+                "; a cluster with token authentication needs its token (RAY_AUTH_TOKEN)"
+                if "auth" in str(exc).lower()
+                else ""
+            )
+        ) from None
     try:
         yield
     finally:
@@ -57,36 +65,43 @@ def _start_local(num_cpus: int | None, kwargs: dict) -> None:
     """ray.init of a local cluster. Ray gives its node 30 s to come up, which a loaded
     machine can miss: then once more, and a RuntimeError after that."""
     import ray
+
     for attempt in range(2):
         try:
             ray.init(num_cpus=num_cpus, include_dashboard=False, **kwargs)
             return
-        except Exception as exc:        # noqa: BLE001 (Ray raises a bare Exception here)
+        except Exception as exc:  # noqa: BLE001 (Ray raises a bare Exception here)
             if "timed out during startup" not in str(exc):
                 raise
             ray.shutdown()
             log.warning("the local Ray cluster did not start in time (attempt %d)", attempt + 1)
-    raise RuntimeError("the local Ray node did not start in 30 s, twice (is the machine "
-                       "overloaded?)")
+    raise RuntimeError(
+        "the local Ray node did not start in 30 s, twice (is the machine overloaded?)"
+    )
 
 
 def cluster_cpus() -> int:
     import ray
+
     return int(ray.cluster_resources().get("CPU", 1))
 
 
-def submit(fn: Callable, *, cpus: float = 1, retries: int = 1, args: tuple = (),
-           kwargs: dict | None = None):
+def submit(
+    fn: Callable, *, cpus: float = 1, retries: int = 1, args: tuple = (), kwargs: dict | None = None
+):
     """`fn(*args, **kwargs)` as a Ray task in a process of its own; returns its ref."""
     import ray
-    remote = ray.remote(num_cpus=cpus, max_calls=1, max_retries=int(retries),
-                        retry_exceptions=[OSError])(fn)
+
+    remote = ray.remote(
+        num_cpus=cpus, max_calls=1, max_retries=int(retries), retry_exceptions=[OSError]
+    )(fn)
     return remote.remote(*args, **(kwargs or {}))
 
 
 def _reason(exc: BaseException) -> str:
     """The last line of a task's error (its exception), or the kind of failure."""
     import ray
+
     if isinstance(exc, ray.exceptions.RayTaskError):
         cause = exc.cause
         if cause is not None:
@@ -99,6 +114,7 @@ def gather(refs: dict[str, Any]) -> tuple[dict[str, Any], dict[str, str]]:
     """Wait for every task: ({name: result} of those that finished, {name: reason} of those
     that failed after their retries)."""
     import ray
+
     done, failed = {}, {}
     by_ref = {ref: name for name, ref in refs.items()}
     pending = list(by_ref)
@@ -107,7 +123,7 @@ def gather(refs: dict[str, Any]) -> tuple[dict[str, Any], dict[str, str]]:
         name = by_ref[ready[0]]
         try:
             done[name] = ray.get(ready[0])
-        except (ray.exceptions.RayError, Exception) as exc:      # noqa: B902 (reported)
+        except (ray.exceptions.RayError, Exception) as exc:  # noqa: B902 (reported)
             failed[name] = _reason(exc)
             log.warning("task %s failed: %s", name, failed[name])
     return done, failed

@@ -9,6 +9,7 @@ YAML is read with safe tags only and with YAML 1.2 numbers: `1e-4` is the number
 not the string YAML 1.1 makes of it; a quoted `"0.2"` stays a string, and is refused as one.
 Every results folder gets the resolved config (`config.yaml`), so a run can be repeated.
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -18,25 +19,48 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from tisem.config_rules import (INPUTS, MAX_CLASSES, MODES, QUERY_BLENDS, THIN_CLASSES, Choice,
-                                ClassNames, Flag, Folder, Number, check_fields, read_yaml,
-                                yaml_value)
+from tisem.config_rules import (
+    INPUTS,
+    MAX_CLASSES,
+    MODES,
+    QUERY_BLENDS,
+    THIN_CLASSES,
+    Choice,
+    ClassNames,
+    Flag,
+    Folder,
+    Number,
+    check_fields,
+    read_yaml,
+    yaml_value,
+)
 from tisem.errors import ConfigError
 
-__all__ = ["MODES", "INPUTS", "MAX_CLASSES", "MapperConfig", "RunConfig", "ConfigError",
-           "load_config", "save_config", "to_dict", "set_value", "mapper_config_from_dict",
-           "run_config_from_dict"]
+__all__ = [
+    "MODES",
+    "INPUTS",
+    "MAX_CLASSES",
+    "MapperConfig",
+    "RunConfig",
+    "ConfigError",
+    "load_config",
+    "save_config",
+    "to_dict",
+    "set_value",
+    "mapper_config_from_dict",
+    "run_config_from_dict",
+]
 
 
 @dataclass
 class MapperConfig:
     """The method's parameters (SPEC §1). Lengths in metres unless the name says voxels."""
 
-    mode: str = "st"                 # st | adaptive | spatial | bki | csm
-    resolution_m: float = 0.2        # voxel edge
+    mode: str = "st"  # st | adaptive | spatial | bki | csm
+    resolution_m: float = 0.2  # voxel edge
     num_classes: int = 20
     # 1. preprocess: points outside [min_range, max_range] or the height band are dropped
-    min_range_m: float = 2.0         # the ego vehicle's own returns
+    min_range_m: float = 2.0  # the ego vehicle's own returns
     max_range_m: float = 80.0
     # the height band, relative to the sensor: it crops only what is physically implausible
     # (a road going downhill lies metres below the sensor, and a point dropped here is unmapped
@@ -46,14 +70,14 @@ class MapperConfig:
     # 3. redundant voxel filtering
     min_points: int = 1
     # 4.-6. entropy, adaptive length, sparse kernel (defaults measured: README "Parameters")
-    prior: float = 2.0               # pseudo-count added to every class before the entropy is
-                                     # taken: entropy then falls only as evidence piles up, so
-                                     # sparse, young or contradicted voxels get long kernels
+    prior: float = 2.0  # pseudo-count added to every class before the entropy is
+    # taken: entropy then falls only as evidence piles up, so
+    # sparse, young or contradicted voxels get long kernels
     sigma0: float = 1.0
     ell_min_m: float = 0.4
     ell_max_m: float = 1.2
-    ell_fixed_vox: float = 4.0       # bki: fixed kernel length, in voxels
-    point_weight: str = "count"      # count: a training voxel weighs by its points; unit: once
+    ell_fixed_vox: float = 4.0  # bki: fixed kernel length, in voxels
+    point_weight: str = "count"  # count: a training voxel weighs by its points; unit: once
     # evidence of these classes reaches at most ell_min_m from its training point, whatever the
     # receiving voxel's length: the network mistakes foliage for trunk and trunk for pole far
     # more often than the reverse, and a long kernel spreads each such label over a metre
@@ -64,49 +88,55 @@ class MapperConfig:
     query_blend: str = "missing"
     query_radius_m: float = 0.4
     # 8. temporal fusion
-    tau_s: float = 5.0               # decay time constant (st mode)
-    tau_movable_s: float | None = None   # tau of the movable classes (car ... motorcycle,
-                                     # tisem.labels.MOVABLE_CLASSES) in st mode; None: tau_s
+    tau_s: float = 5.0  # decay time constant (st mode)
+    tau_movable_s: float | None = None  # tau of the movable classes (car ... motorcycle,
+    # tisem.labels.MOVABLE_CLASSES) in st mode; None: tau_s
     # free space and moving objects (docs/dynamic.md): rays from the sensor to the hits make
     # the voxels they cross lose occupancy evidence; off, the map is exactly the map without it
     free_space: bool = False
-    free_margin_m: float = 0.5       # a ray stops this far before its hit, or
+    free_margin_m: float = 0.5  # a ray stops this far before its hit, or
     free_margin_fraction: float = 0.15  # this part of its range, whichever is more
-    free_ray_stride: int = 4         # one ray per this many hit voxels (rays cost per voxel)
-    empty_evidence: float = 2.0      # a voxel seen through this much more than hit is empty
-    occupancy_cap: float = 4.0       # occupancy evidence is clamped to +-this
+    free_ray_stride: int = 4  # one ray per this many hit voxels (rays cost per voxel)
+    empty_evidence: float = 2.0  # a voxel seen through this much more than hit is empty
+    occupancy_cap: float = 4.0  # occupancy evidence is clamped to +-this
     # live window (toroidal storage; blocks outside the box leave the field)
-    window_xy_m: float = 100.0       # half-size of the live window around the sensor; must
-                                     # hold max_range + kernel reach + 0.8 m. 100 m keeps even
-                                     # the densest stretch of the synthetic loop at <= 58k
-                                     # blocks (docs/long_drive.md)
+    window_xy_m: float = 100.0  # half-size of the live window around the sensor; must
+    # hold max_range + kernel reach + 0.8 m. 100 m keeps even
+    # the densest stretch of the synthetic loop at <= 58k
+    # blocks (docs/long_drive.md)
     window_z_m: float = 24.0
-    max_live_blocks: int = 65_536    # hard cap on live 4^3 leaf blocks (~5.6 KB each). taichi
-                                     # 1.7.4 maps a 2nd 1 GiB host chunk (unsafe: its allocator
-                                     # bug) at 147,456 live blocks, measured (docs/long_drive.md);
-                                     # this leaves over half of that for a scan's growth
-    store_dir: str | None = None     # where the host store keeps the voxels that left the
-                                     # window (~35 B each, in an unnamed temp file that goes
-                                     # with the process); None: the system temp dir. A place
-                                     # on this machine, not part of the map: resuming a
-                                     # checkpoint uses the run's, not the saved one
+    max_live_blocks: int = 65_536  # hard cap on live 4^3 leaf blocks (~5.6 KB each). taichi
+    # 1.7.4 maps a 2nd 1 GiB host chunk (unsafe: its allocator
+    # bug) at 147,456 live blocks, measured (docs/long_drive.md);
+    # this leaves over half of that for a scan's growth
+    store_dir: str | None = None  # where the host store keeps the voxels that left the
+    # window (~35 B each, in an unnamed temp file that goes
+    # with the process); None: the system temp dir. A place
+    # on this machine, not part of the map: resuming a
+    # checkpoint uses the run's, not the saved one
 
     def validate(self) -> None:
         """Every field against its rule (`MAPPER_RULES`), the rules between fields, then the
         sizes the map would be built with (`tisem.geometry.MapGeometry`); ConfigError."""
         check_fields(self, MAPPER_RULES)
         if self.min_range_m >= self.max_range_m:
-            raise ConfigError(f"min_range_m = {self.min_range_m:g}: must be below max_range_m "
-                              f"= {self.max_range_m:g}")
+            raise ConfigError(
+                f"min_range_m = {self.min_range_m:g}: must be below max_range_m "
+                f"= {self.max_range_m:g}"
+            )
         if self.min_z_m >= self.max_z_m:
-            raise ConfigError(f"min_z_m = {self.min_z_m:g}: must be below max_z_m = "
-                              f"{self.max_z_m:g}")
+            raise ConfigError(
+                f"min_z_m = {self.min_z_m:g}: must be below max_z_m = {self.max_z_m:g}"
+            )
         if self.ell_min_m > self.ell_max_m:
-            raise ConfigError(f"ell_min_m = {self.ell_min_m:g}: must not exceed ell_max_m = "
-                              f"{self.ell_max_m:g}")
+            raise ConfigError(
+                f"ell_min_m = {self.ell_min_m:g}: must not exceed ell_max_m = {self.ell_max_m:g}"
+            )
         if self.empty_evidence > self.occupancy_cap:
-            raise ConfigError(f"empty_evidence = {self.empty_evidence:g}: must not exceed "
-                              f"occupancy_cap = {self.occupancy_cap:g}")
+            raise ConfigError(
+                f"empty_evidence = {self.empty_evidence:g}: must not exceed "
+                f"occupancy_cap = {self.occupancy_cap:g}"
+            )
         check_geometry(self)
 
     # the kernel length bounds that the chosen mode actually uses
@@ -137,6 +167,7 @@ class MapperConfig:
         """(num_classes,) how far each class's evidence reaches at most, metres (inf: as far
         as the receiving voxel's kernel); csm has no kernel to cap."""
         from tisem.labels import CLASS_NAMES
+
         caps = np.full(self.num_classes, np.inf)
         if self.uses_kernel:
             for name in self.thin_classes:
@@ -154,9 +185,9 @@ class RunConfig:
     """Everything a run needs: the mapper plus what feeds and scores it."""
 
     mapper: MapperConfig = field(default_factory=MapperConfig)
-    input: str = "predictions"       # predictions | labels: which label files feed the map
+    input: str = "predictions"  # predictions | labels: which label files feed the map
     first: int = 0
-    last: int | None = None          # inclusive
+    last: int | None = None  # inclusive
     online_eval: bool = True
 
 
@@ -196,19 +227,19 @@ MAPPER_RULES = {
     "occupancy_cap": Number(float, 0.0, 1.0e6, low_open=True),
     "window_xy_m": Number(float, 0.0, 1.0e5, low_open=True, unit="m"),
     "window_z_m": Number(float, 0.0, 1.0e5, low_open=True, unit="m"),
-    "max_live_blocks": Number(int, 1, 2 ** 31 - 1),
+    "max_live_blocks": Number(int, 1, 2**31 - 1),
     "store_dir": Folder(),
 }
 
 # a live window of 5 km at 0.2 m voxels (2^29 top cells of the SNode tree) takes 1.2 GB when the
 # map is built, measured; more is refused before any field exists
-MAX_TOP_CELLS = 2 ** 29
+MAX_TOP_CELLS = 2**29
 
 RUN_RULES = {
-    "mapper": None,                # a section: its own rules
+    "mapper": None,  # a section: its own rules
     "input": Choice(INPUTS),
-    "first": Number(int, 0, 2 ** 62),
-    "last": Number(int, 0, 2 ** 62, optional=True),
+    "first": Number(int, 0, 2**62),
+    "last": Number(int, 0, 2**62, optional=True),
     "online_eval": Flag(),
 }
 
@@ -218,29 +249,35 @@ def check_geometry(cfg: MapperConfig) -> None:
     kernel reach, the scan's table fits, the kernel reach fits the table's margin
     (`MapGeometry.from_config` holds those rules); the window's storage stays within memory
     and within the store's key range."""
-    from tisem.kernels.layout import TOP
     from tisem.geometry import MapGeometry
+    from tisem.kernels.layout import TOP
     from tisem.store_segments import KEY_LIMIT
+
     try:
         geometry = MapGeometry.from_config(cfg)
     except ValueError as exc:
         reason = str(exc)
         if reason.startswith("kernel reach"):
             key = "ell_max_m" if cfg.adaptive else "ell_fixed_vox"
-            reason = (f"{key} = {getattr(cfg, key):g} at resolution_m = "
-                      f"{cfg.resolution_m:g}: {reason}")
+            reason = (
+                f"{key} = {getattr(cfg, key):g} at resolution_m = {cfg.resolution_m:g}: {reason}"
+            )
         raise ConfigError(reason) from None
     windows = f"window_xy_m = {cfg.window_xy_m:g} / window_z_m = {cfg.window_z_m:g}"
     top_cells = int(np.prod([n // TOP for n in geometry.storage_extent]))
     if top_cells > MAX_TOP_CELLS:
-        raise ConfigError(f"{windows} at resolution_m = {cfg.resolution_m:g}: the live "
-                          f"window's storage needs {top_cells:,} top cells; tisem takes at most "
-                          f"{MAX_TOP_CELLS:,} (1.2 GB): lower the window sizes or raise "
-                          f"resolution_m")
+        raise ConfigError(
+            f"{windows} at resolution_m = {cfg.resolution_m:g}: the live "
+            f"window's storage needs {top_cells:,} top cells; tisem takes at most "
+            f"{MAX_TOP_CELLS:,} (1.2 GB): lower the window sizes or raise "
+            f"resolution_m"
+        )
     if int(geometry.window_half_vox.max()) * 4 >= KEY_LIMIT:
-        raise ConfigError(f"{windows}: the live window must stay under "
-                          f"{KEY_LIMIT // 4 * cfg.resolution_m:,.0f} m at resolution_m = "
-                          f"{cfg.resolution_m:g} (a quarter of the map's key range)")
+        raise ConfigError(
+            f"{windows}: the live window must stay under "
+            f"{KEY_LIMIT // 4 * cfg.resolution_m:,.0f} m at resolution_m = "
+            f"{cfg.resolution_m:g} (a quarter of the map's key range)"
+        )
 
 
 def check_run_config(cfg: RunConfig) -> None:
@@ -261,8 +298,7 @@ def _apply(obj, data: dict, where: str, rules: dict) -> None:
         current = getattr(obj, key)
         if dataclasses.is_dataclass(current):
             if not isinstance(value, dict):
-                raise ConfigError(f"{where}: {key} must be a mapping of its keys, got "
-                                  f"{value!r}")
+                raise ConfigError(f"{where}: {key} must be a mapping of its keys, got {value!r}")
             _apply(current, value, f"{where}: {key}", MAPPER_RULES)
         else:
             setattr(obj, key, rules[key].check(key, value, where))
@@ -283,9 +319,11 @@ def set_value(cfg: RunConfig, assignment: str) -> None:
     else:
         raise ConfigError(f"--set {assignment}: unknown key {key.strip()!r}")
     if path[-1] not in rules or rules[path[-1]] is None:
-        raise ConfigError(f"--set {assignment}: unknown key {key.strip()!r}; known: "
-                          f"{', '.join(sorted(k for k in MAPPER_RULES))} (and input, first, "
-                          f"last, online_eval)")
+        raise ConfigError(
+            f"--set {assignment}: unknown key {key.strip()!r}; known: "
+            f"{', '.join(sorted(k for k in MAPPER_RULES))} (and input, first, "
+            f"last, online_eval)"
+        )
     value = yaml_value(text, f"--set {assignment}")
     setattr(obj, path[-1], rules[path[-1]].check(path[-1], value, "--set"))
 

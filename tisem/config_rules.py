@@ -6,6 +6,7 @@ A rule checks one value and returns it in the field's type, or raises a one-line
     Number(float, 0.0, 1e6, low_open=True).check("sigma0", "abc", "--set")
     # ConfigError: --set: sigma0 = 'abc': not a number; expected a number > 0 and <= 1e+06
 """
+
 from __future__ import annotations
 
 import math
@@ -22,8 +23,16 @@ MODES = ("st", "adaptive", "spatial", "bki", "csm")
 INPUTS = ("predictions", "labels")
 QUERY_BLENDS = ("missing", "off")
 # the classes whose evidence keeps a short kernel by default (MapperConfig.thin_classes)
-THIN_CLASSES = ("pole", "traffic-sign", "trunk", "person", "bicycle", "bicyclist",
-                "motorcycle", "motorcyclist")
+THIN_CLASSES = (
+    "pole",
+    "traffic-sign",
+    "trunk",
+    "person",
+    "bicycle",
+    "bicyclist",
+    "motorcycle",
+    "motorcyclist",
+)
 # kernels/bki.py and kernels/training.py keep the classes a training voxel has evidence for as
 # the bits of an int32 (a literal 1 << 31 overflows it), and unroll their per-class loops:
 # 31 classes at most
@@ -45,7 +54,7 @@ class Number:
     low_open: bool = False
     high_open: bool = False
     unit: str = ""
-    optional: bool = False          # None allowed (e.g. `last`: no end)
+    optional: bool = False  # None allowed (e.g. `last`: no end)
 
     def allowed(self) -> str:
         what = "a whole number" if self.kind is int else "a number"
@@ -89,8 +98,9 @@ class Choice:
         if value is False and self.off_word is not None:
             return self.off_word
         if not isinstance(value, str) or value not in self.options:
-            raise ConfigError(f"{_prefix(where, key, value)}: expected one of "
-                              f"{', '.join(self.options)}")
+            raise ConfigError(
+                f"{_prefix(where, key, value)}: expected one of {', '.join(self.options)}"
+            )
         return value
 
 
@@ -100,14 +110,19 @@ class ClassNames:
 
     def check(self, key: str, value, where: str = ""):
         from tisem.labels import CLASS_NAMES
+
         known = CLASS_NAMES[1:]
         if not isinstance(value, (list, tuple)) or not all(isinstance(v, str) for v in value):
-            raise ConfigError(f"{_prefix(where, key, value)}: expected a list of class names, "
-                              f"e.g. [pole, trunk] or []")
+            raise ConfigError(
+                f"{_prefix(where, key, value)}: expected a list of class names, "
+                f"e.g. [pole, trunk] or []"
+            )
         for name in value:
             if name not in known:
-                raise ConfigError(f"{_prefix(where, key, list(value))}: unknown class "
-                                  f"{name!r}; known: {', '.join(known)}")
+                raise ConfigError(
+                    f"{_prefix(where, key, list(value))}: unknown class "
+                    f"{name!r}; known: {', '.join(known)}"
+                )
         if len(set(value)) != len(value):
             raise ConfigError(f"{_prefix(where, key, list(value))}: a class is named twice")
         return list(value)
@@ -136,8 +151,9 @@ class Folder:
         said = _prefix(where, key, path)
         if not os.path.isdir(path):
             what = "is not a folder" if os.path.exists(path) else "does not exist"
-            raise ConfigError(f"{said}: {what}; expected an existing folder (or null: the "
-                              f"system's temp folder)")
+            raise ConfigError(
+                f"{said}: {what}; expected an existing folder (or null: the system's temp folder)"
+            )
         if not os.access(path, os.W_OK | os.X_OK):
             raise ConfigError(f"{said}: the folder is not writable")
         return path
@@ -153,6 +169,7 @@ def check_fields(obj, rules: dict) -> None:
 
 # --------------------------------------------------------------------------- YAML text
 
+
 class _Loader(yaml.SafeLoader):
     """Safe YAML with YAML 1.2 floats: `1e-4` and `1E5` are numbers (YAML 1.1 wants a dot)."""
 
@@ -160,7 +177,8 @@ class _Loader(yaml.SafeLoader):
 _Loader.add_implicit_resolver(
     "tag:yaml.org,2002:float",
     re.compile(r"^[-+]?(?:[0-9][0-9_]*(?:\.[0-9_]*)?|\.[0-9_]+)[eE][-+]?[0-9]+$"),
-    list("-+0123456789."))
+    list("-+0123456789."),
+)
 
 _NUMBER = re.compile(r"^\s*[-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?\s*$")
 
@@ -201,6 +219,7 @@ def read_yaml(path: str | os.PathLike) -> dict:
     if data is None:
         return {}
     if not isinstance(data, dict):
-        raise ConfigError(f"{path}: expected a mapping of config keys at the top level, got "
-                          f"{type(data).__name__}")
+        raise ConfigError(
+            f"{path}: expected a mapping of config keys at the top level, got {type(data).__name__}"
+        )
     return data

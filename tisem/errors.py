@@ -7,6 +7,7 @@ which the run (`tisem.run.MappingRun`) reports and passes over, mapping the rest
 `RunInterrupted` (Ctrl-C, acted on between scans) or `RunError` (a disk that cannot take the
 outputs or a checkpoint); every message is one line.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -56,8 +57,10 @@ class RunInterrupted(Exception):
         if checkpoint is not None:
             message = f"interrupted {where}; continue with --resume {out_dir}"
         else:
-            message = (f"interrupted {where}; nothing to resume from (checkpoints are off: "
-                       f"--checkpoint-every N saves them)")
+            message = (
+                f"interrupted {where}; nothing to resume from (checkpoints are off: "
+                f"--checkpoint-every N saves them)"
+            )
         super().__init__(message)
 
 

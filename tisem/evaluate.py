@@ -27,17 +27,24 @@ Metrics (`Confusion.metrics()`):
 
 With no evaluated points the ratio metrics are ``None``.
 """
+
 from __future__ import annotations
 
-from typing import Iterable, Sequence
+from collections.abc import Iterable, Sequence
 
 import numpy as np
 
 from tisem.labels import NUM_CLASSES, class_names
 from tisem.scan import Scan, finite_rows
 
-__all__ = ["Confusion", "format_table", "format_per_class", "METRIC_NAMES", "score_scan",
-           "network_labels"]
+__all__ = [
+    "Confusion",
+    "format_table",
+    "format_per_class",
+    "METRIC_NAMES",
+    "score_scan",
+    "network_labels",
+]
 
 METRIC_NAMES = {
     "miou": "mIoU (GT-present classes)",
@@ -59,21 +66,22 @@ class Confusion:
         self._m = np.zeros((self.num_classes, self.num_classes), dtype=np.int64)
 
     @classmethod
-    def from_matrix(cls, matrix) -> "Confusion":
+    def from_matrix(cls, matrix) -> Confusion:
         """A confusion holding the counts of `matrix` (C x C, rows GT, columns prediction),
         e.g. the `matrix` of one saved with a run's progress."""
         m = np.asarray(matrix)
         if m.ndim != 2 or m.shape[0] != m.shape[1]:
             raise ValueError(f"a confusion matrix must be square, got shape {m.shape}")
         if not np.issubdtype(m.dtype, np.integer) or (m.size and m.min() < 0):
-            raise ValueError(f"a confusion matrix holds non-negative integer counts, got "
-                             f"{m.dtype} values")
+            raise ValueError(
+                f"a confusion matrix holds non-negative integer counts, got {m.dtype} values"
+            )
         conf = cls(m.shape[0])
         conf._m += m.astype(np.int64)
         return conf
 
     # ------------------------------------------------------------------ accumulate
-    def add(self, gt_train: np.ndarray, pred_train: np.ndarray) -> "Confusion":
+    def add(self, gt_train: np.ndarray, pred_train: np.ndarray) -> Confusion:
         """Count one batch of points; GT 0 is skipped. Returns self."""
         gt = np.asarray(gt_train).ravel()
         pred = np.asarray(pred_train).ravel()
@@ -92,11 +100,12 @@ class Confusion:
         self._m += np.bincount(gt * C + pred, minlength=C * C).reshape(C, C)
         return self
 
-    def merge(self, other: "Confusion") -> "Confusion":
+    def merge(self, other: Confusion) -> Confusion:
         """Add another confusion's counts into this one. Returns self."""
         if other.num_classes != self.num_classes:
-            raise ValueError(f"cannot merge {other.num_classes}-class into "
-                             f"{self.num_classes}-class confusion")
+            raise ValueError(
+                f"cannot merge {other.num_classes}-class into {self.num_classes}-class confusion"
+            )
         self._m += other._m
         return self
 
@@ -112,7 +121,7 @@ class Confusion:
         tp = np.diag(m).copy()
         fn = m.sum(axis=1) - tp
         fp = m[1:, :].sum(axis=0) - tp
-        tp[0] = fp[0] = fn[0] = 0   # class 0 is never scored
+        tp[0] = fp[0] = fn[0] = 0  # class 0 is never scored
         return tp, fp, fn
 
     def gt_counts(self) -> np.ndarray:
@@ -148,8 +157,7 @@ class Confusion:
     def __repr__(self) -> str:
         m = self.metrics()
         f = lambda v: "n/a" if v is None else f"{v:.4f}"  # noqa: E731
-        return (f"Confusion({m['points']} points, mIoU {f(m['miou'])}, "
-                f"accuracy {f(m['accuracy'])})")
+        return f"Confusion({m['points']} points, mIoU {f(m['miou'])}, accuracy {f(m['accuracy'])})"
 
 
 def network_labels(scan: Scan) -> np.ndarray:
@@ -173,11 +181,12 @@ def score_scan(conf: Confusion, scan: Scan, labels: np.ndarray) -> None:
 
 
 def _class_name(c: int) -> str:
-    names = class_names()                      # the active label space's
+    names = class_names()  # the active label space's
     return names[c] if c < len(names) else f"class-{c}"
 
 
 # --------------------------------------------------------------------------- tables
+
 
 def _fmt(v, digits: int = 4) -> str:
     if v is None:
@@ -195,16 +204,21 @@ def _md_row(cells: Iterable[str]) -> str:
     return "| " + " | ".join(str(c).replace("|", "\\|") for c in cells) + " |"
 
 
-def format_table(rows: Sequence[tuple[str, dict]],
-                 columns: Sequence[str] = ("miou", "accuracy", "wiou", "oa_paper"),
-                 name_header: str = "method", digits: int = 4) -> str:
+def format_table(
+    rows: Sequence[tuple[str, dict]],
+    columns: Sequence[str] = ("miou", "accuracy", "wiou", "oa_paper"),
+    name_header: str = "method",
+    digits: int = 4,
+) -> str:
     """A markdown table: one row per (name, metrics dict), one column per metric key.
 
     Column headers use the descriptive names in `METRIC_NAMES` (unknown keys as given);
     missing or undefined values print as "–".
     """
-    lines = [_md_row([name_header] + [METRIC_NAMES.get(c, c) for c in columns]),
-             _md_row(["---"] + ["---:"] * len(columns))]
+    lines = [
+        _md_row([name_header] + [METRIC_NAMES.get(c, c) for c in columns]),
+        _md_row(["---"] + ["---:"] * len(columns)),
+    ]
     for name, metrics in rows:
         lines.append(_md_row([name] + [_fmt(metrics.get(c), digits) for c in columns]))
     return "\n".join(lines)
@@ -224,8 +238,10 @@ def format_per_class(rows: Sequence[tuple[str, dict]], digits: int = 4) -> str:
         for name in m.get("per_class_iou", {}):
             if name not in class_names:
                 class_names.append(name)
-    lines = [_md_row(["class"] + [name for name, _ in rows]),
-             _md_row(["---"] + ["---:"] * len(rows))]
+    lines = [
+        _md_row(["class"] + [name for name, _ in rows]),
+        _md_row(["---"] + ["---:"] * len(rows)),
+    ]
     marked = False
     for cname in class_names:
         values = [m.get("per_class_iou", {}).get(cname) for _, m in rows]
@@ -233,10 +249,12 @@ def format_per_class(rows: Sequence[tuple[str, dict]], digits: int = 4) -> str:
             continue
         absent = any(cname not in m.get("present_classes", []) for _, m in rows)
         marked |= absent
-        lines.append(_md_row([cname + (" *" if absent else "")] +
-                             [_fmt(v, digits) for v in values]))
-    lines.append(_md_row(["**mIoU (GT-present)**"]
-                         + [_fmt(m.get("miou"), digits) for _, m in rows]))
+        lines.append(
+            _md_row([cname + (" *" if absent else "")] + [_fmt(v, digits) for v in values])
+        )
+    lines.append(
+        _md_row(["**mIoU (GT-present)**"] + [_fmt(m.get("miou"), digits) for _, m in rows])
+    )
     text = "\n".join(lines)
     if marked:
         text += "\n\n\\* absent from the ground truth (predicted only): not part of the mIoU."

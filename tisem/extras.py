@@ -5,6 +5,7 @@ writing MCAP recordings and ROS 2 bags, drawing pictures and running on Ray each
 (`pip install "tisem[mcap]"`, `[viz]`, `[ray]`, or `[all]`). A feature whose extra is missing
 stops with one line that names it (`MissingExtra`), not with an import traceback.
 """
+
 from __future__ import annotations
 
 import importlib
@@ -12,13 +13,22 @@ from types import ModuleType
 
 # top-level module -> the extra that installs it
 EXTRA_OF_MODULE = {
-    "mcap": "mcap", "mcap_ros2": "mcap", "mcap_protobuf": "mcap", "rosbags": "mcap",
-    "foxglove_schemas_protobuf": "mcap", "google": "mcap", "zstandard": "mcap", "lz4": "mcap",
+    "mcap": "mcap",
+    "mcap_ros2": "mcap",
+    "mcap_protobuf": "mcap",
+    "rosbags": "mcap",
+    "foxglove_schemas_protobuf": "mcap",
+    "google": "mcap",
+    "zstandard": "mcap",
+    "lz4": "mcap",
     "matplotlib": "viz",
     "ray": "ray",
 }
-WHAT_NEEDS = {"mcap": "MCAP recordings and ROS 2 bags", "viz": "pictures (matplotlib)",
-              "ray": "fleet mapping and batch runs (Ray)"}
+WHAT_NEEDS = {
+    "mcap": "MCAP recordings and ROS 2 bags",
+    "viz": "pictures (matplotlib)",
+    "ray": "fleet mapping and batch runs (Ray)",
+}
 
 
 class MissingExtra(ImportError):
@@ -39,8 +49,10 @@ def missing_extra(exc: ImportError) -> MissingExtra | None:
     extra = EXTRA_OF_MODULE.get(name)
     if extra is None:
         return None
-    return MissingExtra(f"{WHAT_NEEDS[extra]} need the '{extra}' extra (module {name!r} is not "
-                        f"installed): {install_hint(extra)}")
+    return MissingExtra(
+        f"{WHAT_NEEDS[extra]} need the '{extra}' extra (module {name!r} is not "
+        f"installed): {install_hint(extra)}"
+    )
 
 
 def require(module: str) -> ModuleType:

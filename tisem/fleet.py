@@ -21,6 +21,7 @@ The steps (fleet.json records each one's seconds and what it did):
 A task that fails is retried as Ray allows, then reported (fleet.json "failed" and "missing");
 the others are merged. Task maps of an earlier run of the same plan are kept (`reuse`).
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -37,7 +38,7 @@ from tisem.fleet_task import MapTask, anchor_of, dilate, map_task
 from tisem.logs import LogSpec, discover_logs, first_pose, log_length
 from tisem.reduce import assign_tiles, reduce_tiles, score_log
 from tisem.report import METRIC_KEYS
-from tisem.tiles import TILE_VOX, TileIndex, TiledMap, is_tiled_map, write_index
+from tisem.tiles import TILE_VOX, TiledMap, TileIndex, is_tiled_map, write_index
 
 log = logging.getLogger(__name__)
 
@@ -58,7 +59,7 @@ class FleetOptions:
     num_cpus: int | None = None
     max_merged_voxels: int = 20_000_000
     evaluate: bool = True
-    world_frame: str | None = None       # declare that every log's poses are in this frame
+    world_frame: str | None = None  # declare that every log's poses are in this frame
     tile_vox: int = TILE_VOX
     arch: str = "cpu"
     reuse: bool = True
@@ -67,8 +68,9 @@ class FleetOptions:
         if self.chunks < 1 or self.overlap_scans < 0 or self.reducers < 1 or self.threads < 1:
             raise ValueError("need chunks >= 1, overlap_scans >= 0, reducers >= 1, threads >= 1")
         if self.tile_vox % 32:
-            raise ValueError(f"tile_vox must be a multiple of 32 (the top cell), got "
-                             f"{self.tile_vox}")
+            raise ValueError(
+                f"tile_vox must be a multiple of 32 (the top cell), got {self.tile_vox}"
+            )
 
 
 @dataclass
@@ -100,8 +102,9 @@ def group_logs(logs: list[LogSpec]) -> dict[str, list[LogSpec]]:
     return groups
 
 
-def plan_tasks(groups: dict[str, list[LogSpec]], options: FleetOptions,
-               input: str = "predictions") -> list[MapTask]:
+def plan_tasks(
+    groups: dict[str, list[LogSpec]], options: FleetOptions, input: str = "predictions"
+) -> list[MapTask]:
     """One task per log, or per chunk of a log (module docstring, step 1)."""
     tasks = []
     for group, members in groups.items():
@@ -113,9 +116,16 @@ def plan_tasks(groups: dict[str, list[LogSpec]], options: FleetOptions,
             bounds = [round(k * n / options.chunks) for k in range(options.chunks + 1)]
             for k in range(options.chunks):
                 if bounds[k + 1] > bounds[k]:
-                    tasks.append(MapTask(f"{spec.name}#chunk{k}", spec, bounds[k],
-                                         bounds[k + 1] - 1, options.overlap_scans if k else 0,
-                                         group))
+                    tasks.append(
+                        MapTask(
+                            f"{spec.name}#chunk{k}",
+                            spec,
+                            bounds[k],
+                            bounds[k + 1] - 1,
+                            options.overlap_scans if k else 0,
+                            group,
+                        )
+                    )
     return tasks
 
 
@@ -148,9 +158,14 @@ def _finished(folder: Path, task: MapTask, mapper_config: dict) -> dict | None:
     return summary
 
 
-def _map_all(tasks: dict[str, MapTask], folders: dict[str, Path], cfg: RunConfig,
-             options: FleetOptions, seeds: dict[str, list[str]] | None = None,
-             footprints: dict[str, list] | None = None) -> tuple[dict, dict]:
+def _map_all(
+    tasks: dict[str, MapTask],
+    folders: dict[str, Path],
+    cfg: RunConfig,
+    options: FleetOptions,
+    seeds: dict[str, list[str]] | None = None,
+    footprints: dict[str, list] | None = None,
+) -> tuple[dict, dict]:
     """Run (or reuse) every task; ({id: summary}, {id: reason})."""
     config = to_dict(cfg)
     done, refs = {}, {}
@@ -160,11 +175,18 @@ def _map_all(tasks: dict[str, MapTask], folders: dict[str, Path], cfg: RunConfig
             done[task_id] = kept
             continue
         refs[task_id] = cluster.submit(
-            map_task, cpus=options.threads, retries=options.retries,
+            map_task,
+            cpus=options.threads,
+            retries=options.retries,
             args=(task, config, str(folders[task_id])),
-            kwargs={"threads": options.threads, "arch": options.arch,
-                    "seed_dirs": (seeds or {}).get(task_id),
-                    "footprint": (footprints or {}).get(task_id), "tile_vox": options.tile_vox})
+            kwargs={
+                "threads": options.threads,
+                "arch": options.arch,
+                "seed_dirs": (seeds or {}).get(task_id),
+                "footprint": (footprints or {}).get(task_id),
+                "tile_vox": options.tile_vox,
+            },
+        )
     ran, failed = cluster.gather(refs)
     return {**done, **ran}, failed
 
@@ -177,19 +199,27 @@ def _refine_plan(tasks: dict[str, MapTask], summaries: dict[str, dict], folders:
         if mine is None or mine["first_stamp_s"] is None:
             continue
         reach = dilate({tuple(t) for t in mine["tiles"]})
-        earlier = [other for other, s in summaries.items()
-                   if other != task_id and tasks[other].group == task.group
-                   and s["first_stamp_s"] is not None
-                   and (s["first_stamp_s"], other) < (mine["first_stamp_s"], task_id)
-                   and reach & {tuple(t) for t in s["tiles"]}]
+        earlier = [
+            other
+            for other, s in summaries.items()
+            if other != task_id
+            and tasks[other].group == task.group
+            and s["first_stamp_s"] is not None
+            and (s["first_stamp_s"], other) < (mine["first_stamp_s"], task_id)
+            and reach & {tuple(t) for t in s["tiles"]}
+        ]
         if earlier:
             seeded = dataclasses.replace(task, warmup=0, seed_from=tuple(sorted(earlier)))
             plan[task_id] = (seeded, [str(folders[e]) for e in sorted(earlier)])
     return plan
 
 
-def run_fleet(logs: list[LogSpec] | list[str], cfg: RunConfig, out_dir: str | Path,
-              options: FleetOptions | None = None) -> FleetResult:
+def run_fleet(
+    logs: list[LogSpec] | list[str],
+    cfg: RunConfig,
+    out_dir: str | Path,
+    options: FleetOptions | None = None,
+) -> FleetResult:
     """Map, refine, reduce and score (module docstring); returns the result."""
     options = options or FleetOptions()
     options.validate()
@@ -202,8 +232,10 @@ def run_fleet(logs: list[LogSpec] | list[str], cfg: RunConfig, out_dir: str | Pa
         specs = [LogSpec(s.kind, s.path, s.name, options.world_frame) for s in specs]
     groups = group_logs(specs)
     anchors = group_anchors(groups, cfg)
-    tasks = {t.task_id: dataclasses.replace(t, anchor=anchors.get(t.group))
-             for t in plan_tasks(groups, options, cfg.input)}
+    tasks = {
+        t.task_id: dataclasses.replace(t, anchor=anchors.get(t.group))
+        for t in plan_tasks(groups, options, cfg.input)
+    }
     folders = {tid: out_dir / "tasks" / _slug(tid) for tid in tasks}
     seconds["plan"] = time.perf_counter() - clock
     refine = options.refine if options.refine is not None else cfg.mapper.uses_kernel
@@ -217,11 +249,17 @@ def run_fleet(logs: list[LogSpec] | list[str], cfg: RunConfig, out_dir: str | Pa
             clock = time.perf_counter()
             plan = _refine_plan(tasks, summaries, folders)
             again = {tid: seeded for tid, (seeded, _) in plan.items()}
-            refolders = {tid: folders[tid].with_name(folders[tid].name + ".refined")
-                         for tid in plan}
+            refolders = {
+                tid: folders[tid].with_name(folders[tid].name + ".refined") for tid in plan
+            }
             refined, refine_failed = _map_all(
-                again, refolders, cfg, options, {tid: s for tid, (_, s) in plan.items()},
-                {tid: summaries[tid]["tiles"] for tid in plan})
+                again,
+                refolders,
+                cfg,
+                options,
+                {tid: s for tid, (_, s) in plan.items()},
+                {tid: summaries[tid]["tiles"] for tid in plan},
+            )
             for tid in refined:
                 final_dirs[tid] = refolders[tid]
             for tid, reason in refine_failed.items():
@@ -237,8 +275,7 @@ def run_fleet(logs: list[LogSpec] | list[str], cfg: RunConfig, out_dir: str | Pa
         seconds["score"] = time.perf_counter() - clock
     clock = time.perf_counter()
     for name, folder in maps.items():
-        _group_files(folder, groups[name], tasks, finals, failed, metrics.get(name), cfg,
-                     options)
+        _group_files(folder, groups[name], tasks, finals, failed, metrics.get(name), cfg, options)
     seconds["files"] = time.perf_counter() - clock
     report = _report(options, cfg, tasks, finals, failed, maps, reduction, metrics, seconds)
     (out_dir / "fleet.json").write_text(_json(report))
@@ -263,8 +300,11 @@ def _reduce(groups, tasks, finals, final_dirs, cfg, options, out_dir):
             if owned:
                 work = [(list(t), held[t]) for t in owned]
                 refs[f"{group}/reducer{r}"] = cluster.submit(
-                    reduce_tiles, cpus=1, retries=options.retries,
-                    args=(str(folder), work, cfg.mapper.decay_tau_s, config))
+                    reduce_tiles,
+                    cpus=1,
+                    retries=options.retries,
+                    args=(str(folder), work, cfg.mapper.decay_tau_s, config),
+                )
     done, failed = cluster.gather(refs)
     if failed:
         raise RuntimeError(f"reducers failed: {failed}")
@@ -272,12 +312,21 @@ def _reduce(groups, tasks, finals, final_dirs, cfg, options, out_dir):
     for group, folder in maps.items():
         mine = {k: v for k, v in done.items() if k.startswith(group + "/")}
         entries = [e for v in mine.values() for e in v["entries"]]
-        write_index(folder, TileIndex(cfg.mapper.resolution_m, cfg.mapper.num_classes,
-                                      options.tile_vox, layout[group], config, entries,
-                                      {"tasks": sorted(t for t in finals
-                                                       if tasks[t].group == group)}))
-        reduction[group] = {k: {x: v for x, v in r.items() if x != "entries"}
-                            for k, r in mine.items()}
+        write_index(
+            folder,
+            TileIndex(
+                cfg.mapper.resolution_m,
+                cfg.mapper.num_classes,
+                options.tile_vox,
+                layout[group],
+                config,
+                entries,
+                {"tasks": sorted(t for t in finals if tasks[t].group == group)},
+            ),
+        )
+        reduction[group] = {
+            k: {x: v for x, v in r.items() if x != "entries"} for k, r in mine.items()
+        }
     return maps, reduction
 
 
@@ -286,13 +335,15 @@ def _score(groups, tasks, finals, maps, cfg) -> dict:
     refs, of_group = {}, {}
     for group in maps:
         for spec in groups[group]:
-            ranges = [(tasks[t].first, tasks[t].last) for t in sorted(finals)
-                      if tasks[t].log == spec]
+            ranges = [
+                (tasks[t].first, tasks[t].last) for t in sorted(finals) if tasks[t].log == spec
+            ]
             if ranges:
                 key = f"{group}/{spec.name}"
                 of_group[key] = group
-                refs[key] = cluster.submit(score_log, cpus=1, args=(str(maps[group]), spec,
-                                                                     ranges, cfg.input))
+                refs[key] = cluster.submit(
+                    score_log, cpus=1, args=(str(maps[group]), spec, ranges, cfg.input)
+                )
     done, failed = cluster.gather(refs)
     metrics = {}
     for group in maps:
@@ -303,8 +354,12 @@ def _score(groups, tasks, finals, maps, cfg) -> dict:
                 final.merge(Confusion.from_matrix(r["final"]))
                 network.merge(Confusion.from_matrix(r["input"]))
                 scans += r["scans"]
-        metrics[group] = {"scans": scans, "final": _summary(final), "input": _summary(network),
-                          "failed": {k: v for k, v in failed.items() if of_group[k] == group}}
+        metrics[group] = {
+            "scans": scans,
+            "final": _summary(final),
+            "input": _summary(network),
+            "failed": {k: v for k, v in failed.items() if of_group[k] == group},
+        }
     return metrics
 
 
@@ -317,44 +372,72 @@ def _group_files(folder, members, tasks, finals, failed, metrics, cfg, options) 
     """metrics.json of a group, and the usual map files when the merged map fits."""
     tiled = TiledMap.open(folder)
     mine = [t for t in tasks if tasks[t].log in members]
-    body = {"mode": cfg.mapper.mode, "world_frame": tiled.world_frame, "voxels": tiled.voxels,
-            "tiles": len(tiled.tile_keys), "tasks": sorted(t for t in mine if t in finals),
-            "missing": _missing(tasks, mine, finals, failed), **(metrics or {}),
-            "config": to_dict(cfg)}
+    body = {
+        "mode": cfg.mapper.mode,
+        "world_frame": tiled.world_frame,
+        "voxels": tiled.voxels,
+        "tiles": len(tiled.tile_keys),
+        "tasks": sorted(t for t in mine if t in finals),
+        "missing": _missing(tasks, mine, finals, failed),
+        **(metrics or {}),
+        "config": to_dict(cfg),
+    }
     (folder / "metrics.json").write_text(_json(body))
     if tiled.voxels > options.max_merged_voxels:
-        log.info("%s: %d voxels > %d: tiles only", folder, tiled.voxels,
-                 options.max_merged_voxels)
+        log.info("%s: %d voxels > %d: tiles only", folder, tiled.voxels, options.max_merged_voxels)
         return
     from tisem.merge_files import write_usual_files
+
     trajectories = [finals[t]["trajectory_xy"] for t in mine if t in finals]
-    write_usual_files(folder, tiled.snapshot(), to_dict(cfg)["mapper"],
-                      {"world_frame": tiled.world_frame}, trajectories)
+    write_usual_files(
+        folder,
+        tiled.snapshot(),
+        to_dict(cfg)["mapper"],
+        {"world_frame": tiled.world_frame},
+        trajectories,
+    )
 
 
 def _missing(tasks, mine, finals, failed) -> list[dict]:
     """What a group lacks: the scans of failed tasks, and the scans tasks skipped."""
-    out = [{"task": t, "log": tasks[t].log.path, "first": tasks[t].first,
+    out = [
+        {
+            "task": t,
+            "log": tasks[t].log.path,
+            "first": tasks[t].first,
             "last": tasks[t].last if tasks[t].last < 1 << 62 else None,
-            "reason": failed.get(t, "not run")} for t in mine if t not in finals]
+            "reason": failed.get(t, "not run"),
+        }
+        for t in mine
+        if t not in finals
+    ]
     for t in mine:
         for s in (finals.get(t) or {}).get("skipped", []):
-            out.append({"task": t, "log": tasks[t].log.path, "scan": s["index"],
-                        "reason": s["reason"]})
+            out.append(
+                {"task": t, "log": tasks[t].log.path, "scan": s["index"], "reason": s["reason"]}
+            )
     return out
 
 
 def _report(options, cfg, tasks, finals, failed, maps, reduction, metrics, seconds) -> dict:
-    return {"options": asdict(options), "mode": cfg.mapper.mode,
-            "tasks": {t: {k: v for k, v in finals[t].items() if k != "trajectory_xy"}
-                      for t in sorted(finals)},
-            "failed": dict(failed),
-            "missing": [m for t in tasks if t not in finals
-                        for m in _missing(tasks, [t], finals, failed)],
-            "maps": {g: str(p) for g, p in maps.items()}, "reduction": reduction,
-            "metrics": metrics, "seconds": seconds}
+    return {
+        "options": asdict(options),
+        "mode": cfg.mapper.mode,
+        "tasks": {
+            t: {k: v for k, v in finals[t].items() if k != "trajectory_xy"} for t in sorted(finals)
+        },
+        "failed": dict(failed),
+        "missing": [
+            m for t in tasks if t not in finals for m in _missing(tasks, [t], finals, failed)
+        ],
+        "maps": {g: str(p) for g, p in maps.items()},
+        "reduction": reduction,
+        "metrics": metrics,
+        "seconds": seconds,
+    }
 
 
 def _json(data) -> str:
     import json
+
     return json.dumps(data, indent=1, default=str)

@@ -12,6 +12,7 @@ What it writes is its contribution (`tisem.merge.contribution`: the map less the
 and warm-up state), as a tiled map under its folder, so that the reducers can read it tile by
 tile. Nothing here knows about Ray.
 """
+
 from __future__ import annotations
 
 import logging
@@ -27,8 +28,16 @@ from tisem.errors import NothingMapped, SkippedScan
 from tisem.logs import LogSpec, open_log
 from tisem.merge import contribution, merge_snapshots
 from tisem.snapshot import MapSnapshot
-from tisem.tiles import (TILE_VOX, TileIndex, TiledMap, concat_snapshots, empty_snapshot,
-                         split_by_tile, write_index, write_tile)
+from tisem.tiles import (
+    TILE_VOX,
+    TiledMap,
+    TileIndex,
+    concat_snapshots,
+    empty_snapshot,
+    split_by_tile,
+    write_index,
+    write_tile,
+)
 
 log = logging.getLogger(__name__)
 
@@ -51,13 +60,25 @@ class MapTask:
     anchor: dict | None = None
 
     def to_dict(self) -> dict:
-        return {"task_id": self.task_id, "log": self.log.to_dict(), "first": self.first,
-                "last": self.last, "warmup": self.warmup, "group": self.group,
-                "seed_from": list(self.seed_from), "anchor": self.anchor}
+        return {
+            "task_id": self.task_id,
+            "log": self.log.to_dict(),
+            "first": self.first,
+            "last": self.last,
+            "warmup": self.warmup,
+            "group": self.group,
+            "seed_from": list(self.seed_from),
+            "anchor": self.anchor,
+        }
 
 
-def seed_snapshot(seed_dirs: list[str], footprint: set[tuple[int, int]], tau_s: float,
-                  num_classes: int, resolution_m: float) -> MapSnapshot:
+def seed_snapshot(
+    seed_dirs: list[str],
+    footprint: set[tuple[int, int]],
+    tau_s: float,
+    num_classes: int,
+    resolution_m: float,
+) -> MapSnapshot:
     """The merged voxels of the seed maps in the tiles of `footprint`."""
     maps = [TiledMap.open(d, cache_tiles=1) for d in seed_dirs]
     parts = []
@@ -73,12 +94,14 @@ def dilate(tiles: set[tuple[int, int]]) -> set[tuple[int, int]]:
     return {(x + dx, y + dy) for x, y in tiles for dx in (-1, 0, 1) for dy in (-1, 0, 1)}
 
 
-def _start_map(mapper, seed: MapSnapshot | None, anchor: dict | None, first_pose: np.ndarray,
-               stamp_s: float) -> None:
+def _start_map(
+    mapper, seed: MapSnapshot | None, anchor: dict | None, first_pose: np.ndarray, stamp_s: float
+) -> None:
     """Give the fresh `mapper` its origin and time zero before the first scan: the group's
     `anchor` (the serial run's: the same float rounding in every task) or what the first scan
     would have given it, and the `seed` voxels."""
     from tisem.geometry import block_aligned_origin
+
     res = mapper.geometry.resolution_m
     if anchor is not None:
         origin, t0 = np.asarray(anchor["origin_vox"], np.int64), float(anchor["t0"])
@@ -87,20 +110,37 @@ def _start_map(mapper, seed: MapSnapshot | None, anchor: dict | None, first_pose
     center = np.floor((first_pose[:3, 3] - origin * res) / res).astype(np.int64)
     if seed is None:
         seed = empty_snapshot(mapper.C, res)
-    mapper.restore(seed, {"origin_vox": origin.tolist(), "t0": t0, "center_vox": center.tolist(),
-                          "scans": 0, "last_stamp_s": None})
+    mapper.restore(
+        seed,
+        {
+            "origin_vox": origin.tolist(),
+            "t0": t0,
+            "center_vox": center.tolist(),
+            "scans": 0,
+            "last_stamp_s": None,
+        },
+    )
 
 
 def anchor_of(first_pose: np.ndarray, stamp_s: float, resolution_m: float) -> dict:
     """The origin and time zero a map whose first scan is this one gets (`_start_map`)."""
     from tisem.geometry import block_aligned_origin
+
     origin = block_aligned_origin(np.floor(first_pose[:3, 3] / resolution_m))
     return {"origin_vox": origin.tolist(), "t0": float(stamp_s)}
 
 
-def map_task(task: MapTask, run_config: dict, out_dir: str | Path, *, threads: int = 1,
-             arch: str = "cpu", seed_dirs: list[str] | None = None,
-             footprint: list[list[int]] | None = None, tile_vox: int = TILE_VOX) -> dict:
+def map_task(
+    task: MapTask,
+    run_config: dict,
+    out_dir: str | Path,
+    *,
+    threads: int = 1,
+    arch: str = "cpu",
+    seed_dirs: list[str] | None = None,
+    footprint: list[list[int]] | None = None,
+    tile_vox: int = TILE_VOX,
+) -> dict:
     """Map the task (module docstring) into `out_dir`; returns its summary (plain JSON)."""
     from tisem.backend import describe, init_taichi
     from tisem.mapper import Mapper
@@ -115,8 +155,9 @@ def map_task(task: MapTask, run_config: dict, out_dir: str | Path, *, threads: i
     scans = open_log(task.log, start, task.last, input=cfg.input)
     seed = None
     if seed_dirs:
-        seed = seed_snapshot(seed_dirs, dilate({tuple(t) for t in footprint or []}), tau,
-                             num_classes, res)
+        seed = seed_snapshot(
+            seed_dirs, dilate({tuple(t) for t in footprint or []}), tau, num_classes, res
+        )
     own_from = task.first - start
     state_before = None
     seconds, skipped, mapped, first_stamp, last_stamp = [], [], 0, None, None
@@ -130,11 +171,11 @@ def map_task(task: MapTask, run_config: dict, out_dir: str | Path, *, threads: i
         if mapper.origin_vox is None and (seed is not None or task.anchor is not None):
             _start_map(mapper, seed, task.anchor, item.T_world_sensor, item.stamp_s)
         if own and state_before is None:
-            state_before = mapper.snapshot()    # the seed and the warm-up, taken out at the end
+            state_before = mapper.snapshot()  # the seed and the warm-up, taken out at the end
         t0 = time.perf_counter()
         try:
             mapper.integrate(item)
-        except ValueError as exc:       # a scan the mapper refuses: skipped, as in a run
+        except ValueError as exc:  # a scan the mapper refuses: skipped, as in a run
             if own:
                 skipped.append({"index": item.index, "reason": str(exc)})
             continue
@@ -147,28 +188,48 @@ def map_task(task: MapTask, run_config: dict, out_dir: str | Path, *, threads: i
     if not mapped and skipped:
         # a log that cannot be read at all (every scan refused) is a failed task, reported
         # with the first reason, not an empty map that looks like a success
-        raise NothingMapped(f"{task.task_id}: none of its {len(skipped)} scans could be "
-                            f"mapped; first: {skipped[0]['reason']}")
+        raise NothingMapped(
+            f"{task.task_id}: none of its {len(skipped)} scans could be "
+            f"mapped; first: {skipped[0]['reason']}"
+        )
     final = mapper.snapshot()
-    if state_before is None:       # no scan of the task's own was mapped
+    if state_before is None:  # no scan of the task's own was mapped
         state_before = final
     own = contribution(final, state_before, tau)
     out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)      # the index is written even with no tile
-    entries = [write_tile(out_dir, tile, part, run_config["mapper"])
-               for tile, part in split_by_tile(own, tile_vox)]
-    summary = {"task": task.to_dict(), "scans": mapped, "skipped": skipped,
-               "seconds_per_scan": float(np.median(seconds)) if seconds else None,
-               "mapping_seconds": float(np.sum(seconds)),
-               "wall_seconds": time.perf_counter() - started,
-               "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
-               "voxels": len(own), "seed_voxels": 0 if seed is None else len(seed),
-               "first_stamp_s": first_stamp, "last_stamp_s": last_stamp,
-               # every 10th position is plenty for a picture
-               "trajectory_xy": np.asarray(trajectory)[::10, :2].round(2).tolist()
-               if trajectory else [],
-               "device": describe(), "tiles": [e["tile"] for e in entries],
-               "bytes": int(sum(e["bytes"] for e in entries))}
-    write_index(out_dir, TileIndex(res, num_classes, tile_vox, task.log.world_frame,
-                                   run_config["mapper"], entries, {"summary": summary}))
+    out_dir.mkdir(parents=True, exist_ok=True)  # the index is written even with no tile
+    entries = [
+        write_tile(out_dir, tile, part, run_config["mapper"])
+        for tile, part in split_by_tile(own, tile_vox)
+    ]
+    summary = {
+        "task": task.to_dict(),
+        "scans": mapped,
+        "skipped": skipped,
+        "seconds_per_scan": float(np.median(seconds)) if seconds else None,
+        "mapping_seconds": float(np.sum(seconds)),
+        "wall_seconds": time.perf_counter() - started,
+        "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
+        "voxels": len(own),
+        "seed_voxels": 0 if seed is None else len(seed),
+        "first_stamp_s": first_stamp,
+        "last_stamp_s": last_stamp,
+        # every 10th position is plenty for a picture
+        "trajectory_xy": np.asarray(trajectory)[::10, :2].round(2).tolist() if trajectory else [],
+        "device": describe(),
+        "tiles": [e["tile"] for e in entries],
+        "bytes": int(sum(e["bytes"] for e in entries)),
+    }
+    write_index(
+        out_dir,
+        TileIndex(
+            res,
+            num_classes,
+            tile_vox,
+            task.log.world_frame,
+            run_config["mapper"],
+            entries,
+            {"summary": summary},
+        ),
+    )
     return summary

@@ -18,6 +18,7 @@ occupancy evidence travels with the voxel to the store, checkpoints and map file
 Per-class decay (`tau_movable_s`, st mode) is independent of free space: the movable classes'
 counters fade with their own tau, so a parked car's evidence yields to what is seen there next.
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -25,10 +26,10 @@ import dataclasses
 import numpy as np
 from taichi.lang.argpack import ArgPack
 
+from tisem.config import MapperConfig
 from tisem.kernels import raycast
 from tisem.kernels.layout import MapFields
 from tisem.kernels.params import EXPONENTIAL, FORGET, PER_CLASS
-from tisem.config import MapperConfig
 from tisem.labels import MOVABLE_CLASSES
 from tisem.live_window import ivec
 from tisem.preprocess import CheckedScan
@@ -45,8 +46,10 @@ def decay_rule(cfg: MapperConfig) -> str:
 
 def class_inv_tau(cfg: MapperConfig) -> np.ndarray:
     """(C,) float32 1 / tau of every class (0 for tau = inf)."""
+
     def inv(tau: float) -> float:
         return 0.0 if tau in (0.0, float("inf")) else 1.0 / tau
+
     out = np.full(cfg.num_classes, inv(cfg.decay_tau_s), np.float32)
     movable = [c for c in MOVABLE_CLASSES if c < cfg.num_classes]
     out[movable] = inv(cfg.movable_tau_s)
@@ -72,8 +75,9 @@ class FreeSpace:
         self._stride = int(cfg.free_ray_stride)
         self._mark_hits, self._cast_free = raycast.free_space_kernels(decay)
 
-    def flag_points(self, params: ArgPack, checked: CheckedScan, half_vox: np.ndarray,
-                    moving: np.ndarray | None) -> np.ndarray:
+    def flag_points(
+        self, params: ArgPack, checked: CheckedScan, half_vox: np.ndarray, moving: np.ndarray | None
+    ) -> np.ndarray:
         """(N,) bool: which points of the scan are dynamic, before the scan changes the map."""
         flags = np.zeros(len(checked.points_sensor), np.int8)
         raycast.flag_dynamic(self._fields, params, checked.points_sensor, ivec(half_vox), flags)
@@ -88,5 +92,14 @@ class FreeSpace:
         if n_rows == 0:
             return 0
         self._mark_hits(self._fields, params, rows.xyz, n_rows)
-        return int(self._cast_free(self._fields, params, rows.xyz, n_rows, self._stride,
-                                   self._margin_m, self._margin_fraction))
+        return int(
+            self._cast_free(
+                self._fields,
+                params,
+                rows.xyz,
+                n_rows,
+                self._stride,
+                self._margin_m,
+                self._margin_fraction,
+            )
+        )

@@ -8,6 +8,7 @@ the figure that does not fit before any field exists.
 The layout's constants come from kernels/layout.py when first needed, not at import: that
 module imports taichi, and `import tisem` and `tisem.load_map` must stay cheap.
 """
+
 from __future__ import annotations
 
 import math
@@ -23,6 +24,7 @@ def block_aligned_origin(voxel: np.ndarray) -> np.ndarray:
     a top cell of the SNode tree, so that local indices stay small and the tree's cells line
     up with the global grid."""
     from tisem.kernels.layout import TOP
+
     return (np.asarray(voxel, np.int64) // TOP) * TOP
 
 
@@ -52,8 +54,15 @@ class MapGeometry:
     @classmethod
     def from_config(cls, cfg: MapperConfig) -> MapGeometry:
         """The geometry of a map with this config; ValueError if the config cannot work."""
-        from tisem.kernels.layout import (LEAF, MAX_REACH_BLK, MAX_TABLE_CELLS,
-                                          TABLE_BYTES_PER_CELL, storage_extent, table_half_blocks)
+        from tisem.kernels.layout import (
+            LEAF,
+            MAX_REACH_BLK,
+            MAX_TABLE_CELLS,
+            TABLE_BYTES_PER_CELL,
+            storage_extent,
+            table_half_blocks,
+        )
+
         res = float(cfg.resolution_m)
         reach = cfg.reach_m
         radius_vox = int(math.ceil(reach / res + 0.5)) if cfg.uses_kernel else 0
@@ -64,12 +73,16 @@ class MapGeometry:
         if cfg.window_xy_m < need_xy or cfg.window_z_m < need_z:
             raise ValueError(
                 f"window_xy_m={cfg.window_xy_m} / window_z_m={cfg.window_z_m} must hold the scan "
-                f"(max_range + kernel reach): need >= {need_xy:.1f} m / {need_z:.1f} m")
-        half_vox = np.array([math.ceil(cfg.window_xy_m / res)] * 2
-                            + [math.ceil(cfg.window_z_m / res)], np.int64)
+                f"(max_range + kernel reach): need >= {need_xy:.1f} m / {need_z:.1f} m"
+            )
+        half_vox = np.array(
+            [math.ceil(cfg.window_xy_m / res)] * 2 + [math.ceil(cfg.window_z_m / res)], np.int64
+        )
         if reach_blk > MAX_REACH_BLK:
-            raise ValueError(f"kernel reach {reach} m is longer than {MAX_REACH_BLK} leaf blocks "
-                             f"({MAX_REACH_BLK * LEAF * res:.2f} m at {res} m voxels)")
+            raise ValueError(
+                f"kernel reach {reach} m is longer than {MAX_REACH_BLK} leaf blocks "
+                f"({MAX_REACH_BLK * LEAF * res:.2f} m at {res} m voxels)"
+            )
         # Any point within max_range is inside in x and y; in z the window bounds it (a tilted
         # sensor's far points can lie well above or below its own height band).
         scan_half = np.array([math.ceil(cfg.max_range_m / res) + 1] * 2 + [half_vox[2]], np.int64)
@@ -79,10 +92,18 @@ class MapGeometry:
         if cells >= MAX_TABLE_CELLS:
             raise ValueError(
                 f"max_range_m={cfg.max_range_m} at resolution_m={res} needs a scan table of "
-                f"{cells:,} leaf blocks ({cells * TABLE_BYTES_PER_CELL / 2 ** 30:.0f} GiB); tisem "
-                f"takes at most {MAX_TABLE_CELLS:,}: lower max_range_m or raise resolution_m")
-        return cls(res, half_vox, limit, radius_vox, reach_blk, table_half,
-                   storage_extent(tuple(int(h) for h in half_vox)))
+                f"{cells:,} leaf blocks ({cells * TABLE_BYTES_PER_CELL / 2**30:.0f} GiB); tisem "
+                f"takes at most {MAX_TABLE_CELLS:,}: lower max_range_m or raise resolution_m"
+            )
+        return cls(
+            res,
+            half_vox,
+            limit,
+            radius_vox,
+            reach_blk,
+            table_half,
+            storage_extent(tuple(int(h) for h in half_vox)),
+        )
 
     @property
     def table_cells(self) -> int:

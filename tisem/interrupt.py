@@ -12,6 +12,7 @@ once (KeyboardInterrupt), for a run that does not reach its next boundary.
             if stop.requested:
                 break
 """
+
 from __future__ import annotations
 
 import logging

@@ -13,6 +13,7 @@ scored). `learning_map_inv` may be left out when every train id has one raw id. 
 BGR as in semantic-kitti.yaml, or RGB under the key `color_map_rgb`. A mistake is one
 `ValueError` naming the file and the key.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass, field
@@ -23,7 +24,7 @@ import yaml
 
 __all__ = ["LabelSpace", "load_label_space"]
 
-RAW_IDS = 1 << 16                  # a .label file's semantic id is its lower 16 bits
+RAW_IDS = 1 << 16  # a .label file's semantic id is its lower 16 bits
 
 
 @dataclass(frozen=True)
@@ -32,9 +33,9 @@ class LabelSpace:
     raw ids to train ids."""
 
     names: tuple[str, ...]
-    colors_rgb: np.ndarray                    # (C, 3) uint8
-    learning_map: dict[int, int]              # raw id -> train id
-    learning_map_inv: np.ndarray              # (C,) uint32 train id -> raw id
+    colors_rgb: np.ndarray  # (C, 3) uint8
+    learning_map: dict[int, int]  # raw id -> train id
+    learning_map_inv: np.ndarray  # (C,) uint32 train id -> raw id
     source: str = ""
     lookup: tuple[np.ndarray, np.ndarray] = field(init=False, repr=False, compare=False)
 
@@ -75,8 +76,9 @@ def load_label_space(path: str | Path) -> LabelSpace:
     learning = _int_map(data, "learning_map", where)
     for raw, train in learning.items():
         if not isinstance(train, int) or isinstance(train, bool) or train < 0:
-            raise ValueError(f"{where}: 'learning_map': raw id {raw} -> {train!r}; expected a "
-                             f"train id >= 0")
+            raise ValueError(
+                f"{where}: 'learning_map': raw id {raw} -> {train!r}; expected a train id >= 0"
+            )
     num_classes = max(learning.values()) + 1
     if num_classes < 2:
         raise ValueError(f"{where}: 'learning_map' has no train id above 0 (unlabeled)")
@@ -84,9 +86,11 @@ def load_label_space(path: str | Path) -> LabelSpace:
         inv = _int_map(data, "learning_map_inv", where)
         missing = sorted(set(range(num_classes)) - set(inv))
         if missing or len(inv) != num_classes:
-            raise ValueError(f"{where}: 'learning_map_inv' must name one raw id for each train "
-                             f"id 0..{num_classes - 1}" + (f"; missing {missing}" if missing else
-                                                           f"; it has {len(inv)} entries"))
+            raise ValueError(
+                f"{where}: 'learning_map_inv' must name one raw id for each train "
+                f"id 0..{num_classes - 1}"
+                + (f"; missing {missing}" if missing else f"; it has {len(inv)} entries")
+            )
     else:
         inv = {}
         for raw, train in sorted(learning.items()):
@@ -102,13 +106,19 @@ def load_label_space(path: str | Path) -> LabelSpace:
     rgb = np.zeros((num_classes, 3), dtype=np.uint8)
     for train in range(num_classes):
         color = colors.get(inv[train])
-        if not (isinstance(color, list) and len(color) == 3
-                and all(isinstance(c, int) and 0 <= c <= 255 for c in color)):
-            raise ValueError(f"{where}: colour of raw id {inv[train]}: expected 3 numbers "
-                             f"0..255, got {color!r}")
+        if not (
+            isinstance(color, list)
+            and len(color) == 3
+            and all(isinstance(c, int) and 0 <= c <= 255 for c in color)
+        ):
+            raise ValueError(
+                f"{where}: colour of raw id {inv[train]}: expected 3 numbers 0..255, got {color!r}"
+            )
         rgb[train] = color[::-1] if bgr else color
-    return LabelSpace(names=tuple(str(names_raw[inv[t]]) for t in range(num_classes)),
-                      colors_rgb=rgb, learning_map=dict(learning),
-                      learning_map_inv=np.array([inv[t] for t in range(num_classes)],
-                                                dtype=np.uint32),
-                      source=where)
+    return LabelSpace(
+        names=tuple(str(names_raw[inv[t]]) for t in range(num_classes)),
+        colors_rgb=rgb,
+        learning_map=dict(learning),
+        learning_map_inv=np.array([inv[t] for t in range(num_classes)], dtype=np.uint32),
+        source=where,
+    )

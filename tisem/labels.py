@@ -7,6 +7,7 @@ tisem: `raw_label` vs `train_id`. The constants below are SemanticKITTI's; `raw_
 `train_to_raw`, `class_names` and `class_colors` follow the active label space, which a run
 given `--classes FILE` sets (`use_label_space`, tisem/label_space.py).
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -15,26 +16,75 @@ NUM_CLASSES = 20  # train ids 0..19, 0 = unlabeled
 
 # semantic-kitti.yaml `learning_map` (raw id -> train id)
 LEARNING_MAP: dict[int, int] = {
-    0: 0, 1: 0, 10: 1, 11: 2, 13: 5, 15: 3, 16: 5, 18: 4, 20: 5, 30: 6, 31: 7, 32: 8,
-    40: 9, 44: 10, 48: 11, 49: 12, 50: 13, 51: 14, 52: 0, 60: 9, 70: 15, 71: 16, 72: 17,
-    80: 18, 81: 19, 99: 0, 252: 1, 253: 7, 254: 6, 255: 8, 256: 5, 257: 5, 258: 4, 259: 5,
+    0: 0,
+    1: 0,
+    10: 1,
+    11: 2,
+    13: 5,
+    15: 3,
+    16: 5,
+    18: 4,
+    20: 5,
+    30: 6,
+    31: 7,
+    32: 8,
+    40: 9,
+    44: 10,
+    48: 11,
+    49: 12,
+    50: 13,
+    51: 14,
+    52: 0,
+    60: 9,
+    70: 15,
+    71: 16,
+    72: 17,
+    80: 18,
+    81: 19,
+    99: 0,
+    252: 1,
+    253: 7,
+    254: 6,
+    255: 8,
+    256: 5,
+    257: 5,
+    258: 4,
+    259: 5,
 }
 
 # semantic-kitti.yaml `learning_map_inv` (train id -> raw id)
-LEARNING_MAP_INV = np.array([0, 10, 11, 15, 18, 20, 30, 31, 32, 40, 44, 48, 49, 50, 51,
-                             70, 71, 72, 80, 81], dtype=np.uint32)
+LEARNING_MAP_INV = np.array(
+    [0, 10, 11, 15, 18, 20, 30, 31, 32, 40, 44, 48, 49, 50, 51, 70, 71, 72, 80, 81], dtype=np.uint32
+)
 
 CLASS_NAMES: tuple[str, ...] = (
-    "unlabeled", "car", "bicycle", "motorcycle", "truck", "other-vehicle", "person",
-    "bicyclist", "motorcyclist", "road", "parking", "sidewalk", "other-ground", "building",
-    "fence", "vegetation", "trunk", "terrain", "pole", "traffic-sign",
+    "unlabeled",
+    "car",
+    "bicycle",
+    "motorcycle",
+    "truck",
+    "other-vehicle",
+    "person",
+    "bicyclist",
+    "motorcyclist",
+    "road",
+    "parking",
+    "sidewalk",
+    "other-ground",
+    "building",
+    "fence",
+    "vegetation",
+    "trunk",
+    "terrain",
+    "pole",
+    "traffic-sign",
 )
 
 # the classes that move (train ids): car, bicycle, motorcycle, truck, other-vehicle, person,
 # bicyclist, motorcyclist; they may take a shorter tau (MapperConfig.tau_movable_s)
 MOVABLE_CLASSES: tuple[int, ...] = (1, 2, 3, 4, 5, 6, 7, 8)
 # SemanticKITTI's raw ids of moving objects (moving-car ... moving-other-vehicle)
-MOVING_RAW_IDS = (252, 259)   # inclusive range
+MOVING_RAW_IDS = (252, 259)  # inclusive range
 
 
 def moving_raw(raw: np.ndarray) -> np.ndarray:
@@ -44,12 +94,31 @@ def moving_raw(raw: np.ndarray) -> np.ndarray:
 
 
 # semantic-kitti.yaml `color_map` is BGR; these are the same colours as RGB, per train id.
-CLASS_COLORS_RGB = np.array([
-    [0, 0, 0], [100, 150, 245], [100, 230, 245], [30, 60, 150], [80, 30, 180],
-    [255, 0, 0], [255, 30, 30], [255, 40, 200], [150, 30, 90], [255, 0, 255],
-    [255, 150, 255], [75, 0, 75], [175, 0, 75], [255, 200, 0], [255, 120, 50],
-    [0, 175, 0], [135, 60, 0], [150, 240, 80], [255, 240, 150], [255, 0, 0],
-], dtype=np.uint8)
+CLASS_COLORS_RGB = np.array(
+    [
+        [0, 0, 0],
+        [100, 150, 245],
+        [100, 230, 245],
+        [30, 60, 150],
+        [80, 30, 180],
+        [255, 0, 0],
+        [255, 30, 30],
+        [255, 40, 200],
+        [150, 30, 90],
+        [255, 0, 255],
+        [255, 150, 255],
+        [75, 0, 75],
+        [175, 0, 75],
+        [255, 200, 0],
+        [255, 120, 50],
+        [0, 175, 0],
+        [135, 60, 0],
+        [150, 240, 80],
+        [255, 240, 150],
+        [255, 0, 0],
+    ],
+    dtype=np.uint8,
+)
 
 # Lookup table over the whole 16-bit raw space; ids not in LEARNING_MAP map to 0 and are
 # flagged by `raw_known` so readers can count and report them.
@@ -77,8 +146,9 @@ def train_to_raw(train_id: np.ndarray) -> np.ndarray:
     train_id = np.asarray(train_id)
     to_raw = LEARNING_MAP_INV if _active is None else _active.learning_map_inv
     if train_id.size and (train_id.min() < 0 or train_id.max() >= to_raw.size):
-        raise ValueError(f"train ids must lie in [0, {to_raw.size}), got "
-                         f"[{train_id.min()}, {train_id.max()}]")
+        raise ValueError(
+            f"train ids must lie in [0, {to_raw.size}), got [{train_id.min()}, {train_id.max()}]"
+        )
     return to_raw[train_id]
 
 
@@ -101,11 +171,13 @@ def class_table() -> list[dict]:
     """The class table as plain records (for metadata in exported files)."""
     raw = LEARNING_MAP_INV if _active is None else _active.learning_map_inv
     names, colors = class_names(), class_colors()
-    return [{"train_id": i, "raw_id": int(raw[i]), "name": names[i],
-             "rgb": [int(c) for c in colors[i]]} for i in range(num_classes())]
+    return [
+        {"train_id": i, "raw_id": int(raw[i]), "name": names[i], "rgb": [int(c) for c in colors[i]]}
+        for i in range(num_classes())
+    ]
 
 
-_active = None                       # a LabelSpace; None: SemanticKITTI's
+_active = None  # a LabelSpace; None: SemanticKITTI's
 
 
 def use_label_space(space) -> None:

@@ -16,6 +16,7 @@ that needs more).
 A move either completes or, when the store cannot take what leaves (a full disk: the store's
 OSError, `tisem.spill.SpillError`), raises with the field and the store as they were.
 """
+
 from __future__ import annotations
 
 import logging
@@ -24,9 +25,10 @@ from dataclasses import dataclass
 import numpy as np
 import taichi as ti
 
-from tisem.kernels import query as kquery, raycast, window
-from tisem.kernels.layout import LEAF, TOP, MapFields
 from tisem.geometry import MapGeometry
+from tisem.kernels import query as kquery
+from tisem.kernels import raycast, window
+from tisem.kernels.layout import LEAF, TOP, MapFields
 from tisem.scan import finite_rows
 from tisem.snapshot import MapSnapshot
 from tisem.store import KEY_LIMIT, BlockStore
@@ -35,7 +37,7 @@ log = logging.getLogger(__name__)
 
 # query coordinates are clamped to this, so that their voxel indices fit an int32
 QUERY_CLAMP_M = 1.0e6
-QUERY_CLAMP_VOX = 2 ** 30
+QUERY_CLAMP_VOX = 2**30
 
 
 def ivec(a) -> ti.Vector:
@@ -47,13 +49,13 @@ def ivec(a) -> ti.Vector:
 class WindowState:
     """What the window remembers from one scan to the next."""
 
-    full_half_vox: np.ndarray               # the configured half-size
-    half_vox: np.ndarray                    # the half-size now (shrunk under the block cap)
-    center_vox: np.ndarray | None = None    # local voxel of the centre; None before any scan
-    headroom_blocks: int = 0                # the most blocks one scan has added so far
-    blocks_after_move: int | None = None    # live blocks right after the last move
+    full_half_vox: np.ndarray  # the configured half-size
+    half_vox: np.ndarray  # the half-size now (shrunk under the block cap)
+    center_vox: np.ndarray | None = None  # local voxel of the centre; None before any scan
+    headroom_blocks: int = 0  # the most blocks one scan has added so far
+    blocks_after_move: int | None = None  # live blocks right after the last move
     shrunk: bool = False
-    top_range: np.ndarray | None = None     # top cells the box spanned, lo then hi
+    top_range: np.ndarray | None = None  # top cells the box spanned, lo then hi
 
 
 @dataclass
@@ -79,11 +81,11 @@ class WindowMove:
 class VoxelArrays:
     """Voxels as host arrays: keys relative to the map origin, times to the map's t0."""
 
-    keys: np.ndarray         # (M, 3) int32
-    counts: np.ndarray       # (M, C) float32
-    t_last_rel: np.ndarray   # (M,) float32 seconds since t0
-    length_m: np.ndarray     # (M,) float32 kernel length
-    occupancy: np.ndarray | None = None   # (M,) float32 occupancy evidence (free space)
+    keys: np.ndarray  # (M, 3) int32
+    counts: np.ndarray  # (M, C) float32
+    t_last_rel: np.ndarray  # (M,) float32 seconds since t0
+    length_m: np.ndarray  # (M,) float32 kernel length
+    occupancy: np.ndarray | None = None  # (M,) float32 occupancy evidence (free space)
 
     def __len__(self) -> int:
         return len(self.keys)
@@ -98,8 +100,12 @@ class VoxelArrays:
         return self.keys, counts, self.t_last_rel, self.length_m
 
     def rows(self, keep: np.ndarray) -> VoxelArrays:
-        return VoxelArrays(*(None if a is None else a[keep] for a in (
-            self.keys, self.counts, self.t_last_rel, self.length_m, self.occupancy)))
+        return VoxelArrays(
+            *(
+                None if a is None else a[keep]
+                for a in (self.keys, self.counts, self.t_last_rel, self.length_m, self.occupancy)
+            )
+        )
 
 
 def from_store(arrays: tuple, num_classes: int) -> VoxelArrays:
@@ -107,15 +113,21 @@ def from_store(arrays: tuple, num_classes: int) -> VoxelArrays:
     keys, counts, t_last_rel, length_m = arrays
     if counts.shape[1] == num_classes:
         return VoxelArrays(keys, counts, t_last_rel, length_m)
-    return VoxelArrays(keys, np.ascontiguousarray(counts[:, :num_classes]), t_last_rel, length_m,
-                       np.ascontiguousarray(counts[:, num_classes]))
+    return VoxelArrays(
+        keys,
+        np.ascontiguousarray(counts[:, :num_classes]),
+        t_last_rel,
+        length_m,
+        np.ascontiguousarray(counts[:, num_classes]),
+    )
 
 
 class LiveWindow:
     """The live window over a map's fields and its host store."""
 
-    def __init__(self, fields: MapFields, store: BlockStore, geometry: MapGeometry,
-                 max_live_blocks: int):
+    def __init__(
+        self, fields: MapFields, store: BlockStore, geometry: MapGeometry, max_live_blocks: int
+    ):
         self._fields = fields
         self.store = store
         self._geometry = geometry
@@ -159,18 +171,19 @@ class LiveWindow:
         st = self.state
         center = np.asarray(center_vox, np.int64)
         live = self.live_blocks
-        if st.blocks_after_move is not None:   # (what the last scan added)
+        if st.blocks_after_move is not None:  # (what the last scan added)
             st.headroom_blocks = max(st.headroom_blocks, live - st.blocks_after_move)
         half = self._fit_cap(center, live)
         move, left = WindowMove(), None
-        if st.center_vox is not None and (np.any(center != st.center_vox)
-                                          or np.any(half != st.half_vox)):
+        if st.center_vox is not None and (
+            np.any(center != st.center_vox) or np.any(half != st.half_vox)
+        ):
             left = self._evict(center, half, live)
             move.evicted_voxels = len(left.voxels)
         try:
             back = self.store.take_box(center, half)
         except BaseException:
-            if left is not None:      # (a full disk): the window stays where it was
+            if left is not None:  # (a full disk): the window stays where it was
                 self._undo_evict(left)
             raise
         st.center_vox = center
@@ -197,20 +210,30 @@ class LiveWindow:
         n = window.find_leaving_blocks(m, old_blk, *box, blocks)
         if n == 0:
             return done
-        if n > len(blocks):   # (live_blocks is exact; this is a guard)
+        if n > len(blocks):  # (live_blocks is exact; this is a guard)
             blocks = np.zeros((n, 3), np.int32)
             n = window.find_leaving_blocks(m, old_blk, *box, blocks)
-        leaving = _voxel_arrays(n * LEAF ** 3, m.C, m.free_space)
+        leaving = _voxel_arrays(n * LEAF**3, m.C, m.free_space)
         left = np.zeros(n, np.int32)
         occupancy = leaving.occupancy if m.free_space else np.zeros(0, np.float32)
-        nv = window.export_leaving(m, ivec(st.center_vox), *box, blocks, n, leaving.keys,
-                                   leaving.counts, leaving.t_last_rel, leaving.length_m,
-                                   occupancy, left)
+        nv = window.export_leaving(
+            m,
+            ivec(st.center_vox),
+            *box,
+            blocks,
+            n,
+            leaving.keys,
+            leaving.counts,
+            leaving.t_last_rel,
+            leaving.length_m,
+            occupancy,
+            left,
+        )
         done.voxels = leaving = leaving.rows(slice(0, nv))
         try:
             done.segments = self.store.put(*leaving.arrays(), box=(center, half))
         except BaseException:
-            self._import(leaving)      # back where they were: the blocks are still there
+            self._import(leaving)  # back where they were: the blocks are still there
             raise
         done.freed_blocks = int(window.free_empty_blocks(m, blocks, n, left))
         # a top cell can only fall wholly outside when the box's range of top cells changes
@@ -232,8 +255,9 @@ class LiveWindow:
             kquery.import_voxels(self._fields, keys, v.counts, v.t_last_rel, v.length_m)
             if self._fields.free_space:
                 occupancy = v.occupancy if v.occupancy is not None else np.zeros(len(keys))
-                raycast.scatter_occupancy(self._fields, keys,
-                                          np.ascontiguousarray(occupancy, np.float32))
+                raycast.scatter_occupancy(
+                    self._fields, keys, np.ascontiguousarray(occupancy, np.float32)
+                )
 
     def _fit_cap(self, center: np.ndarray, live: int) -> np.ndarray:
         """Half-size of the window for a scan at `center` under the block cap.
@@ -247,7 +271,7 @@ class LiveWindow:
         full = st.full_half_vox
         budget = self._cap - st.headroom_blocks
         center_blk = np.floor_divide(center, LEAF)
-        full_blk = -(-full // LEAF)             # rings of blocks the full box can touch
+        full_blk = -(-full // LEAF)  # rings of blocks the full box can touch
         stored = self.store.count_blocks_by_ring(center_blk, full_blk)
         if live + int(stored.sum()) <= budget:
             if st.shrunk:
@@ -256,9 +280,14 @@ class LiveWindow:
             return full
         rings = np.zeros(int(full_blk[0]) + 1, np.int32)
         if st.center_vox is not None:
-            window.blocks_by_ring(self._fields, ivec(np.floor_divide(st.center_vox, LEAF)),
-                                  ivec(center_blk), ivec(full_blk), rings)
-        within = np.cumsum(rings + stored)      # blocks within ring r: the box of half 4r holds
+            window.blocks_by_ring(
+                self._fields,
+                ivec(np.floor_divide(st.center_vox, LEAF)),
+                ivec(center_blk),
+                ivec(full_blk),
+                rings,
+            )
+        within = np.cumsum(rings + stored)  # blocks within ring r: the box of half 4r holds
         fits = np.flatnonzero(within <= budget)
         r = int(fits.max()) if len(fits) else -1
         if r >= full_blk[0]:
@@ -275,20 +304,30 @@ class LiveWindow:
                 raise ValueError(
                     f"the live map cannot stay under max_live_blocks={self._cap}: the smallest "
                     f"window that holds a scan (+-{reach * res:.0f} m) has {here} blocks here; "
-                    f"raise max_live_blocks (~5.7 KB each) or lower max_range_m")
+                    f"raise max_live_blocks (~5.7 KB each) or lower max_range_m"
+                )
             r = r_min
         if not st.shrunk:
-            log.warning("the map around the sensor needs more than max_live_blocks=%d blocks: "
-                        "live window shrunk to +-%.0f m (farthest blocks go to the store)",
-                        self._cap, r * LEAF * self._geometry.resolution_m)
+            log.warning(
+                "the map around the sensor needs more than max_live_blocks=%d blocks: "
+                "live window shrunk to +-%.0f m (farthest blocks go to the store)",
+                self._cap,
+                r * LEAF * self._geometry.resolution_m,
+            )
             st.shrunk = True
         half = full.copy()
-        half[:2] = r * LEAF                     # a box of half 4r voxels touches rings <= r
+        half[:2] = r * LEAF  # a box of half 4r voxels touches rings <= r
         return half
 
     # ------------------------------------------------------------------ reading
-    def lookup_world(self, points_world: np.ndarray, origin_vox: np.ndarray, labels: np.ndarray,
-                     probs: np.ndarray | None, blend_radius_m: float = 0.0) -> None:
+    def lookup_world(
+        self,
+        points_world: np.ndarray,
+        origin_vox: np.ndarray,
+        labels: np.ndarray,
+        probs: np.ndarray | None,
+        blend_radius_m: float = 0.0,
+    ) -> None:
         """`lookup` of float64 world points in a map whose local voxel 0 is `origin_vox`: far
         or non-finite points are clamped so that their voxel index fits an int32 in the kernel
         (they land outside the window either way)."""
@@ -298,11 +337,22 @@ class LiveWindow:
         if not finite.all():
             local[~finite] = 0.0
         clamp = min(QUERY_CLAMP_M, QUERY_CLAMP_VOX * res)
-        self.lookup(np.clip(local, -clamp, clamp, out=local).astype(np.float32), finite, labels,
-                    probs, blend_radius_m)
+        self.lookup(
+            np.clip(local, -clamp, clamp, out=local).astype(np.float32),
+            finite,
+            labels,
+            probs,
+            blend_radius_m,
+        )
 
-    def lookup(self, local: np.ndarray, finite: np.ndarray, labels: np.ndarray,
-               probs: np.ndarray | None, blend_radius_m: float = 0.0) -> None:
+    def lookup(
+        self,
+        local: np.ndarray,
+        finite: np.ndarray,
+        labels: np.ndarray,
+        probs: np.ndarray | None,
+        blend_radius_m: float = 0.0,
+    ) -> None:
         """Fill labels (N,) and, unless None, probs (N, C) of points at float32 local
         coordinates `local` (N, 3): from the field where the window holds their voxel, else
         from the store (`finite`: which points have a voxel at all). `blend_radius_m` > 0: a
@@ -313,8 +363,17 @@ class LiveWindow:
         inside = np.zeros(len(local), np.int32)
         out_prob = probs if probs is not None else np.zeros((0, m.C), np.float32)
         kquery.query_kernel(blend_radius_m > 0)(
-            m, local, ivec(st.center_vox), ivec(st.half_vox), inv_res, int(probs is not None),
-            blend_radius_m, labels, inside, out_prob)
+            m,
+            local,
+            ivec(st.center_vox),
+            ivec(st.half_vox),
+            inv_res,
+            int(probs is not None),
+            blend_radius_m,
+            labels,
+            inside,
+            out_prob,
+        )
         rest = finite & (inside == 0)
         if len(self.store) and rest.any():
             # the voxel index exactly as the kernel computes it (float32 local * 1/res), so a
@@ -323,12 +382,16 @@ class LiveWindow:
             ok = np.all(np.abs(vox) <= KEY_LIMIT, axis=1)
             counts = np.zeros((len(vox), m.C), np.float32)
             stored, _ = self.store.lookup(vox[ok])
-            if m.free_space:     # (an empty voxel answers as no voxel does, as in the field)
+            if m.free_space:  # (an empty voxel answers as no voxel does, as in the field)
                 stored[stored[:, m.C] <= -m.empty_evidence] = 0.0
-            counts[ok] = stored[:, :m.C]
-            snap = MapSnapshot(np.zeros((len(counts), 3), np.int64), counts,
-                               np.zeros(len(counts)), np.zeros(len(counts), np.float32),
-                               self._geometry.resolution_m)
+            counts[ok] = stored[:, : m.C]
+            snap = MapSnapshot(
+                np.zeros((len(counts), 3), np.int64),
+                counts,
+                np.zeros(len(counts)),
+                np.zeros(len(counts), np.float32),
+                self._geometry.resolution_m,
+            )
             labels[rest] = snap.labels()
             if probs is not None:
                 probs[rest] = snap.probabilities()
@@ -339,8 +402,9 @@ class LiveWindow:
         n = self.live_voxels
         out = _voxel_arrays(n, m.C, m.free_space)
         if n:
-            got = kquery.export_voxels(m, ivec(self.state.center_vox), out.keys,
-                                       out.counts, out.t_last_rel, out.length_m)
+            got = kquery.export_voxels(
+                m, ivec(self.state.center_vox), out.keys, out.counts, out.t_last_rel, out.length_m
+            )
             assert got == n, f"export found {got} voxels, count found {n}"
             if m.free_space:
                 raycast.gather_occupancy(m, out.keys, out.occupancy)
@@ -352,6 +416,10 @@ class LiveWindow:
 
 
 def _voxel_arrays(n: int, num_classes: int, free_space: bool = False) -> VoxelArrays:
-    return VoxelArrays(np.zeros((n, 3), np.int32), np.zeros((n, num_classes), np.float32),
-                      np.zeros(n, np.float32), np.zeros(n, np.float32),
-                      np.zeros(n, np.float32) if free_space else None)
+    return VoxelArrays(
+        np.zeros((n, 3), np.int32),
+        np.zeros((n, num_classes), np.float32),
+        np.zeros(n, np.float32),
+        np.zeros(n, np.float32),
+        np.zeros(n, np.float32) if free_space else None,
+    )

@@ -14,19 +14,27 @@ world writes one); an MCAP recording's poses are in its map frame, which is only
 shared within the recording (`mcap:<file>#<map frame>`), unless the fleet is told the logs
 share it (`world_frame=`).
 """
+
 from __future__ import annotations
 
 import os
+from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Iterable
 
 import numpy as np
 
 from tisem.errors import DatasetError
 
-__all__ = ["LogSpec", "discover_logs", "open_log", "first_pose", "log_length", "kitti_world_frame",
-           "WORLD_FRAME_FILE"]
+__all__ = [
+    "LogSpec",
+    "discover_logs",
+    "open_log",
+    "first_pose",
+    "log_length",
+    "kitti_world_frame",
+    "WORLD_FRAME_FILE",
+]
 
 WORLD_FRAME_FILE = "world_frame.txt"
 
@@ -63,8 +71,11 @@ def _mcap(file: Path, map_frame: str, name: str | None = None) -> LogSpec:
     return LogSpec("mcap", str(file), name or file.stem, f"mcap:{file.resolve()}#{map_frame}")
 
 
-def discover_logs(paths: Iterable[str | os.PathLike], sequences: Iterable[str] | None = None,
-                  map_frame: str = "map") -> list[LogSpec]:
+def discover_logs(
+    paths: Iterable[str | os.PathLike],
+    sequences: Iterable[str] | None = None,
+    map_frame: str = "map",
+) -> list[LogSpec]:
     """Every log under `paths` (module docstring); `sequences` picks sequences of a dataset
     root. Raises DatasetError naming a path that holds no log."""
     wanted = None if sequences is None else {str(s).zfill(2) for s in sequences}
@@ -79,23 +90,29 @@ def discover_logs(paths: Iterable[str | os.PathLike], sequences: Iterable[str] |
             found = sorted(p for p in (path / "sequences").iterdir() if (p / "velodyne").is_dir())
             found = [p for p in found if wanted is None or p.name in wanted]
             if not found:
-                raise DatasetError(f"{path}: no sequence folders"
-                                   + (f" among {sorted(wanted)}" if wanted else ""))
+                raise DatasetError(
+                    f"{path}: no sequence folders" + (f" among {sorted(wanted)}" if wanted else "")
+                )
             logs += [_kitti(p) for p in found]
         elif (path / "metadata.yaml").is_file():
             files = sorted(path.glob("*.mcap"))
             if not files:
-                raise DatasetError(f"{path}: a ROS 2 bag without .mcap files (only MCAP "
-                                   f"storage is read)")
+                raise DatasetError(
+                    f"{path}: a ROS 2 bag without .mcap files (only MCAP storage is read)"
+                )
             logs += [_mcap(f, map_frame, f"{path.name}/{f.stem}") for f in files]
         else:
-            raise DatasetError(f"{path}: not a log (expected a SemanticKITTI sequence or "
-                               f"dataset root, an .mcap file or a ROS 2 bag folder)")
+            raise DatasetError(
+                f"{path}: not a log (expected a SemanticKITTI sequence or "
+                f"dataset root, an .mcap file or a ROS 2 bag folder)"
+            )
     names = [log.name for log in logs]
     if len(set(names)) != len(names):
         # logs named alike (two dataset roots with sequence 00): tell them apart by position
-        logs = [LogSpec(log.kind, log.path, f"{k:03d}-{log.name}", log.world_frame)
-                for k, log in enumerate(logs)]
+        logs = [
+            LogSpec(log.kind, log.path, f"{k:03d}-{log.name}", log.world_frame)
+            for k, log in enumerate(logs)
+        ]
     return logs
 
 
@@ -111,6 +128,7 @@ def first_pose(log: LogSpec, input: str = "predictions") -> tuple[np.ndarray, fl
     if log.kind != "kitti":
         return None
     from tisem.io.semantickitti import SemanticKittiSequence
+
     try:
         seq = SemanticKittiSequence(log.path, input=input)
     except (DatasetError, OSError, ValueError):
@@ -120,12 +138,18 @@ def first_pose(log: LogSpec, input: str = "predictions") -> tuple[np.ndarray, fl
     return seq.poses_lidar[0], float(seq.times[0])
 
 
-def open_log(log: LogSpec, first: int = 0, last: int | None = None,
-             input: str = "predictions", mcap_options: dict | None = None):
+def open_log(
+    log: LogSpec,
+    first: int = 0,
+    last: int | None = None,
+    input: str = "predictions",
+    mcap_options: dict | None = None,
+):
     """The scans of positions first..last (inclusive) of the log, as its reader gives them
     (`len()` and iteration of `Scan | SkippedScan`)."""
     if log.kind == "kitti":
         from tisem.io.semantickitti import SemanticKittiSequence
+
         seq = SemanticKittiSequence(log.path, input=input)
         ids = seq.scan_ids
         if first >= len(ids):
@@ -134,6 +158,7 @@ def open_log(log: LogSpec, first: int = 0, last: int | None = None,
         return SemanticKittiSequence(log.path, input=input, first=ids[first], last=ids[stop])
     if log.kind == "mcap":
         from tisem.io.mcap_reader import McapOptions, McapScanReader
+
         options = McapOptions(**dict(mcap_options or {}, first=first, last=last))
         return McapScanReader(log.path, options)
     raise ValueError(f"unknown log kind {log.kind!r}")

@@ -18,14 +18,15 @@ A stamp (finite seconds, any epoch: `tisem.scan.checked_stamp`) moves map time a
 1 % of a voxel's evidence remains (for tau >= 2.2 s); unlimited when nothing decays (tau = 0
 or inf), as the stamps then weigh nothing.
 """
+
 from __future__ import annotations
 
 import math
 from dataclasses import asdict, dataclass
 
-MAX_MAP_SECONDS = float(2 ** 20)   # ~12 days: float32 map times keep 1/8 s up to here
-MIN_STEP_S = 10.0                  # the shortest jump that needs a second scan to confirm it
-KEEP_AT_LEAST = 0.01               # evidence left after the longest unconfirmed step
+MAX_MAP_SECONDS = float(2**20)  # ~12 days: float32 map times keep 1/8 s up to here
+MIN_STEP_S = 10.0  # the shortest jump that needs a second scan to confirm it
+KEEP_AT_LEAST = 0.01  # evidence left after the longest unconfirmed step
 
 
 def max_step_for(decay_tau_s: float) -> float:
@@ -74,23 +75,29 @@ class MapClock:
         step = rel - st.latest_s
         if abs(step) > self.max_step_s:
             # (by another scan: the refused one tried again confirms nothing)
-            confirmed = st.pending_s is not None and rel != st.pending_s \
+            confirmed = (
+                st.pending_s is not None
+                and rel != st.pending_s
                 and abs(rel - st.pending_s) <= self.max_step_s
+            )
             if not confirmed:
                 st.pending_s = rel
                 way = "after" if step > 0 else "before"
                 raise ValueError(
                     f"{where}: stamp {stamp_s:.6f} s jumps {abs(step):.6g} s {way} the previous "
                     f"scan's; a jump over {self.max_step_s:.4g} s is taken only when the next "
-                    f"scan confirms it (one bad stamp must not decay the map away)")
-            if step < 0:      # a clock reset: how much time passed is unknown, so none does
+                    f"scan confirms it (one bad stamp must not decay the map away)"
+                )
+            if step < 0:  # a clock reset: how much time passed is unknown, so none does
                 return st.latest_s
-        elif step < 0:        # a little out of order: no time passes
+        elif step < 0:  # a little out of order: no time passes
             return st.latest_s
         if rel > MAX_MAP_SECONDS:
-            raise ValueError(f"{where}: the map's clock would reach {rel:.6g} s; a map spans at "
-                             f"most {MAX_MAP_SECONDS:.0f} s (~12 days: its times are float32 "
-                             f"seconds since the first scan); start a new map")
+            raise ValueError(
+                f"{where}: the map's clock would reach {rel:.6g} s; a map spans at "
+                f"most {MAX_MAP_SECONDS:.0f} s (~12 days: its times are float32 "
+                f"seconds since the first scan); start a new map"
+            )
         return rel
 
     def advance(self, stamp_s: float, map_time_s: float) -> None:
@@ -117,8 +124,11 @@ class MapClock:
             value = saved.get(key, getattr(state, key))
             if value is None and key in ("t0", "pending_s"):
                 continue
-            if isinstance(value, bool) or not isinstance(value, (int, float)) \
-                    or not math.isfinite(value):
+            if (
+                isinstance(value, bool)
+                or not isinstance(value, (int, float))
+                or not math.isfinite(value)
+            ):
                 raise ValueError(f"map clock: {key} must be a finite number, got {value!r}")
             setattr(state, key, float(value))
         return cls(decay_tau_s, state)

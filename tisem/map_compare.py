@@ -1,8 +1,9 @@
 """How far a merged map is from the map one serial run over the same scans builds.
 
-    serial = serial_snapshot(logs, cfg)                 # one Mapper, every scan in time order
-    diff = compare_snapshots(merged, serial)            # label agreement, counter differences
+serial = serial_snapshot(logs, cfg)                 # one Mapper, every scan in time order
+diff = compare_snapshots(merged, serial)            # label agreement, counter differences
 """
+
 from __future__ import annotations
 
 import heapq
@@ -27,8 +28,8 @@ class MapDifference:
     voxels_a: int
     voxels_b: int
     common: int
-    label_agreement: float          # share of the union's voxels with the same label
-    max_counter_diff: float         # over the common voxels
+    label_agreement: float  # share of the union's voxels with the same label
+    max_counter_diff: float  # over the common voxels
     mean_counter_diff: float
 
     def to_dict(self) -> dict:
@@ -45,23 +46,27 @@ def compare_snapshots(a: MapSnapshot, b: MapSnapshot) -> MapDifference:
         max_diff, mean_diff = float(rel.max()), float(rel.mean())
     else:
         max_diff = mean_diff = 0.0
-    return MapDifference(len(ka), len(kb), len(common), same / union if union else 1.0,
-                         max_diff, mean_diff)
+    return MapDifference(
+        len(ka), len(kb), len(common), same / union if union else 1.0, max_diff, mean_diff
+    )
 
 
 def time_ordered_scans(logs: list[LogSpec], input: str = "predictions"):
     """The scans of every log, merged in time order (each log is in time order already),
     read one at a time."""
+
     def keyed(k: int, spec: LogSpec):
         for n, item in enumerate(open_log(spec, input=input)):
             if isinstance(item, Scan):
                 yield (item.stamp_s, k, n), item
+
     merged = heapq.merge(*(keyed(k, spec) for k, spec in enumerate(logs)), key=lambda p: p[0])
     return (item for _, item in merged)
 
 
-def serial_snapshot(logs: list[LogSpec], cfg: RunConfig, threads: int = 2,
-                    arch: str = "cpu") -> tuple[MapSnapshot, float, int]:
+def serial_snapshot(
+    logs: list[LogSpec], cfg: RunConfig, threads: int = 2, arch: str = "cpu"
+) -> tuple[MapSnapshot, float, int]:
     """The map of one Mapper over every scan of `logs` in time order, in a fresh Taichi
     runtime of this process: (snapshot, mapping seconds, scans mapped)."""
     import time
@@ -70,6 +75,7 @@ def serial_snapshot(logs: list[LogSpec], cfg: RunConfig, threads: int = 2,
 
     from tisem.backend import init_taichi
     from tisem.mapper import Mapper
+
     init_taichi(arch, threads=threads)
     mapper = Mapper(cfg.mapper)
     seconds, count = 0.0, 0
@@ -77,7 +83,7 @@ def serial_snapshot(logs: list[LogSpec], cfg: RunConfig, threads: int = 2,
         start = time.perf_counter()
         try:
             mapper.integrate(scan)
-        except ValueError:      # a scan the mapper refuses is skipped, as a run skips it
+        except ValueError:  # a scan the mapper refuses is skipped, as a run skips it
             continue
         ti.sync()
         seconds += time.perf_counter() - start

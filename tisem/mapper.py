@@ -14,6 +14,7 @@ Bad input costs the scan that carries it, never the map: a bad pose, stamp, id o
 dense for the block cap is cut (`tisem.block_cap`), before the map changes; a full disk under
 the store raises `tisem.spill.SpillError` with the map as it was.
 """
+
 from __future__ import annotations
 
 import contextlib
@@ -25,17 +26,22 @@ import numpy as np
 import taichi as ti
 from taichi.lang.argpack import ArgPack
 
-from tisem.kernels import bki, entropy, fusion, rasterize, table, training
-from tisem.kernels.layout import MapFields
-from tisem.kernels.params import (ADAPTIVE_LENGTH, FIXED_LENGTH, NO_KERNEL, KernelSettings,
-                                  ScanParams)
 from tisem import backend
 from tisem.block_cap import cut_to_nearest, new_blocks_beyond
 from tisem.config import MapperConfig
 from tisem.errors import ScanError
 from tisem.free_space import FreeSpace, class_inv_tau, decay_rule, without_moving
 from tisem.geometry import MapGeometry, block_aligned_origin
-from tisem.live_window import VoxelArrays, LiveWindow
+from tisem.kernels import bki, entropy, fusion, rasterize, table, training
+from tisem.kernels.layout import MapFields
+from tisem.kernels.params import (
+    ADAPTIVE_LENGTH,
+    FIXED_LENGTH,
+    NO_KERNEL,
+    KernelSettings,
+    ScanParams,
+)
+from tisem.live_window import LiveWindow, VoxelArrays
 from tisem.map_clock import MapClock
 from tisem.mapper_state import check_snapshot, parse_state, relative_arrays
 from tisem.preprocess import CheckedScan, check_scan
@@ -52,8 +58,7 @@ log = logging.getLogger(__name__)
 # voxel, the filter and the training points; the kernel lengths; the kernel update and fusion
 # (with the adaptive lengths' entropy, fused in its pass over the map); free space (the dynamic
 # points' flags, the hits and the rays; 0 when off); resetting the table
-STAGES = ("preprocess", "window", "voxelize", "filter", "length", "update", "free_space",
-          "clear")
+STAGES = ("preprocess", "window", "voxelize", "filter", "length", "update", "free_space", "clear")
 
 
 @dataclass
@@ -64,25 +69,28 @@ class IntegrationReport:
     used: int = 0
     dropped_nonfinite: int = 0
     dropped_range: int = 0
-    dropped_band: int = 0           # in range, but outside the height band: unmapped
+    dropped_band: int = 0  # in range, but outside the height band: unmapped
     dropped_window: int = 0
-    dropped_far: int = 0            # of dropped_range: implausibly far (> 1 km), corrupt data
-    dropped_dense: int = 0          # a scan too dense for the block cap: points cut away
+    dropped_far: int = 0  # of dropped_range: implausibly far (> 1 km), corrupt data
+    dropped_dense: int = 0  # a scan too dense for the block cap: points cut away
     training_voxels: int = 0
     evicted_voxels: int = 0
     reloaded_voxels: int = 0
-    dynamic_points: int = 0         # free space: points flagged dynamic
-    freed_voxels: int = 0           # free space: voxels the scan's rays took evidence from
-    dynamic: np.ndarray | None = None   # free space: (points,) bool, which points are dynamic
+    dynamic_points: int = 0  # free space: points flagged dynamic
+    freed_voxels: int = 0  # free space: voxels the scan's rays took evidence from
+    dynamic: np.ndarray | None = None  # free space: (points,) bool, which points are dynamic
 
 
 def kernel_settings(cfg: MapperConfig, per_voxel: bool) -> KernelSettings:
     """The compile-time settings of a map's kernels for its config."""
     length = ADAPTIVE_LENGTH if cfg.adaptive else FIXED_LENGTH if cfg.uses_kernel else NO_KERNEL
-    return KernelSettings(kernel_length=length,
-                          decay=decay_rule(cfg),
-                          unit_weight=cfg.point_weight == "unit", per_voxel=per_voxel,
-                          evidence_caps=bool(np.isfinite(cfg.evidence_caps_m).any()))
+    return KernelSettings(
+        kernel_length=length,
+        decay=decay_rule(cfg),
+        unit_weight=cfg.point_weight == "unit",
+        per_voxel=per_voxel,
+        evidence_caps=bool(np.isfinite(cfg.evidence_caps_m).any()),
+    )
 
 
 class Mapper:
@@ -92,14 +100,20 @@ class Mapper:
     or "voxel" (one thread per voxel: GPUs); None picks by the running arch.
     """
 
-    def __init__(self, config: MapperConfig | None = None, *, profile: bool = False,
-                 parallel_loop: str | None = None):
+    def __init__(
+        self,
+        config: MapperConfig | None = None,
+        *,
+        profile: bool = False,
+        parallel_loop: str | None = None,
+    ):
         self.config = config or MapperConfig()
         self.config.validate()
         cfg = self.config
         if parallel_loop not in (None, "block", "voxel"):
-            raise ValueError(f"parallel_loop must be 'block', 'voxel' or None, "
-                             f"got {parallel_loop!r}")
+            raise ValueError(
+                f"parallel_loop must be 'block', 'voxel' or None, got {parallel_loop!r}"
+            )
         self.geometry = MapGeometry.from_config(cfg)
         # before the runtime's one map slot is taken: a bad config or a missing store_dir is
         # refused with the runtime still free for another map
@@ -110,17 +124,22 @@ class Mapper:
         if parallel_loop is None:
             parallel_loop = "voxel" if ti.lang.impl.current_cfg().arch == ti.cuda else "block"
         self._settings = kernel_settings(cfg, per_voxel=parallel_loop == "voxel")
-        self._fields = MapFields(self.C, self.geometry.storage_extent,
-                                 self.geometry.table_half_blk, cfg.free_space, cfg.empty_evidence,
-                                 cfg.occupancy_cap)
+        self._fields = MapFields(
+            self.C,
+            self.geometry.storage_extent,
+            self.geometry.table_half_blk,
+            cfg.free_space,
+            cfg.empty_evidence,
+            cfg.occupancy_cap,
+        )
         bki.fill_kernel_table(self._fields)
         self._fields.class_inv_tau.from_numpy(class_inv_tau(cfg))
         self._free = FreeSpace(self._fields, cfg, self._settings.decay) if cfg.free_space else None
         self.window = LiveWindow(self._fields, self.store, self.geometry, cfg.max_live_blocks)
         self._params = self._scan_params()
         self._cap_inv2 = bki.evidence_cap_table(cfg.evidence_caps_m)
-        self.origin_vox: np.ndarray | None = None   # global voxel index of local voxel 0
-        self.clock = MapClock(cfg.decay_tau_s)     # map time: seconds since the first scan
+        self.origin_vox: np.ndarray | None = None  # global voxel index of local voxel 0
+        self.clock = MapClock(cfg.decay_tau_s)  # map time: seconds since the first scan
         self.scans = 0
         self.last_stamp_s: float | None = None
         self.profile = profile
@@ -133,14 +152,27 @@ class Mapper:
         res = geo.resolution_m
         tau = cfg.decay_tau_s
         return ScanParams(
-            rotation=np.eye(3, dtype=np.float32), translation_m=np.zeros(3),
-            center_vox=np.zeros(3, np.int64), limit_vox=geo.point_limit_vox,
-            min_range2_m2=cfg.min_range_m ** 2, max_range2_m2=cfg.max_range_m ** 2,
-            min_z_m=cfg.min_z_m, max_z_m=cfg.max_z_m, resolution_m=res, inv_resolution=1.0 / res,
-            time_rel_s=0.0, stamp=0, min_points=cfg.min_points, reach_blk=geo.reach_blk,
-            fixed_length_m=cfg.ell_fixed_vox * res, length_min_m=cfg.ell_min_m,
-            length_max_m=cfg.ell_max_m, prior=cfg.prior, sigma0=cfg.sigma0,
-            inv_tau=0.0 if tau in (0.0, float("inf")) else 1.0 / tau)
+            rotation=np.eye(3, dtype=np.float32),
+            translation_m=np.zeros(3),
+            center_vox=np.zeros(3, np.int64),
+            limit_vox=geo.point_limit_vox,
+            min_range2_m2=cfg.min_range_m**2,
+            max_range2_m2=cfg.max_range_m**2,
+            min_z_m=cfg.min_z_m,
+            max_z_m=cfg.max_z_m,
+            resolution_m=res,
+            inv_resolution=1.0 / res,
+            time_rel_s=0.0,
+            stamp=0,
+            min_points=cfg.min_points,
+            reach_blk=geo.reach_blk,
+            fixed_length_m=cfg.ell_fixed_vox * res,
+            length_min_m=cfg.ell_min_m,
+            length_max_m=cfg.ell_max_m,
+            prior=cfg.prior,
+            sigma0=cfg.sigma0,
+            inv_tau=0.0 if tau in (0.0, float("inf")) else 1.0 / tau,
+        )
 
     @property
     def t0(self) -> float | None:
@@ -184,8 +216,9 @@ class Mapper:
             points, rows = self._hold_block_cap(scan, checked, points, rows, report, trace)
             timer("filter")
             # 4-5. semantic uncertainty and kernel length of the voxels the training points hit
-            entropy.assign_lengths(m, p, points.blocks, rows.voxel, rows.hist,
-                                   settings.kernel_length)
+            entropy.assign_lengths(
+                m, p, points.blocks, rows.voxel, rows.hist, settings.kernel_length
+            )
             timer("length")
             # 6-8. sparse kernel, Bayesian kernel update and temporal fusion of every live
             # voxel within reach of a training point
@@ -195,7 +228,7 @@ class Mapper:
                 # hits, then rays from the sensor to the training points clear what they cross
                 report.freed_voxels = self._free.integrate(p, rows, report.training_voxels)
                 timer("free_space")
-            table.clear_table(m)              # the scan's table, empty again for the next scan
+            table.clear_table(m)  # the scan's table, empty again for the next scan
             timer("clear")
         self.clock.advance(scan.stamp_s, map_time)
         self.scans += 1
@@ -223,11 +256,13 @@ class Mapper:
     def _origin_of(self, scan: Scan) -> np.ndarray:
         """The map origin a first scan gives: block-aligned at the sensor's position, so that
         local coordinates stay small (float32 keeps mm precision within ~10 km of it)."""
-        return block_aligned_origin(np.floor(scan.T_world_sensor[:3, 3]
-                                             / self.geometry.resolution_m))
+        return block_aligned_origin(
+            np.floor(scan.T_world_sensor[:3, 3] / self.geometry.resolution_m)
+        )
 
-    def _preprocess(self, scan: Scan,
-                    report: IntegrationReport) -> tuple[CheckedScan, np.ndarray, float]:
+    def _preprocess(
+        self, scan: Scan, report: IntegrationReport
+    ) -> tuple[CheckedScan, np.ndarray, float]:
         """Check the scan (its pose, stamp and evidence) and put its pose and time in map
         coordinates (the kernels do the per-point work); returns the checked
         scan, the sensor's voxel and the scan's map time. The first scan fixes the map's origin
@@ -241,11 +276,13 @@ class Mapper:
         origin = self.origin_vox if self.origin_vox is not None else self._origin_of(scan)
         translation = T[:3, 3] - origin * res
         if np.any(np.abs(translation) / res + self.window.half_vox > KEY_LIMIT):
-            raise ValueError(f"{where}: the sensor is "
-                             f"{np.abs(translation).max() / 1000:.0f} km from the map origin; "
-                             f"tisem maps within {KEY_LIMIT * res / 1000:.0f} km")
+            raise ValueError(
+                f"{where}: the sensor is "
+                f"{np.abs(translation).max() / 1000:.0f} km from the map origin; "
+                f"tisem maps within {KEY_LIMIT * res / 1000:.0f} km"
+            )
         map_time = self.clock.time_of(stamp, where)
-        self.origin_vox = origin              # (integrate takes a first scan's back if it fails)
+        self.origin_vox = origin  # (integrate takes a first scan's back if it fails)
         center_vox = np.floor(translation / res).astype(np.int64)
         p = self._params
         p.rotation = T[:3, :3].astype(np.float32)
@@ -255,18 +292,26 @@ class Mapper:
         p.stamp = self.scans + 1
         return checked, center_vox, map_time
 
-    def _flag_dynamic(self, scan: Scan, checked: CheckedScan,
-                      report: IntegrationReport) -> CheckedScan:
+    def _flag_dynamic(
+        self, scan: Scan, checked: CheckedScan, report: IntegrationReport
+    ) -> CheckedScan:
         """The free-space flags of the scan's points (before it changes the map), and the scan
         without its moving points' evidence."""
-        report.dynamic = self._free.flag_points(self._params, checked, self.window.half_vox,
-                                                scan.moving)
+        report.dynamic = self._free.flag_points(
+            self._params, checked, self.window.half_vox, scan.moving
+        )
         report.dynamic_points = int(report.dynamic.sum())
         return checked if scan.moving is None else without_moving(checked, scan.moving)
 
-    def _hold_block_cap(self, scan: Scan, checked: CheckedScan, pts: ScanPoints,
-                        rows: TrainingRows, report: IntegrationReport,
-                        trace: IntegrationTrace | None) -> tuple[ScanPoints, TrainingRows]:
+    def _hold_block_cap(
+        self,
+        scan: Scan,
+        checked: CheckedScan,
+        pts: ScanPoints,
+        rows: TrainingRows,
+        report: IntegrationReport,
+        trace: IntegrationTrace | None,
+    ) -> tuple[ScanPoints, TrainingRows]:
         """Keep the live blocks under max_live_blocks (tisem/block_cap.py): a scan whose
         training rows would make more blocks live than there is room for keeps only its points
         in live blocks and in the nearest new blocks (steps 2-3 again on those), or is refused
@@ -276,8 +321,9 @@ class Mapper:
         if new is None:
             return pts, rows
         m, where = self._fields, scan_label(scan.index, scan.name)
-        cut = cut_to_nearest(pts.cell, pts.blocks, new, m.table_shape, m.table_half, free,
-                             self.geometry.resolution_m)
+        cut = cut_to_nearest(
+            pts.cell, pts.blocks, new, m.table_shape, m.table_half, free, self.geometry.resolution_m
+        )
         table.clear_table(m)
         cap = self.window.cap
         if not cut.keep.any():
@@ -286,7 +332,7 @@ class Mapper:
         kept = checked.subset(cut.keep)
         again = IntegrationReport(points=len(kept.points_sensor))
         if trace is not None:
-            trace.scans.pop()             # the trace records the points the scan kept
+            trace.scans.pop()  # the trace records the points the scan kept
         pts = self._voxelize(kept, again, trace)
         rows = self._training_points(kept, pts, again, trace)
         if trace is not None:
@@ -295,15 +341,16 @@ class Mapper:
         report.used, report.training_voxels = again.used, again.training_voxels
         return pts, rows
 
-    def _voxelize(self, checked: CheckedScan, report: IntegrationReport,
-                  trace: IntegrationTrace | None) -> ScanPoints:
+    def _voxelize(
+        self, checked: CheckedScan, report: IntegrationReport, trace: IntegrationTrace | None
+    ) -> ScanPoints:
         """Step 2: locate every point in the scan's table of leaf blocks and list each block's
         points together."""
         m = self._fields
         pts = self._buf.points(len(checked.points_sensor))
         stats = rasterize.locate_kernel(checked.use_probs)(
-            m, self._params, checked.points_sensor, checked.evidence, pts.cell, pts.code,
-            pts.blocks)
+            m, self._params, checked.points_sensor, checked.evidence, pts.cell, pts.code, pts.blocks
+        )
         report.used = int(stats[rasterize.USED])
         report.dropped_range = int(stats[rasterize.OUT_OF_RANGE]) - report.dropped_nonfinite
         report.dropped_band = int(stats[rasterize.OUT_OF_BAND])
@@ -311,32 +358,53 @@ class Mapper:
         report.dropped_far = int(stats[rasterize.IMPLAUSIBLY_FAR]) - report.dropped_nonfinite
         # in table order (x, y, z), so that the per-block passes touch the map block by block
         # along columns, as the kernel update will (~1 ms less than the points' order)
-        pts = pts._replace(blocks=pts.blocks[:int(stats[rasterize.BLOCKS])])
+        pts = pts._replace(blocks=pts.blocks[: int(stats[rasterize.BLOCKS])])
         pts.blocks.sort()
         table.column_slots(m, table.points_in, m.p_start, True)
         rasterize.scatter_points(m, pts.cell, pts.by_block)
         if trace is not None:
-            trace.points_located(pts.cell, pts.code, pts.blocks, pts.by_block[:report.used],
-                                 m.table_half, self.window.center_vox, self.origin_vox,
-                                 self.geometry.resolution_m)
+            trace.points_located(
+                pts.cell,
+                pts.code,
+                pts.blocks,
+                pts.by_block[: report.used],
+                m.table_half,
+                self.window.center_vox,
+                self.origin_vox,
+                self.geometry.resolution_m,
+            )
         return pts
 
-    def _training_points(self, checked: CheckedScan, pts: ScanPoints, report: IntegrationReport,
-                         trace: IntegrationTrace | None) -> TrainingRows:
+    def _training_points(
+        self,
+        checked: CheckedScan,
+        pts: ScanPoints,
+        report: IntegrationReport,
+        trace: IntegrationTrace | None,
+    ) -> TrainingRows:
         """Step 3: sort each block's points by voxel, filter the voxels, write the kept ones'
         training rows."""
         m = self._fields
-        training.sort_blocks(m, self.config.min_points, pts.blocks, pts.code, pts.by_block,
-                             pts.by_voxel)
+        training.sort_blocks(
+            m, self.config.min_points, pts.blocks, pts.code, pts.by_block, pts.by_voxel
+        )
         n = table.column_slots(m, table.rows_in, m.b_start, False)
         report.training_voxels = int(n)
         rows = self._buf.training(max(n, 1), self.C)
         training.training_kernel(self._settings.unit_weight, checked.use_probs)(
-            m, self._params, checked.points_sensor, checked.evidence, pts.blocks, pts.code,
-            pts.by_voxel, *rows)
+            m,
+            self._params,
+            checked.points_sensor,
+            checked.evidence,
+            pts.blocks,
+            pts.code,
+            pts.by_voxel,
+            *rows,
+        )
         if trace is not None:
-            trace.training_written(n, m.b_start.to_numpy(), m.b_layers.to_numpy(), rows.xyz,
-                                   rows.hist)
+            trace.training_written(
+                n, m.b_start.to_numpy(), m.b_layers.to_numpy(), rows.xyz, rows.hist
+            )
         return rows
 
     def _update(self, pts: ScanPoints, rows: TrainingRows, n_rows: int) -> None:
@@ -346,13 +414,16 @@ class Mapper:
         if not settings.uses_kernel:
             fusion.fuse_histograms(m, p, pts.blocks, rows.voxel, rows.hist)
         elif n_rows:
-            bki.update_kernel(settings)(m, p, rows.xyz, rows.hist, rows.classes, rows.single,
-                                        self._cap_inv2)
+            bki.update_kernel(settings)(
+                m, p, rows.xyz, rows.hist, rows.classes, rows.single, self._cap_inv2
+            )
 
     def _check_alive(self) -> None:
         if self._generation != backend.generation():
-            raise RuntimeError("this map belonged to a Taichi runtime that has since been "
-                               "re-initialised (init_taichi); its fields are gone")
+            raise RuntimeError(
+                "this map belonged to a Taichi runtime that has since been "
+                "re-initialised (init_taichi); its fields are gone"
+            )
 
     def _timer(self):
         if not self.profile:
@@ -364,11 +435,13 @@ class Mapper:
             now = time.perf_counter()
             self.stage_seconds[stage] += now - last[0]
             last[0] = now
+
         return tick
 
     # ------------------------------------------------------------------ query and export
-    def query(self, points_world: np.ndarray,
-              with_probs: bool = True) -> tuple[np.ndarray, np.ndarray | None]:
+    def query(
+        self, points_world: np.ndarray, with_probs: bool = True
+    ) -> tuple[np.ndarray, np.ndarray | None]:
         """Labels (N,) int32 train ids and probabilities (N, C) float32 of world points.
 
         A point in the live window whose voxel holds no evidence gets, with query_blend
@@ -421,8 +494,15 @@ class Mapper:
         res = self.geometry.resolution_m
         if not parts:
             return self._with_occupancy(
-                MapSnapshot(np.zeros((0, 3), np.int64), np.zeros((0, self.C), np.float32),
-                            np.zeros(0), np.zeros(0, np.float32), res), np.zeros(0, np.float32))
+                MapSnapshot(
+                    np.zeros((0, 3), np.int64),
+                    np.zeros((0, self.C), np.float32),
+                    np.zeros(0),
+                    np.zeros(0, np.float32),
+                    res,
+                ),
+                np.zeros(0, np.float32),
+            )
         keys = np.concatenate([p.keys for p in parts]).astype(np.int64) + self.origin_vox
         counts = np.concatenate([p.counts for p in parts])
         t_last = np.concatenate([p.t_last_rel for p in parts]).astype(np.float64) + self.t0
@@ -443,10 +523,14 @@ class Mapper:
     def state(self) -> dict:
         """Scalars that, with `snapshot()`, rebuild this mapper exactly (for checkpoints)."""
         center = self.window.center_vox
-        return {"origin_vox": None if self.origin_vox is None else self.origin_vox.tolist(),
-                "t0": self.t0, "center_vox": None if center is None else center.tolist(),
-                "scans": self.scans, "last_stamp_s": self.last_stamp_s,
-                "clock": self.clock.to_dict()}
+        return {
+            "origin_vox": None if self.origin_vox is None else self.origin_vox.tolist(),
+            "t0": self.t0,
+            "center_vox": None if center is None else center.tolist(),
+            "scans": self.scans,
+            "last_stamp_s": self.last_stamp_s,
+            "clock": self.clock.to_dict(),
+        }
 
     def restore(self, snapshot: MapSnapshot, state: dict) -> None:
         """Load a snapshot written by `snapshot()` (with `state()`), into an empty mapper.
@@ -460,14 +544,18 @@ class Mapper:
             return
         # everything goes to the store first; the window then pulls in what it covers
         occupancy = None
-        if self._free is not None:   # (a map saved without free space starts with none)
-            occupancy = (np.zeros(len(snapshot), np.float32) if snapshot.occupancy is None
-                         else np.asarray(snapshot.occupancy, np.float32))
-        segments = self.store.put(*VoxelArrays(*relative_arrays(snapshot, saved),
-                                               occupancy).arrays())
+        if self._free is not None:  # (a map saved without free space starts with none)
+            occupancy = (
+                np.zeros(len(snapshot), np.float32)
+                if snapshot.occupancy is None
+                else np.asarray(snapshot.occupancy, np.float32)
+            )
+        segments = self.store.put(
+            *VoxelArrays(*relative_arrays(snapshot, saved), occupancy).arrays()
+        )
         try:
             self.window.follow(saved.center_vox)
-        except BaseException:       # (the map does not fit the cap): the mapper stays empty
+        except BaseException:  # (the map does not fit the cap): the mapper stays empty
             self.store.forget_last(segments)
             raise
         self.origin_vox = saved.origin_vox

@@ -16,6 +16,7 @@ kernel mass other logs' scans would have given to voxels only those logs created
 with the map of the logs before it (`contribution` takes the seed back out) closes that gap
 exactly for `bki`, and for `adaptive` / `st` as far as the seed is exact.
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -23,8 +24,13 @@ import numpy as np
 from tisem.snapshot import MapSnapshot
 from tisem.tiles import pack_keys, take_rows
 
-__all__ = ["merge_snapshots", "decay_factors", "contribution", "transform_snapshot",
-           "check_compatible"]
+__all__ = [
+    "merge_snapshots",
+    "decay_factors",
+    "contribution",
+    "transform_snapshot",
+    "check_compatible",
+]
 
 
 def decay_factors(dt_s: np.ndarray, tau_s: float) -> np.ndarray:
@@ -68,8 +74,7 @@ def merge_snapshots(parts: list[MapSnapshot], taus: list[float] | float) -> MapS
     counts = np.concatenate([p.counts for p, _ in kept])[order].astype(np.float64)
     summed = np.add.reduceat(counts * factor[:, None], starts, axis=0)
     ell = np.concatenate([p.ell_m for p, _ in kept])[order]
-    merged = MapSnapshot(keys[order][ends], summed.astype(np.float32), t_last[ends], ell[ends],
-                         res)
+    merged = MapSnapshot(keys[order][ends], summed.astype(np.float32), t_last[ends], ell[ends], res)
     if merged.counts.shape[1] != num_classes:
         raise AssertionError("class axis changed in the merge")
     return merged
@@ -93,12 +98,12 @@ def contribution(final: MapSnapshot, seed: MapSnapshot, tau_s: float) -> MapSnap
     counts[had] -= factor[:, None] * seed.counts[rows[had]]
     # float32 rounding of the subtraction leaves tiny negatives where a class got nothing new
     np.maximum(counts, 0.0, out=counts)
-    return MapSnapshot(own.keys, counts.astype(np.float32), own.t_last, own.ell_m,
-                       own.resolution_m)
+    return MapSnapshot(own.keys, counts.astype(np.float32), own.t_last, own.ell_m, own.resolution_m)
 
 
-def transform_snapshot(snap: MapSnapshot, T_target_source: np.ndarray,
-                       tau_s: float = float("inf")) -> MapSnapshot:
+def transform_snapshot(
+    snap: MapSnapshot, T_target_source: np.ndarray, tau_s: float = float("inf")
+) -> MapSnapshot:
     """The map in another world frame: each voxel centre moved by the rigid transform and
     put in the voxel it lands in (voxels landing together are merged as parts of one map
     would be, with the map's `tau_s`). Exact for translations by whole voxels; a rotation
@@ -139,8 +144,12 @@ def check_compatible(described: list[tuple[str, float, int]]) -> None:
     name0, res0, classes0 = described[0]
     for name, res, classes in described[1:]:
         if abs(res - res0) > 1e-9:
-            raise ValueError(f"{name}: resolution {res} m differs from {name0}'s {res0} m; "
-                             f"maps of different resolutions cannot be merged")
+            raise ValueError(
+                f"{name}: resolution {res} m differs from {name0}'s {res0} m; "
+                f"maps of different resolutions cannot be merged"
+            )
         if classes != classes0:
-            raise ValueError(f"{name}: {classes} classes differ from {name0}'s {classes0}; "
-                             f"maps of different label spaces cannot be merged")
+            raise ValueError(
+                f"{name}: {classes} classes differ from {name0}'s {classes0}; "
+                f"maps of different label spaces cannot be merged"
+            )

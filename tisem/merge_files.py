@@ -11,6 +11,7 @@ the first are refused unless `transforms` gives the transform into the first map
 The merge goes tile by tile (`tisem.merge.merge_snapshots` per tile), so tiled inputs are never
 held whole; the output is a tiled map, and map.npz / map.ply / map_bev.png when it fits.
 """
+
 from __future__ import annotations
 
 import json
@@ -27,13 +28,19 @@ from tisem.io.mapfile import load_map_file, save_map
 from tisem.logs import kitti_world_frame
 from tisem.merge import check_compatible, merge_snapshots, transform_snapshot
 from tisem.snapshot import MapSnapshot
-from tisem.tiles import (TILE_VOX, TileIndex, TiledMap, is_tiled_map, split_by_tile,
-                         write_index, write_tile)
+from tisem.tiles import (
+    TILE_VOX,
+    TiledMap,
+    TileIndex,
+    is_tiled_map,
+    split_by_tile,
+    write_index,
+    write_tile,
+)
 
 log = logging.getLogger(__name__)
 
-__all__ = ["merge_maps", "MergeResult", "map_world_frame", "parse_transform",
-           "write_usual_files"]
+__all__ = ["merge_maps", "MergeResult", "map_world_frame", "parse_transform", "write_usual_files"]
 
 
 @dataclass
@@ -44,7 +51,7 @@ class MapInput:
     world_frame: str
     mapper_config: dict
     tiled: TiledMap | None = None
-    tiles: dict | None = None          # tile -> MapSnapshot, for a map in memory
+    tiles: dict | None = None  # tile -> MapSnapshot, for a map in memory
 
     @property
     def tau_s(self) -> float:
@@ -107,11 +114,14 @@ def open_input(path: str | os.PathLike, tile_vox: int) -> MapInput:
         return MapInput(str(path), tiled.world_frame, tiled.index.mapper_config, tiled=tiled)
     file = path / "map.npz" if path.is_dir() else path
     if not file.is_file():
-        raise FileNotFoundError(f"{path}: no map (expected a tiled map folder with tiles.json, "
-                                f"a results folder with map.npz, or a map.npz)")
+        raise FileNotFoundError(
+            f"{path}: no map (expected a tiled map folder with tiles.json, "
+            f"a results folder with map.npz, or a map.npz)"
+        )
     snap, config, meta = load_map_file(file)
-    return MapInput(str(path), map_world_frame(file, meta), config,
-                    tiles=dict(split_by_tile(snap, tile_vox)))
+    return MapInput(
+        str(path), map_world_frame(file, meta), config, tiles=dict(split_by_tile(snap, tile_vox))
+    )
 
 
 def parse_transform(text: str) -> np.ndarray:
@@ -143,9 +153,14 @@ def _apply_transform(source: MapInput, T: np.ndarray, tile_vox: int) -> MapInput
     return MapInput(source.name, "", source.mapper_config, tiles=tiles)
 
 
-def merge_maps(inputs: list[str | os.PathLike], out_dir: str | os.PathLike, *,
-               transforms: dict[int, np.ndarray] | None = None, tile_vox: int = TILE_VOX,
-               max_merged_voxels: int = 20_000_000) -> MergeResult:
+def merge_maps(
+    inputs: list[str | os.PathLike],
+    out_dir: str | os.PathLike,
+    *,
+    transforms: dict[int, np.ndarray] | None = None,
+    tile_vox: int = TILE_VOX,
+    max_merged_voxels: int = 20_000_000,
+) -> MergeResult:
     """Merge the maps `inputs` into the tiled map `out_dir` (module docstring). `transforms`
     maps an input's position (>= 1) to T_first_input: its frame into the first map's."""
     started = time.perf_counter()
@@ -161,13 +176,16 @@ def merge_maps(inputs: list[str | os.PathLike], out_dir: str | os.PathLike, *,
         if k in transforms:
             maps[k] = _apply_transform(m, transforms[k], tile_vox)
         elif m.world_frame != reference:
-            raise ValueError(f"{m.name} is in world frame {m.world_frame!r}, {maps[0].name} in "
-                             f"{reference!r}: give the transform between them (--transform "
-                             f"{k}=...)")
+            raise ValueError(
+                f"{m.name} is in world frame {m.world_frame!r}, {maps[0].name} in "
+                f"{reference!r}: give the transform between them (--transform "
+                f"{k}=...)"
+            )
     modes = {mapper_config_from_dict(m.mapper_config).mode for m in maps}
     if len(modes) > 1:
-        log.warning("merging maps of different modes %s: each decays with its own tau",
-                    sorted(modes))
+        log.warning(
+            "merging maps of different modes %s: each decays with its own tau", sorted(modes)
+        )
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     entries = []
@@ -177,29 +195,55 @@ def merge_maps(inputs: list[str | os.PathLike], out_dir: str | os.PathLike, *,
         if held:
             merged = merge_snapshots([s for s, _ in held], [tau for _, tau in held])
             entries.append(write_tile(out_dir, tile, merged, maps[0].mapper_config))
-    described = [{"map": str(p), "world_frame": m.world_frame or "(transformed)",
-                  "transform": transforms[k].tolist() if k in transforms else None}
-                 for k, (p, m) in enumerate(zip(inputs, maps))]
-    index = TileIndex(maps[0].resolution_m, maps[0].num_classes, tile_vox, reference,
-                      maps[0].mapper_config, entries, {"merged_from": described})
+    described = [
+        {
+            "map": str(p),
+            "world_frame": m.world_frame or "(transformed)",
+            "transform": transforms[k].tolist() if k in transforms else None,
+        }
+        for k, (p, m) in enumerate(zip(inputs, maps))
+    ]
+    index = TileIndex(
+        maps[0].resolution_m,
+        maps[0].num_classes,
+        tile_vox,
+        reference,
+        maps[0].mapper_config,
+        entries,
+        {"merged_from": described},
+    )
     write_index(out_dir, index)
     if index.voxels <= max_merged_voxels:
-        write_usual_files(out_dir, TiledMap.open(out_dir).snapshot(), maps[0].mapper_config,
-                          {"world_frame": reference, "merged_from": described})
-    return MergeResult(out_dir, index.voxels, len(entries), described,
-                       time.perf_counter() - started)
+        write_usual_files(
+            out_dir,
+            TiledMap.open(out_dir).snapshot(),
+            maps[0].mapper_config,
+            {"world_frame": reference, "merged_from": described},
+        )
+    return MergeResult(
+        out_dir, index.voxels, len(entries), described, time.perf_counter() - started
+    )
 
 
-def write_usual_files(out_dir: str | os.PathLike, snap: MapSnapshot, mapper_config: dict,
-                      meta: dict, trajectories: list | None = None) -> None:
+def write_usual_files(
+    out_dir: str | os.PathLike,
+    snap: MapSnapshot,
+    mapper_config: dict,
+    meta: dict,
+    trajectories: list | None = None,
+) -> None:
     """map.npz, map.ply and map_bev.png of a merged map that fits in memory."""
     from tisem.io.export import write_ply
     from tisem.viz.bev import render_bev
+
     out_dir = Path(out_dir)
     save_map(out_dir / "map.npz", snap, mapper_config, meta)
     write_ply(out_dir / "map.ply", snap)
     if len(snap):
         paths = [np.asarray(t, np.float64).reshape(-1, 2) for t in trajectories or [] if len(t)]
-        render_bev(snap, out_dir / "map_bev.png",
-                   trajectory_xy=np.concatenate(paths) if paths else None,
-                   title=f"merged tisem map, {len(snap):,} voxels")
+        render_bev(
+            snap,
+            out_dir / "map_bev.png",
+            trajectory_xy=np.concatenate(paths) if paths else None,
+            title=f"merged tisem map, {len(snap):,} voxels",
+        )

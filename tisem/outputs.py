@@ -4,12 +4,14 @@ scan (`tisem.io.semantickitti.write_predictions`), checkpoints to checkpoint/; m
 map.mcap, the ROS 2 bag map_ros2/ (`write_recording_maps`) and mcap_report.json,
 map_kitti.py's embedded default its synthetic/ sequence, render.py compare.png.
 `clear_previous_run` removes exactly these, for --overwrite."""
+
 from __future__ import annotations
 
 import json
 import logging
+from collections.abc import Iterable, Iterator
 from pathlib import Path
-from typing import TYPE_CHECKING, Iterable, Iterator
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -22,15 +24,33 @@ if TYPE_CHECKING:
 
 log = logging.getLogger(__name__)
 
-__all__ = ["write_run_info", "write_metrics", "write_map_files", "write_recording_maps",
-           "is_results_folder", "clear_previous_run", "RUN_FILES", "MAP_BAG"]
+__all__ = [
+    "write_run_info",
+    "write_metrics",
+    "write_map_files",
+    "write_recording_maps",
+    "is_results_folder",
+    "clear_previous_run",
+    "RUN_FILES",
+    "MAP_BAG",
+]
 
 # what a run writes at the top of its folder
-RUN_FILES = ("config.yaml", "run.json", "metrics.json", "map.npz", "map.ply", "map_bev.png",
-             "map.mcap", "mcap_report.json", "compare.png", "map_dynamic.ply")
+RUN_FILES = (
+    "config.yaml",
+    "run.json",
+    "metrics.json",
+    "map.npz",
+    "map.ply",
+    "map_bev.png",
+    "map.mcap",
+    "mcap_report.json",
+    "compare.png",
+    "map_dynamic.ply",
+)
 CHECKPOINT_FILES = ("checkpoint.npz", ".checkpoint.npz.*.tmp")
 PREDICTION_FILES = ("*.label", "*.label.tmp", "*.dynamic", "*.dynamic.tmp")
-MAP_BAG = "map_ros2"                  # the map as a rosbag2 folder, for `ros2 bag play` + RViz
+MAP_BAG = "map_ros2"  # the map as a rosbag2 folder, for `ros2 bag play` + RViz
 MAP_BAG_FILES = ("metadata.yaml", f"{MAP_BAG}_*.mcap")
 
 
@@ -48,8 +68,13 @@ def write_metrics(out_dir: Path, metrics: dict) -> Path:
     return path
 
 
-def write_map_files(out_dir: Path, mapper: Mapper, config: MapperConfig,
-                    trajectory: np.ndarray, progress: bool = False) -> dict[str, Path]:
+def write_map_files(
+    out_dir: Path,
+    mapper: Mapper,
+    config: MapperConfig,
+    trajectory: np.ndarray,
+    progress: bool = False,
+) -> dict[str, Path]:
     """Write the finished map of `mapper` (built with `config`) into `out_dir`; `trajectory`
     (M, 3) is drawn on the top-down picture; `progress`: a bar over the files. Returns
     {kind: path}."""
@@ -59,10 +84,8 @@ def write_map_files(out_dir: Path, mapper: Mapper, config: MapperConfig,
     from tisem.io.export import write_ply
     from tisem.io.mapfile import save_map
 
-    paths = {"npz": out_dir / "map.npz", "ply": out_dir / "map.ply",
-             "bev": out_dir / "map_bev.png"}
-    with tqdm(total=len(paths) + 1, unit="step", desc="map files",
-              disable=not progress) as bar:
+    paths = {"npz": out_dir / "map.npz", "ply": out_dir / "map.ply", "bev": out_dir / "map_bev.png"}
+    with tqdm(total=len(paths) + 1, unit="step", desc="map files", disable=not progress) as bar:
         bar.set_postfix_str("snapshot")
         snap = mapper.snapshot()
         bar.update()
@@ -80,7 +103,7 @@ def write_map_files(out_dir: Path, mapper: Mapper, config: MapperConfig,
         else:
             write_ply(paths["ply"], snap)
         bar.update()
-        try:                           # the picture is the one output that needs an extra
+        try:  # the picture is the one output that needs an extra
             require("matplotlib")
             from tisem.viz.bev import render_bev
         except MissingExtra as exc:
@@ -89,8 +112,12 @@ def write_map_files(out_dir: Path, mapper: Mapper, config: MapperConfig,
             return paths
         if len(snap):
             bar.set_postfix_str(paths["bev"].name)
-            render_bev(snap, paths["bev"], trajectory_xy=trajectory[:, :2],
-                       title=f"tisem map ({config.mode}), {len(snap):,} voxels")
+            render_bev(
+                snap,
+                paths["bev"],
+                trajectory_xy=trajectory[:, :2],
+                title=f"tisem map ({config.mode}), {len(snap):,} voxels",
+            )
         else:
             log.warning("the map is empty: no %s written", paths["bev"].name)
             del paths["bev"]
@@ -98,8 +125,12 @@ def write_map_files(out_dir: Path, mapper: Mapper, config: MapperConfig,
     return paths
 
 
-def write_recording_maps(out_dir: Path, snapshot: MapSnapshot, frame_id: str,
-                         scans: Iterable[tuple[Scan, np.ndarray]] | None = None) -> dict:
+def write_recording_maps(
+    out_dir: Path,
+    snapshot: MapSnapshot,
+    frame_id: str,
+    scans: Iterable[tuple[Scan, np.ndarray]] | None = None,
+) -> dict:
     """map.mcap (foxglove.PointCloud, for Foxglove) and map_ros2/ (a rosbag2 folder of
     sensor_msgs/PointCloud2, for `ros2 bag play` and RViz), both on /semantic_map, with the
     scans (Scan, mapped train ids) on /semantic_scans; the scans are read once, both files
@@ -116,15 +147,16 @@ def write_recording_maps(out_dir: Path, snapshot: MapSnapshot, frame_id: str,
         bag.write_map(snapshot, stamp_ns)
 
         def both() -> Iterator[tuple[Scan, np.ndarray]]:
-            for item in ([first] if first is not None else []):
+            for item in [first] if first is not None else []:
                 bag.write_scan(*item)
                 yield item
             for item in scans:
                 bag.write_scan(*item)
                 yield item
 
-        info = write_map_mcap(paths["mcap"], snapshot, frame_id=frame_id, scans=both(),
-                              stamp_ns=stamp_ns)
+        info = write_map_mcap(
+            paths["mcap"], snapshot, frame_id=frame_id, scans=both(), stamp_ns=stamp_ns
+        )
     return {**paths, "voxels": info["voxels"], "scans": info["scans"]}
 
 
@@ -138,6 +170,7 @@ def clear_previous_run(folder: Path) -> int:
     sequences/*/predictions/ label files, checkpoint/ files and the synthetic/ sequence;
     folders left empty go too, anything else stays. Returns the number of files removed."""
     from tisem.synth.sequence import clear_sequence
+
     folder = Path(folder)
     removed = 0
 

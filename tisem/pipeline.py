@@ -8,10 +8,12 @@ Writes `config.yaml`, `run.json`, `metrics.json`, per-point predictions in Seman
 arrive as `SkippedScan`s: they are reported, the rest is mapped. The run itself, step by step
 and resumable, is `tisem.run.MappingRun`.
 """
+
 from __future__ import annotations
 
 import os
-from typing import Any, Iterable
+from collections.abc import Iterable
+from typing import Any
 
 from tisem.checkpoint import Checkpoint
 from tisem.config import RunConfig
@@ -23,11 +25,17 @@ from tisem.scan import Scan
 __all__ = ["run_pipeline", "results_table", "RunResult"]
 
 
-def run_pipeline(scans: Iterable[Scan | SkippedScan], cfg: RunConfig, out_dir: str | os.PathLike,
-                 *, progress: bool = True, on_scan: OnScan | None = None,
-                 write_outputs: bool = True,
-                 resume: Checkpoint | str | os.PathLike | None = None,
-                 **options: Any) -> RunResult:
+def run_pipeline(
+    scans: Iterable[Scan | SkippedScan],
+    cfg: RunConfig,
+    out_dir: str | os.PathLike,
+    *,
+    progress: bool = True,
+    on_scan: OnScan | None = None,
+    write_outputs: bool = True,
+    resume: Checkpoint | str | os.PathLike | None = None,
+    **options: Any,
+) -> RunResult:
     """Map every scan, then score and write everything (see module docstring).
 
     `options` are `MappingRun`'s: `sequence_name`, `total`, `source_info`, `checkpoint_every`,

@@ -24,10 +24,12 @@ of them holds exactly the stream up to there.
         ...                               # Verdict(k, item, reason): reason None = map it
     for verdict in gate.finish(): ...
 """
+
 from __future__ import annotations
 
+from collections.abc import Iterator
 from dataclasses import dataclass
-from typing import Iterator, NamedTuple
+from typing import NamedTuple
 
 import numpy as np
 
@@ -36,9 +38,9 @@ from tisem.scan import Scan
 
 __all__ = ["PoseGate", "Verdict", "Anchor", "MAX_SPEED_M_S", "JUMP_SLACK_M", "MAX_HELD"]
 
-MAX_SPEED_M_S = 100.0    # 360 km/h: faster than any vehicle a LiDAR map is made from
-JUMP_SLACK_M = 10.0      # what two poses of (nearly) the same time may differ by: pose noise
-MAX_HELD = 4             # scans held at most while waiting for one that agrees
+MAX_SPEED_M_S = 100.0  # 360 km/h: faster than any vehicle a LiDAR map is made from
+JUMP_SLACK_M = 10.0  # what two poses of (nearly) the same time may differ by: pose noise
+MAX_HELD = 4  # scans held at most while waiting for one that agrees
 
 
 class Verdict(NamedTuple):
@@ -60,8 +62,9 @@ class Anchor:
 
     @classmethod
     def of(cls, scan: Scan) -> Anchor:
-        return cls(int(scan.index), np.asarray(scan.T_world_sensor[:3, 3], np.float64),
-                   float(scan.stamp_s))
+        return cls(
+            int(scan.index), np.asarray(scan.T_world_sensor[:3, 3], np.float64), float(scan.stamp_s)
+        )
 
 
 def _distance(a: Anchor, b: Anchor) -> float:
@@ -83,12 +86,14 @@ def _length(metres: float) -> str:
 
 
 def _outlier(held: Anchor, ref: Anchor, how: str) -> str:
-    return (f"pose outlier: the sensor is {_length(_distance(held, ref))} from scan "
-            f"{ref.index}'s position, {abs(held.stamp_s - ref.stamp_s):.3g} s apart (a vehicle "
-            f"moves at most {_length(_allowed_m(held, ref))} in that time); {how}")
+    return (
+        f"pose outlier: the sensor is {_length(_distance(held, ref))} from scan "
+        f"{ref.index}'s position, {abs(held.stamp_s - ref.stamp_s):.3g} s apart (a vehicle "
+        f"moves at most {_length(_allowed_m(held, ref))} in that time); {how}"
+    )
 
 
-Entry = tuple[int, "Scan | SkippedScan"]   # a held scan, or a refused one waiting its turn
+Entry = tuple[int, "Scan | SkippedScan"]  # a held scan, or a refused one waiting its turn
 
 
 class PoseGate:
@@ -124,29 +129,42 @@ class PoseGate:
                 self.anchor = Anchor.of(item)
                 yield Verdict(position, item, None)
             else:
-                yield Verdict(position, item, _outlier(Anchor.of(item), self.anchor,
-                                                       "no later scan confirms it"))
+                yield Verdict(
+                    position,
+                    item,
+                    _outlier(Anchor.of(item), self.anchor, "no later scan confirms it"),
+                )
 
     # ------------------------------------------------------------------ deciding
     def _resolve(self, newest: Anchor) -> Iterator[Verdict]:
         """The newest held scan confirms the anchor, or another held scan, or neither."""
         if self.anchor is not None and agree(self.anchor, newest):
-            yield from self._confirm(self.anchor, newest, f"scans {self.anchor.index} and "
-                                     f"{newest.index} around it agree with each other")
+            yield from self._confirm(
+                self.anchor,
+                newest,
+                f"scans {self.anchor.index} and {newest.index} around it agree with each other",
+            )
             return
         for _, item in self._queue[:-1]:
             if isinstance(item, Scan) and agree(Anchor.of(item), newest):
-                yield from self._confirm(Anchor.of(item), newest, f"scans {item.index} and "
-                                         f"{newest.index} agree with each other")
+                yield from self._confirm(
+                    Anchor.of(item),
+                    newest,
+                    f"scans {item.index} and {newest.index} agree with each other",
+                )
                 return
         if self.held > MAX_HELD:
-            k, (position, oldest) = next((k, e) for k, e in enumerate(self._queue)
-                                         if isinstance(e[1], Scan))
+            k, (position, oldest) = next(
+                (k, e) for k, e in enumerate(self._queue) if isinstance(e[1], Scan)
+            )
             here = Anchor.of(oldest)
-            nearest = min((Anchor.of(s) for _, s in self._queue[k + 1:] if isinstance(s, Scan)),
-                          key=lambda other: _distance(here, other))
-            reason = _outlier(here, nearest, f"none of the {MAX_HELD} scans after it agrees "
-                                             f"with it")
+            nearest = min(
+                (Anchor.of(s) for _, s in self._queue[k + 1 :] if isinstance(s, Scan)),
+                key=lambda other: _distance(here, other),
+            )
+            reason = _outlier(
+                here, nearest, f"none of the {MAX_HELD} scans after it agrees with it"
+            )
             self._queue[k] = (position, SkippedScan(oldest.index, oldest.name, reason))
             while self._queue and isinstance(self._queue[0][1], SkippedScan):
                 position, refused = self._queue.pop(0)

@@ -1,4 +1,5 @@
 """What a sensor pose may be: the one rule every reader and the mapper check poses by."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -29,13 +30,23 @@ def pose_problem(T: np.ndarray) -> str | None:
     off = float(np.abs(R.T @ R - np.eye(3)).max())
     if off > ROTATION_TOLERANCE or abs(det - 1.0) > ROTATION_TOLERANCE:
         scale = float(np.cbrt(abs(det))) if det else 0.0
-        what = ("mirrored" if det < 0 else "singular" if abs(det) < 1e-6
-                else f"scaled by {scale:.4g}" if abs(scale - 1.0) > ROTATION_TOLERANCE
-                else "not orthonormal")
-        return (f"the pose's rotation is not a rotation ({what}: det {det:.6g}, "
-                f"|R^T R - I| = {off:.3g})")
+        what = (
+            "mirrored"
+            if det < 0
+            else "singular"
+            if abs(det) < 1e-6
+            else f"scaled by {scale:.4g}"
+            if abs(scale - 1.0) > ROTATION_TOLERANCE
+            else "not orthonormal"
+        )
+        return (
+            f"the pose's rotation is not a rotation ({what}: det {det:.6g}, "
+            f"|R^T R - I| = {off:.3g})"
+        )
     dist = float(np.abs(T[:3, 3]).max())
     if dist > MAX_POSITION_M:
-        return (f"the pose's position is {dist:.3g} m from the origin; no real pose is farther "
-                f"than {MAX_POSITION_M:.0e} m")
+        return (
+            f"the pose's position is {dist:.3g} m from the origin; no real pose is farther "
+            f"than {MAX_POSITION_M:.0e} m"
+        )
     return None

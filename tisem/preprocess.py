@@ -1,33 +1,44 @@
 """Step 1 of the method on the host: the checks of a scan's evidence, and the numpy selection
 of the points the map uses (the reference mapper's; the Taichi mapper's kernels select them).
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
 
 import numpy as np
 
+from tisem.config import MapperConfig
 from tisem.kernels import layout
 from tisem.kernels.rasterize import CORRUPT_RANGE_M
-from tisem.config import MapperConfig
-from tisem.scan import (Scan, checked_ids, checked_pose, checked_probabilities,
-                        finite_rows, scan_label)
+from tisem.scan import (
+    Scan,
+    checked_ids,
+    checked_pose,
+    checked_probabilities,
+    finite_rows,
+    scan_label,
+)
 
 
 @dataclass
 class CheckedScan:
     """A scan's points and evidence as the kernels take them."""
 
-    points_sensor: np.ndarray   # (N, 3) float32, C-contiguous; non-finite rows moved far away
-    evidence: np.ndarray        # (N,) int32 train ids, or (N, C) float32 probabilities
+    points_sensor: np.ndarray  # (N, 3) float32, C-contiguous; non-finite rows moved far away
+    evidence: np.ndarray  # (N,) int32 train ids, or (N, C) float32 probabilities
     use_probs: bool
     dropped_nonfinite: int
 
     def subset(self, keep: np.ndarray) -> CheckedScan:
         """Only the points where `keep` (bool, (N,)) is set, in their order; none of them
         non-finite (the caller keeps only points the kernels located)."""
-        return CheckedScan(np.ascontiguousarray(self.points_sensor[keep]),
-                           np.ascontiguousarray(self.evidence[keep]), self.use_probs, 0)
+        return CheckedScan(
+            np.ascontiguousarray(self.points_sensor[keep]),
+            np.ascontiguousarray(self.evidence[keep]),
+            self.use_probs,
+            0,
+        )
 
 
 def check_scan(scan: Scan, num_classes: int) -> CheckedScan:
@@ -37,8 +48,10 @@ def check_scan(scan: Scan, num_classes: int) -> CheckedScan:
     are counted as implausibly far there, which the mapper corrects."""
     where = scan_label(scan.index, scan.name)
     if scan.num_points >= layout.MAX_SCAN_POINTS:
-        raise ValueError(f"{where}: {scan.num_points:,} points; tisem takes at most "
-                         f"{layout.MAX_SCAN_POINTS - 1:,} per scan")
+        raise ValueError(
+            f"{where}: {scan.num_points:,} points; tisem takes at most "
+            f"{layout.MAX_SCAN_POINTS - 1:,} per scan"
+        )
     checked_pose(scan.T_world_sensor, where)
     pts = np.ascontiguousarray(scan.points_sensor, dtype=np.float32)
     if pts.ndim != 2 or pts.shape[1] != 3:
@@ -56,8 +69,10 @@ def check_scan(scan: Scan, num_classes: int) -> CheckedScan:
         labels = np.ascontiguousarray(checked_ids(scan.labels, "train ids", where, num_classes))
         return CheckedScan(pts, labels, False, nonfinite)
     if np.shape(scan.probs) != (len(pts), num_classes):
-        raise ValueError(f"{where}: probabilities of shape {np.shape(scan.probs)}; the map "
-                         f"has {num_classes} classes, the scan {len(pts)} points")
+        raise ValueError(
+            f"{where}: probabilities of shape {np.shape(scan.probs)}; the map "
+            f"has {num_classes} classes, the scan {len(pts)} points"
+        )
     probs = np.ascontiguousarray(checked_probabilities(scan.probs, where, finite))
     if nonfinite:
         probs = np.where(finite[:, None], probs, 0).astype(np.float32)
@@ -68,9 +83,9 @@ def check_scan(scan: Scan, num_classes: int) -> CheckedScan:
 class SelectedPoints:
     """The points of a scan that the map uses, still in the sensor frame."""
 
-    points_sensor: np.ndarray          # (K, 3) float32
-    labels: np.ndarray | None          # (K,) int32 train ids
-    probs: np.ndarray | None           # (K, C) float32
+    points_sensor: np.ndarray  # (K, 3) float32
+    labels: np.ndarray | None  # (K,) int32 train ids
+    probs: np.ndarray | None  # (K, C) float32
     dropped_nonfinite: int
     dropped_range: int
 
@@ -81,22 +96,31 @@ def select_points(scan: Scan, cfg: MapperConfig) -> SelectedPoints:
     pts = scan.points_sensor
     finite = np.all(np.isfinite(pts), axis=1)
     rng = np.linalg.norm(np.where(finite[:, None], pts, 0), axis=1)
-    keep = (finite & (rng >= cfg.min_range_m) & (rng <= cfg.max_range_m)
-            & (pts[:, 2] >= cfg.min_z_m) & (pts[:, 2] <= cfg.max_z_m))
+    keep = (
+        finite
+        & (rng >= cfg.min_range_m)
+        & (rng <= cfg.max_range_m)
+        & (pts[:, 2] >= cfg.min_z_m)
+        & (pts[:, 2] <= cfg.max_z_m)
+    )
     labels = probs = None
     if scan.labels is not None:
         labels = scan.labels[keep]
         if labels.size and (labels.min() < 0 or labels.max() >= cfg.num_classes):
-            raise ValueError(f"{where}: train ids must lie in [0, {cfg.num_classes}), got "
-                             f"[{labels.min()}, {labels.max()}]")
+            raise ValueError(
+                f"{where}: train ids must lie in [0, {cfg.num_classes}), got "
+                f"[{labels.min()}, {labels.max()}]"
+            )
     else:
         if scan.probs.shape[1] != cfg.num_classes:
-            raise ValueError(f"{where}: {scan.probs.shape[1]} probability columns, "
-                             f"the map has {cfg.num_classes} classes")
+            raise ValueError(
+                f"{where}: {scan.probs.shape[1]} probability columns, "
+                f"the map has {cfg.num_classes} classes"
+            )
         probs = scan.probs[keep]
         if not np.all(np.isfinite(probs)) or (probs.size and probs.min() < 0):
             raise ValueError(f"{where}: probabilities must be finite and >= 0")
     n_finite = int(np.count_nonzero(finite))
-    return SelectedPoints(pts[keep], labels, probs, len(pts) - n_finite,
-                          n_finite - int(np.count_nonzero(keep)))
-
+    return SelectedPoints(
+        pts[keep], labels, probs, len(pts) - n_finite, n_finite - int(np.count_nonzero(keep))
+    )

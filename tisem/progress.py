@@ -7,6 +7,7 @@
 
 The map itself is not here: it is the mapper's snapshot and state, saved beside this.
 """
+
 from __future__ import annotations
 
 import logging
@@ -31,14 +32,23 @@ class DropLog:
     """Points a mapped scan lost, and why: logged per scan (when it is more than the routine
     range filter) and totalled for metrics.json."""
 
-    ANOMALIES = {"dropped_nonfinite": "non-finite (NaN/inf) points",
-                 "unknown_raw_ids": "unknown raw ids (mapped to 0)",
-                 "dropped_far": "implausibly far points (> 1 km)",
-                 "dropped_band": "points outside the height band (unmapped)",
-                 "dropped_window": "points outside the map's index window",
-                 "dropped_dense": "points beyond the block cap"}
-    COUNTS = ("dropped_nonfinite", "unknown_raw_ids", "dropped_range", "dropped_far",
-              "dropped_band", "dropped_window", "dropped_dense")
+    ANOMALIES = {
+        "dropped_nonfinite": "non-finite (NaN/inf) points",
+        "unknown_raw_ids": "unknown raw ids (mapped to 0)",
+        "dropped_far": "implausibly far points (> 1 km)",
+        "dropped_band": "points outside the height band (unmapped)",
+        "dropped_window": "points outside the map's index window",
+        "dropped_dense": "points beyond the block cap",
+    }
+    COUNTS = (
+        "dropped_nonfinite",
+        "unknown_raw_ids",
+        "dropped_range",
+        "dropped_far",
+        "dropped_band",
+        "dropped_window",
+        "dropped_dense",
+    )
     # the mapper's own warning gives these with their numbers: recorded here, not logged again
     SAID_BY_THE_MAPPER = ("dropped_dense",)
 
@@ -59,10 +69,14 @@ class DropLog:
             raise ValueError(f"progress dropped: expected a mapping, got {saved!r}")
         totals = saved.get("totals") or {}
         scans = saved.get("scans") or []
-        if not isinstance(totals, dict) or not isinstance(scans, list) \
-                or not all(isinstance(s, dict) for s in scans):
-            raise ValueError("progress dropped: expected totals {kind: count} and a list of "
-                             "per-scan records")
+        if (
+            not isinstance(totals, dict)
+            or not isinstance(scans, list)
+            or not all(isinstance(s, dict) for s in scans)
+        ):
+            raise ValueError(
+                "progress dropped: expected totals {kind: count} and a list of per-scan records"
+            )
         for kind, count in totals.items():
             if isinstance(count, bool) or not isinstance(count, int) or count < 0:
                 raise ValueError(f"progress dropped {kind}: {count!r} is not a count >= 0")
@@ -70,11 +84,15 @@ class DropLog:
 
     def add(self, scan: Scan, report: IntegrationReport) -> None:
         """Count what `Mapper.integrate` (its `IntegrationReport`) and the reader dropped."""
-        counts = {"dropped_nonfinite": report.dropped_nonfinite,
-                  "unknown_raw_ids": scan.source.unknown_raw_ids if scan.source else 0,
-                  "dropped_range": report.dropped_range, "dropped_far": report.dropped_far,
-                  "dropped_band": report.dropped_band, "dropped_window": report.dropped_window,
-                  "dropped_dense": report.dropped_dense}
+        counts = {
+            "dropped_nonfinite": report.dropped_nonfinite,
+            "unknown_raw_ids": scan.source.unknown_raw_ids if scan.source else 0,
+            "dropped_range": report.dropped_range,
+            "dropped_far": report.dropped_far,
+            "dropped_band": report.dropped_band,
+            "dropped_window": report.dropped_window,
+            "dropped_dense": report.dropped_dense,
+        }
         for k, v in counts.items():
             self.totals[k] += int(v)
         anomalies = {k: int(counts[k]) for k in self.ANOMALIES if counts[k]}
@@ -82,8 +100,12 @@ class DropLog:
             self.scans.append({"index": scan.index, "name": scan.name, **anomalies})
         to_say = {k: v for k, v in anomalies.items() if k not in self.SAID_BY_THE_MAPPER}
         if to_say:
-            log.info("scan %s (%s): %s", scan.index, scan.name,
-                     ", ".join(f"{v} {self.ANOMALIES[k]}" for k, v in to_say.items()))
+            log.info(
+                "scan %s (%s): %s",
+                scan.index,
+                scan.name,
+                ", ".join(f"{v} {self.ANOMALIES[k]}" for k, v in to_say.items()),
+            )
 
 
 @dataclass
@@ -129,8 +151,9 @@ class RunProgress:
             if len(self._mapped) != len(self.indices):
                 self._mapped = set(self.indices)
             return index in self._mapped
-        return (self.last_index is not None and index <= self.last_index
-                and not self.was_skipped(index))
+        return (
+            self.last_index is not None and index <= self.last_index and not self.was_skipped(index)
+        )
 
     def add_mapped(self, scan: Scan, seconds: float, report: IntegrationReport) -> None:
         """Record one integrated scan (`report`: what `Mapper.integrate` returned)."""
@@ -157,8 +180,10 @@ class RunProgress:
             "online": self.online.matrix.tolist(),
             "input": self.input.matrix.tolist(),
             "seconds": [float(s) for s in self.seconds],
-            "skipped": [{"index": int(s.index), "name": str(s.name), "reason": str(s.reason)}
-                        for s in self.skipped],
+            "skipped": [
+                {"index": int(s.index), "name": str(s.name), "reason": str(s.reason)}
+                for s in self.skipped
+            ],
             "trajectory": [np.asarray(t, np.float64).tolist() for t in self.trajectory],
             "dropped": self.drops.to_dict(),
             "indices": None if self.indices is None else [int(i) for i in self.indices],
@@ -176,31 +201,40 @@ class RunProgress:
         for name in ("online", "input"):
             matrix = saved.get(name)
             try:
-                conf = (Confusion(num_classes) if matrix is None
-                        else Confusion.from_matrix(np.asarray(matrix)))
+                conf = (
+                    Confusion(num_classes)
+                    if matrix is None
+                    else Confusion.from_matrix(np.asarray(matrix))
+                )
             except (ValueError, TypeError) as exc:
                 raise ValueError(f"progress {name} confusion: {exc}") from None
             if conf.num_classes != num_classes:
-                raise ValueError(f"{name} confusion of shape {conf.matrix.shape}, expected "
-                                 f"{num_classes} classes")
+                raise ValueError(
+                    f"{name} confusion of shape {conf.matrix.shape}, expected {num_classes} classes"
+                )
             confusions.append(conf)
         seconds = _floats(saved.get("seconds", []), "seconds", minimum=0.0)
         trajectory = _positions(saved.get("trajectory", []))
         if len(trajectory) != len(seconds):
-            raise ValueError(f"progress: {len(seconds)} scan times but {len(trajectory)} "
-                             f"positions")
+            raise ValueError(f"progress: {len(seconds)} scan times but {len(trajectory)} positions")
         indices = saved.get("indices")
         if indices is not None:
             indices = [_scan_index(i, "indices") for i in _list(indices, "indices")]
             if len(indices) != len(seconds):
-                raise ValueError(f"progress: {len(seconds)} scan times but {len(indices)} "
-                                 f"scan indices")
+                raise ValueError(
+                    f"progress: {len(seconds)} scan times but {len(indices)} scan indices"
+                )
         last = saved.get("last_index")
         last = None if last is None else _scan_index(last, "last_index")
-        return cls(*confusions, seconds=seconds,
-                   skipped=[_skipped(s) for s in _list(saved.get("skipped", []), "skipped")],
-                   trajectory=trajectory, drops=DropLog.from_dict(saved.get("dropped")),
-                   last_index=last, indices=indices)
+        return cls(
+            *confusions,
+            seconds=seconds,
+            skipped=[_skipped(s) for s in _list(saved.get("skipped", []), "skipped")],
+            trajectory=trajectory,
+            drops=DropLog.from_dict(saved.get("dropped")),
+            last_index=last,
+            indices=indices,
+        )
 
 
 def _list(value, name: str) -> list:
@@ -212,8 +246,12 @@ def _list(value, name: str) -> list:
 def _floats(values, name: str, minimum: float) -> list[float]:
     out = []
     for v in _list(values, name):
-        if isinstance(v, bool) or not isinstance(v, (int, float)) or not np.isfinite(v) \
-                or v < minimum:
+        if (
+            isinstance(v, bool)
+            or not isinstance(v, (int, float))
+            or not np.isfinite(v)
+            or v < minimum
+        ):
             raise ValueError(f"progress {name}: {v!r} is not a finite number >= {minimum:g}")
         out.append(float(v))
     return out
@@ -223,8 +261,9 @@ def _positions(values) -> list[np.ndarray]:
     out = []
     for v in _list(values, "trajectory"):
         p = np.asarray(v, dtype=object)
-        if p.shape != (3,) or not all(isinstance(x, (int, float)) and not isinstance(x, bool)
-                                      and np.isfinite(x) for x in p):
+        if p.shape != (3,) or not all(
+            isinstance(x, (int, float)) and not isinstance(x, bool) and np.isfinite(x) for x in p
+        ):
             raise ValueError(f"progress trajectory: {v!r} is not a finite x y z position")
         out.append(p.astype(np.float64))
     return out
@@ -239,5 +278,6 @@ def _scan_index(value, name: str) -> int:
 def _skipped(entry) -> SkippedScan:
     if not isinstance(entry, dict) or set(entry) != {"index", "name", "reason"}:
         raise ValueError(f"progress skipped: {entry!r} is not an index / name / reason record")
-    return SkippedScan(_scan_index(entry["index"], "skipped index"), str(entry["name"]),
-                       str(entry["reason"]))
+    return SkippedScan(
+        _scan_index(entry["index"], "skipped index"), str(entry["name"]), str(entry["reason"])
+    )

@@ -7,6 +7,7 @@ merged tile. A reducer holds one tile at a time, never the map. `score_log` look
 scans up in a merged tiled map (numpy only, no Taichi) for the final-map protocol.
 Nothing here knows about Ray.
 """
+
 from __future__ import annotations
 
 import resource
@@ -37,8 +38,9 @@ def assign_tiles(tiles: list[tuple[int, int]], reducers: int) -> list[list[tuple
     return owned
 
 
-def reduce_tiles(out_dir: str, work: list[tuple[list[int], list[str]]], tau_s: float,
-                 mapper_config: dict) -> dict:
+def reduce_tiles(
+    out_dir: str, work: list[tuple[list[int], list[str]]], tau_s: float, mapper_config: dict
+) -> dict:
     """Merge each (tile, task map folders that hold it) of `work` into `out_dir`'s tiles;
     returns the index entries, the bytes read and written, seconds and the peak memory."""
     started = time.perf_counter()
@@ -55,16 +57,21 @@ def reduce_tiles(out_dir: str, work: list[tuple[list[int], list[str]]], tau_s: f
                 parts.append(tiled.tile(tile))
         inputs += len(parts)
         if parts:
-            entries.append(write_tile(out_dir, tile, merge_snapshots(parts, tau_s),
-                                      mapper_config))
-    return {"entries": entries, "tiles": len(entries), "tile_inputs": inputs,
-            "bytes_read": bytes_in, "bytes_written": int(sum(e["bytes"] for e in entries)),
-            "seconds": time.perf_counter() - started,
-            "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0}
+            entries.append(write_tile(out_dir, tile, merge_snapshots(parts, tau_s), mapper_config))
+    return {
+        "entries": entries,
+        "tiles": len(entries),
+        "tile_inputs": inputs,
+        "bytes_read": bytes_in,
+        "bytes_written": int(sum(e["bytes"] for e in entries)),
+        "seconds": time.perf_counter() - started,
+        "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
+    }
 
 
-def score_log(map_dir: str, log: LogSpec, ranges: list[tuple[int, int]],
-              input: str = "predictions") -> dict:
+def score_log(
+    map_dir: str, log: LogSpec, ranges: list[tuple[int, int]], input: str = "predictions"
+) -> dict:
     """Confusions of the merged map (final-map protocol) and of the network's labels over the
     scans of `ranges` (positions, inclusive) of `log`, as C x C matrices."""
     tiled = TiledMap.open(map_dir, cache_tiles=64)
@@ -78,9 +85,12 @@ def score_log(map_dir: str, log: LogSpec, ranges: list[tuple[int, int]],
             score_scan(final, item, labels)
             score_scan(network, item, network_labels(item))
             scans += 1
-    return {"final": np.asarray(final.matrix).tolist(),
-            "input": np.asarray(network.matrix).tolist(), "scans": scans,
-            "tiles_loaded": tiled.tiles_loaded}
+    return {
+        "final": np.asarray(final.matrix).tolist(),
+        "input": np.asarray(network.matrix).tolist(),
+        "scans": scans,
+        "tiles_loaded": tiled.tiles_loaded,
+    }
 
 
 def folder_bytes(folder: str | Path) -> int:

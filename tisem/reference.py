@@ -4,6 +4,7 @@ against, and the baseline the throughput benchmark measures its speedup over.
 It follows the same rules as `tisem.mapper.Mapper` with none of its machinery: a dict of voxels,
 `np.unique` rasterisation, a k-d tree for the kernel neighbourhoods, float64 throughout.
 """
+
 from __future__ import annotations
 
 import math
@@ -11,9 +12,9 @@ import math
 import numpy as np
 from scipy.spatial import cKDTree
 
-from tisem.kernels.bki import MIN_UPDATE
 from tisem.config import MapperConfig
 from tisem.geometry import block_aligned_origin
+from tisem.kernels.bki import MIN_UPDATE
 from tisem.map_clock import MapClock
 from tisem.preprocess import select_points
 from tisem.scan import Scan, scan_label, to_frame
@@ -70,12 +71,12 @@ class ReferenceMapper:
         self.C = self.config.num_classes
         self.res = self.config.resolution_m
         self.index: dict[tuple, int] = {}
-        self.keys = np.zeros((0, 3), np.int64)      # local voxel keys
+        self.keys = np.zeros((0, 3), np.int64)  # local voxel keys
         self.counts = np.zeros((0, self.C))
         self.t_last_rel = np.zeros(0)
         self.length_m = np.zeros(0)
         self.origin_vox = None
-        self.clock = MapClock(self.config.decay_tau_s)     # the mapper's map time
+        self.clock = MapClock(self.config.decay_tau_s)  # the mapper's map time
 
     def _voxel_ids(self, keys: np.ndarray) -> np.ndarray:
         """Indices of the given voxels, creating the missing ones."""
@@ -126,7 +127,7 @@ class ReferenceMapper:
         """Steps 4-8 for one scan's training points at map time t_rel."""
         cfg = self.config
         ids = self._voxel_ids(keys)
-        if not cfg.uses_kernel:                     # csm: plain per-voxel counting
+        if not cfg.uses_kernel:  # csm: plain per-voxel counting
             self.counts[ids] += h
             self.t_last_rel[ids] = t_rel
             self.length_m[ids] = cfg.ell_min_m if cfg.adaptive else cfg.ell_fixed_vox * self.res
@@ -205,5 +206,9 @@ class ReferenceMapper:
         """(global keys, counts, t_last, ell_m) sorted by key, like `Mapper.snapshot()`."""
         g = self.keys + self.origin_vox
         order = np.lexsort((g[:, 2], g[:, 1], g[:, 0]))
-        return (g[order], self.counts[order], self.t_last_rel[order] + self.t0,
-                self.length_m[order])
+        return (
+            g[order],
+            self.counts[order],
+            self.t_last_rel[order] + self.t0,
+            self.length_m[order],
+        )

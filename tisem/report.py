@@ -1,4 +1,5 @@
 """What a finished run says: the metrics.json figures and the end-of-run table."""
+
 from __future__ import annotations
 
 from typing import TYPE_CHECKING
@@ -15,8 +16,16 @@ if TYPE_CHECKING:
 __all__ = ["METRIC_KEYS", "run_metrics", "results_table", "aligned"]
 
 # the figures of each protocol that metrics.json keeps
-METRIC_KEYS = ("miou", "miou_all", "accuracy", "wiou", "oa_paper", "per_class_iou",
-               "present_classes", "points")
+METRIC_KEYS = (
+    "miou",
+    "miou_all",
+    "accuracy",
+    "wiou",
+    "oa_paper",
+    "per_class_iou",
+    "present_classes",
+    "points",
+)
 
 
 def _summary(conf: Confusion) -> dict:
@@ -52,8 +61,11 @@ def aligned(table: str) -> str:
     terminal and stays valid markdown (numbers right-aligned, as the `---:` rule says). Lines
     that are not table rows (a footnote) are kept as they are."""
     lines = table.splitlines()
-    rows = {i: [cell.strip() for cell in line.strip().strip("|").split(" | ")]
-            for i, line in enumerate(lines) if line.startswith("|")}
+    rows = {
+        i: [cell.strip() for cell in line.strip().strip("|").split(" | ")]
+        for i, line in enumerate(lines)
+        if line.startswith("|")
+    }
     if not rows:
         return table
     columns = max(len(row) for row in rows.values())
@@ -61,17 +73,15 @@ def aligned(table: str) -> str:
     for i, row in rows.items():
         cells = []
         for c, cell in enumerate(row):
-            if cell and set(cell) <= set("-:"):                # the header rule
-                cells.append("-" * (widths[c] - 1) + ":" if cell.endswith(":")
-                             else "-" * widths[c])
+            if cell and set(cell) <= set("-:"):  # the header rule
+                cells.append("-" * (widths[c] - 1) + ":" if cell.endswith(":") else "-" * widths[c])
             else:
                 cells.append(cell.ljust(widths[c]) if c == 0 else cell.rjust(widths[c]))
         lines[i] = "| " + " | ".join(cells) + " |"
     return "\n".join(lines)
 
 
-def results_table(metrics: dict, per_class: bool = False, input_name: str = "network input"
-                  ) -> str:
+def results_table(metrics: dict, per_class: bool = False, input_name: str = "network input") -> str:
     """The end-of-run table: the input (`input_name`: the network's labels, or the ground truth
     given as input) vs the map, both protocols, with `per_class` the IoU of every class, then
     a summary (scans mapped and skipped, time per scan, voxels; the points left unmapped by
@@ -79,21 +89,36 @@ def results_table(metrics: dict, per_class: bool = False, input_name: str = "net
     rows = []
     if metrics["evaluated"]:
         mode = metrics["mode"]
-        rows = [(input_name, metrics["input"]), (f"map, final ({mode})", metrics["final"]),
-                (f"map, online ({mode})", metrics["online"])]
+        rows = [
+            (input_name, metrics["input"]),
+            (f"map, final ({mode})", metrics["final"]),
+            (f"map, online ({mode})", metrics["online"]),
+        ]
     text = aligned(format_table(rows)) if rows else "(no ground truth: nothing to score)"
     if rows and per_class:
         # metrics of a run resumed from an older checkpoint may lack the present classes: then
         # every class with a defined IoU counts as present (none is marked)
-        shown = [(name, {"present_classes": [c for c, v in m["per_class_iou"].items()
-                                             if v is not None], **m}) for name, m in rows]
+        shown = [
+            (
+                name,
+                {
+                    "present_classes": [c for c, v in m["per_class_iou"].items() if v is not None],
+                    **m,
+                },
+            )
+            for name, m in rows
+        ]
         text += "\n\nIoU per class\n" + aligned(format_per_class(shown))
     sps = metrics["seconds_per_scan"]
-    text += (f"\n\n{metrics['scans']} scans mapped, {len(metrics['skipped'])} skipped; "
-             f"{sps * 1000 if sps else float('nan'):.1f} ms per scan (median); "
-             f"{metrics['active_voxels']:,} voxels")
+    text += (
+        f"\n\n{metrics['scans']} scans mapped, {len(metrics['skipped'])} skipped; "
+        f"{sps * 1000 if sps else float('nan'):.1f} ms per scan (median); "
+        f"{metrics['active_voxels']:,} voxels"
+    )
     dropped = metrics.get("dropped") or {}
     band, out_of_range = dropped.get("dropped_band", 0), dropped.get("dropped_range", 0)
-    text += (f"\nunmapped points: {band:,} outside the height band, {out_of_range:,} outside "
-             f"the range band")
+    text += (
+        f"\nunmapped points: {band:,} outside the height band, {out_of_range:,} outside "
+        f"the range band"
+    )
     return text

@@ -17,14 +17,15 @@ are on); a disk that cannot take a checkpoint or the outputs ends the run with a
 a store that cannot spill stops the mapping, and the scans mapped so far are scored and
 written (`RunResult.stopped` says why).
 """
+
 from __future__ import annotations
 
 import logging
 import os
 import time
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable, Iterable
 
 import numpy as np
 import taichi as ti
@@ -82,11 +83,20 @@ class MappingRun:
     both from a checkpoint); scans with `Scan.index <= progress.last_index` are then passed over.
     """
 
-    def __init__(self, scans: Iterable[Scan | SkippedScan], cfg: RunConfig,
-                 out_dir: str | os.PathLike, *, sequence_name: str = "00",
-                 total: int | None = None, source_info: dict | None = None,
-                 checkpoint_every: int = 0, checkpoint_dir: str | os.PathLike | None = None,
-                 mapper: Mapper | None = None, progress: RunProgress | None = None):
+    def __init__(
+        self,
+        scans: Iterable[Scan | SkippedScan],
+        cfg: RunConfig,
+        out_dir: str | os.PathLike,
+        *,
+        sequence_name: str = "00",
+        total: int | None = None,
+        source_info: dict | None = None,
+        checkpoint_every: int = 0,
+        checkpoint_dir: str | os.PathLike | None = None,
+        mapper: Mapper | None = None,
+        progress: RunProgress | None = None,
+    ):
         self.scans = scans
         self.cfg = cfg
         self.out_dir = Path(out_dir)
@@ -95,23 +105,33 @@ class MappingRun:
         self.checkpoint_every = int(checkpoint_every or 0)
         if self.checkpoint_every < 0:
             raise ValueError(f"checkpoint_every must be >= 0, got {checkpoint_every}")
-        self.checkpoint_dir = (Path(checkpoint_dir) if checkpoint_dir is not None
-                               else self.out_dir / CHECKPOINT_DIR)
+        self.checkpoint_dir = (
+            Path(checkpoint_dir) if checkpoint_dir is not None else self.out_dir / CHECKPOINT_DIR
+        )
         # run.json; a resumed run finds its checkpoint cadence there
-        self.info = dict(source_info or {}, checkpoint_every=self.checkpoint_every,
-                         sequence=sequence_name)
+        self.info = dict(
+            source_info or {}, checkpoint_every=self.checkpoint_every, sequence=sequence_name
+        )
         self.mapper = mapper or Mapper(cfg.mapper)
         self.progress = progress or RunProgress.start(self.mapper.C)
-        self.checkpointed_index: int | None = None   # last_index of the newest checkpoint
+        self.checkpointed_index: int | None = None  # last_index of the newest checkpoint
         self.stopped: str | None = None
         self._info_written = False
         self._stop = StopRequest()
 
     @classmethod
-    def resume(cls, scans: Iterable[Scan | SkippedScan], checkpoint: Checkpoint | str | os.PathLike,
-               cfg: RunConfig | None = None, out_dir: str | os.PathLike | None = None, *,
-               sequence_name: str | None = None, source_info: dict | None = None,
-               checkpoint_every: int | None = None, **options) -> MappingRun:
+    def resume(
+        cls,
+        scans: Iterable[Scan | SkippedScan],
+        checkpoint: Checkpoint | str | os.PathLike,
+        cfg: RunConfig | None = None,
+        out_dir: str | os.PathLike | None = None,
+        *,
+        sequence_name: str | None = None,
+        source_info: dict | None = None,
+        checkpoint_every: int | None = None,
+        **options,
+    ) -> MappingRun:
         """The run a checkpoint (a `Checkpoint`, a results folder, its checkpoint folder or
         the file) belongs to, ready to go on: its map, its progress, and unless given, its
         config, results folder, sequence name, run.json and checkpoint cadence. `scans` is the
@@ -126,23 +146,42 @@ class MappingRun:
         source = ckpt.source
         mapper = ckpt.build_mapper(store_dir=cfg.mapper.store_dir)
         progress = ckpt.progress(mapper.C)
-        log.info("resuming from %s: %d scans mapped, up to scan %s", ckpt.path, progress.mapped,
-                 progress.last_index)
+        log.info(
+            "resuming from %s: %d scans mapped, up to scan %s",
+            ckpt.path,
+            progress.mapped,
+            progress.last_index,
+        )
         if source_info is None:
-            source_info = {k: v for k, v in source.items()
-                           if k not in ("sequence", "checkpoint_every")}
-        run = cls(scans, cfg, out_dir if out_dir is not None else ckpt.results_dir,
-                  sequence_name=sequence_name or source.get("sequence", "00"),
-                  source_info=source_info,
-                  checkpoint_every=(checkpoint_every if checkpoint_every is not None
-                                    else source.get("checkpoint_every", 0)),
-                  mapper=mapper, progress=progress, **options)
+            source_info = {
+                k: v for k, v in source.items() if k not in ("sequence", "checkpoint_every")
+            }
+        run = cls(
+            scans,
+            cfg,
+            out_dir if out_dir is not None else ckpt.results_dir,
+            sequence_name=sequence_name or source.get("sequence", "00"),
+            source_info=source_info,
+            checkpoint_every=(
+                checkpoint_every
+                if checkpoint_every is not None
+                else source.get("checkpoint_every", 0)
+            ),
+            mapper=mapper,
+            progress=progress,
+            **options,
+        )
         run.checkpointed_index = progress.last_index
         return run
 
     # ------------------------------------------------------------------ the steps
-    def run(self, *, show_progress: bool = True, on_scan: OnScan | None = None,
-            write_map_files: bool = True) -> RunResult:
+    def run(
+        self,
+        *,
+        show_progress: bool = True,
+        on_scan: OnScan | None = None,
+        write_map_files: bool = True,
+    ) -> RunResult:
         """Every step (module docstring); `on_scan(mapper, scan, k)` is called after each
         integrated scan (k: its position in the stream). Raises `NothingMapped` when every
         scan was skipped (nothing is written then), `RunInterrupted`, `RunError`."""
@@ -158,34 +197,56 @@ class MappingRun:
             metrics["stopped"] = self.stopped
         with self._writing("metrics.json"):
             outputs.write_metrics(self.out_dir, metrics)
-        result = RunResult(metrics, self.mapper, self.out_dir, list(self.progress.skipped),
-                           self.progress.trajectory_array(), self.stopped, self.progress)
+        result = RunResult(
+            metrics,
+            self.mapper,
+            self.out_dir,
+            list(self.progress.skipped),
+            self.progress.trajectory_array(),
+            self.stopped,
+            self.progress,
+        )
         if write_map_files:
             with self._writing("the map files"):
-                outputs.write_map_files(self.out_dir, self.mapper, self.cfg.mapper,
-                                        result.trajectory, progress=show_progress)
+                outputs.write_map_files(
+                    self.out_dir,
+                    self.mapper,
+                    self.cfg.mapper,
+                    result.trajectory,
+                    progress=show_progress,
+                )
         return result
 
-    def map_scans(self, show_progress: bool = True,
-                  on_scan: OnScan | None = None) -> Iterable[Scan | SkippedScan]:
+    def map_scans(
+        self, show_progress: bool = True, on_scan: OnScan | None = None
+    ) -> Iterable[Scan | SkippedScan]:
         """Integrate every scan not integrated before; returns the scans for the final pass
         (the stream itself when it can be read again, else the scans kept in memory)."""
         done_upto = self.progress.last_index
-        keep_in_memory = iter(self.scans) is self.scans       # an iterator: read once
+        keep_in_memory = iter(self.scans) is self.scans  # an iterator: read once
         kept: list[Scan] = []
         gate = PoseGate(self._anchor())
-        bar = tqdm(self.scans, total=self.total, unit="scan",
-                   desc=f"mapping ({self.cfg.mapper.mode})", disable=not show_progress)
+        bar = tqdm(
+            self.scans,
+            total=self.total,
+            unit="scan",
+            desc=f"mapping ({self.cfg.mapper.mode})",
+            disable=not show_progress,
+        )
         try:
             for k, item in enumerate(bar):
                 if done_upto is not None and item.index <= done_upto:
                     # in the checkpoint already; the final pass still needs what was mapped
-                    if (keep_in_memory and isinstance(item, Scan)
-                            and self.progress.is_mapped(item.index)):
+                    if (
+                        keep_in_memory
+                        and isinstance(item, Scan)
+                        and self.progress.is_mapped(item.index)
+                    ):
                         kept.append(item)
                     continue
-                if not self._decide(gate.offer(k, item), kept if keep_in_memory else None,
-                                    on_scan, bar):
+                if not self._decide(
+                    gate.offer(k, item), kept if keep_in_memory else None, on_scan, bar
+                ):
                     break
                 if self._stop.requested:
                     self._interrupted()
@@ -195,8 +256,13 @@ class MappingRun:
             bar.close()
         return kept if keep_in_memory else self.scans
 
-    def _decide(self, verdicts: Iterable[Verdict], kept: list[Scan] | None,
-                on_scan: OnScan | None, bar: tqdm) -> bool:
+    def _decide(
+        self,
+        verdicts: Iterable[Verdict],
+        kept: list[Scan] | None,
+        on_scan: OnScan | None,
+        bar: tqdm,
+    ) -> bool:
         """Map or skip what the pose gate let out, in order, checkpointing on cadence and
         stopping at the scan boundary after a Ctrl-C; False once mapping has to stop (the
         store could not spill)."""
@@ -224,8 +290,11 @@ class MappingRun:
         if not self.progress.trajectory or self.progress.last_index is None:
             return None
         stamp = self.mapper.last_stamp_s
-        return Anchor(self.progress.last_index, self.progress.trajectory_array()[-1],
-                      float("nan") if stamp is None else float(stamp))
+        return Anchor(
+            self.progress.last_index,
+            self.progress.trajectory_array()[-1],
+            float("nan") if stamp is None else float(stamp),
+        )
 
     def _integrate(self, scan: Scan) -> bool:
         """Map one scan and score it; False when the mapper refused it (it is skipped) or
@@ -236,17 +305,16 @@ class MappingRun:
             report = self.mapper.integrate(scan)
             ti.sync()
             seconds = time.perf_counter() - start
-        except ValueError as exc:   # a scan the mapper refuses (bad labels, pose far away, ...)
+        except ValueError as exc:  # a scan the mapper refuses (bad labels, pose far away, ...)
             self._skip(SkippedScan(scan.index, scan.name, str(exc)))
             return False
-        except OSError as exc:      # the store's spill folder is full or gone
+        except OSError as exc:  # the store's spill folder is full or gone
             self.stopped = f"at scan {scan.index}: {os_error_text(exc)}"
             return False
         self.progress.add_mapped(scan, seconds, report)
-        if report.dynamic is not None:      # free space: the scan's dynamic points
+        if report.dynamic is not None:  # free space: the scan's dynamic points
             with self._writing("the dynamic flags"):
-                write_dynamic_flags(self.out_dir, self.sequence_name, scan.index,
-                                    report.dynamic)
+                write_dynamic_flags(self.out_dir, self.sequence_name, scan.index, report.dynamic)
         if scan.gt_labels is not None:
             score_scan(self.progress.input, scan, network_labels(scan))
             if self.cfg.online_eval:
@@ -267,8 +335,10 @@ class MappingRun:
         if not skipped:
             return "no scan could be mapped: the input holds no scans in the frame range"
         first = skipped[0]
-        return (f"no scan could be mapped: all {len(skipped)} were skipped (the first, scan "
-                f"{first.index}: {first.reason})")
+        return (
+            f"no scan could be mapped: all {len(skipped)} were skipped (the first, scan "
+            f"{first.index}: {first.reason})"
+        )
 
     def _interrupted(self) -> None:
         """Ctrl-C: checkpoint (when checkpoints are on) and stop."""
@@ -293,21 +363,32 @@ class MappingRun:
         cannot take it raises RunError (the previous checkpoint is kept)."""
         self._write_info()
         with self._writing("the checkpoint"):
-            path = save_checkpoint(self.checkpoint_dir, self.mapper, self.progress,
-                                   run_config=self.cfg, source=self.info)
+            path = save_checkpoint(
+                self.checkpoint_dir,
+                self.mapper,
+                self.progress,
+                run_config=self.cfg,
+                source=self.info,
+            )
         self.checkpointed_index = self.progress.last_index
         return path
 
-    def final_pass(self, scans: Iterable[Scan | SkippedScan],
-                   show_progress: bool = False) -> Confusion:
+    def final_pass(
+        self, scans: Iterable[Scan | SkippedScan], show_progress: bool = False
+    ) -> Confusion:
         """The final-map protocol: every mapped scan looked up in the finished map; writes its
         predictions (one label per point of the scan) and returns the pooled confusion.
         Scans that were not mapped are passed over: no predictions file, not scored."""
         self._write_info()
         final = Confusion(self.mapper.C)
         # minutes on a long drive: the bar counts the mapped scans it looks up
-        for item in tqdm(scans, total=self.progress.mapped, unit="scan", disable=not show_progress,
-                         desc="final map: predictions"):
+        for item in tqdm(
+            scans,
+            total=self.progress.mapped,
+            unit="scan",
+            disable=not show_progress,
+            desc="final map: predictions",
+        ):
             if not isinstance(item, Scan) or not self.progress.is_mapped(item.index):
                 continue
             labels, _ = self.mapper.query(item.points_world(), with_probs=False)
@@ -335,10 +416,13 @@ class _Writing:
             return False
         run = self.run
         if run.checkpointed_index is not None:
-            kept = (f"the checkpoint of scan {run.checkpointed_index} is kept: continue with "
-                    f"--resume {run.out_dir} once there is room")
+            kept = (
+                f"the checkpoint of scan {run.checkpointed_index} is kept: continue with "
+                f"--resume {run.out_dir} once there is room"
+            )
         else:
             kept = "no checkpoint to resume from"
         stopped = f" (mapping had stopped {run.stopped})" if run.stopped else ""
-        raise RunError(f"cannot write {self.what} in {run.out_dir}: {os_error_text(exc)}; "
-                       f"{kept}{stopped}") from None
+        raise RunError(
+            f"cannot write {self.what} in {run.out_dir}: {os_error_text(exc)}; {kept}{stopped}"
+        ) from None

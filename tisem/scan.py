@@ -1,4 +1,5 @@
 """`Scan`: the one thing every reader produces and the mapper consumes."""
+
 from __future__ import annotations
 
 import math
@@ -28,7 +29,7 @@ class KittiSource(ScanSource):
     """A scan read from a SemanticKITTI sequence folder."""
 
     sequence: str = ""
-    input: str = "predictions"     # which label files fed the map: predictions | labels
+    input: str = "predictions"  # which label files fed the map: predictions | labels
 
 
 @dataclass(frozen=True)
@@ -37,8 +38,8 @@ class McapSource(ScanSource):
 
     topic: str = ""
     frame_id: str = ""
-    stamp_ns: int = 0              # the cloud's header stamp
-    log_time_ns: int = 0           # when the recorder logged it
+    stamp_ns: int = 0  # the cloud's header stamp
+    log_time_ns: int = 0  # when the recorder logged it
 
 
 def finite_rows(a: np.ndarray) -> np.ndarray:
@@ -53,11 +54,11 @@ def finite_rows(a: np.ndarray) -> np.ndarray:
 # 2286 as Unix time: nanoseconds given as seconds, or corrupt data).
 MAX_STAMP_S = 1.0e10
 # Train ids travel as int32: anything at or above this would wrap when cast.
-LABEL_LIMIT = 2 ** 31
+LABEL_LIMIT = 2**31
 # How far a probability may exceed 1 (float16 softmax outputs round up to 1 + 2^-10); a larger
 # value is a score or a logit, not a probability, and sums of such values can overflow float32.
 PROB_TOLERANCE = 1.0e-3
-_NUMERIC = "biuf"   # numpy dtype kinds the arrays of a scan may have (bool, ints, floats)
+_NUMERIC = "biuf"  # numpy dtype kinds the arrays of a scan may have (bool, ints, floats)
 
 
 def scan_label(index: int, name: str = "") -> str:
@@ -87,8 +88,10 @@ def checked_ids(values, what: str, where: str, limit: int = LABEL_LIMIT) -> np.n
         return np.asarray(a, dtype=np.int32)
     if bad.any():
         i = int(np.flatnonzero(bad.ravel())[0])
-        raise ValueError(f"{where}: {what} must be whole numbers in [0, {limit}), got "
-                         f"{a.ravel()[i].item()!r} at point {i}")
+        raise ValueError(
+            f"{where}: {what} must be whole numbers in [0, {limit}), got "
+            f"{a.ravel()[i].item()!r} at point {i}"
+        )
     return np.asarray(a, dtype=np.int32)
 
 
@@ -99,13 +102,16 @@ def checked_probabilities(values, where: str, finite_points: np.ndarray) -> np.n
     mistake, and rescaling them would hide that and change their weighting."""
     a = _numeric(values, "probabilities", where)
     rows = a if finite_points.all() else a[finite_points]
-    if rows.size and not (np.isfinite(rows).all() and rows.min() >= 0
-                          and rows.max() <= 1.0 + PROB_TOLERANCE):
+    if rows.size and not (
+        np.isfinite(rows).all() and rows.min() >= 0 and rows.max() <= 1.0 + PROB_TOLERANCE
+    ):
         bad = ~np.isfinite(rows) | (rows < 0) | (rows > 1.0 + PROB_TOLERANCE)
         i, c = (int(k[0]) for k in np.nonzero(bad))
         point = i if rows is a else int(np.flatnonzero(finite_points)[i])
-        raise ValueError(f"{where}: probabilities must be finite and in [0, 1], got "
-                         f"{rows[i, c].item()!r} at point {point}, class {c}")
+        raise ValueError(
+            f"{where}: probabilities must be finite and in [0, 1], got "
+            f"{rows[i, c].item()!r} at point {point}, class {c}"
+        )
     return np.asarray(a, dtype=np.float32)
 
 
@@ -115,8 +121,10 @@ def checked_stamp(stamp, where: str) -> float:
         raise ValueError(f"{where}: stamp_s must be a number of seconds, got {stamp!r}")
     t = float(stamp)
     if not math.isfinite(t) or abs(t) > MAX_STAMP_S:
-        raise ValueError(f"{where}: stamp_s {t!r} is not a time in seconds (a stamp is finite "
-                         f"and within +-{MAX_STAMP_S:.0e} s)")
+        raise ValueError(
+            f"{where}: stamp_s {t!r} is not a time in seconds (a stamp is finite "
+            f"and within +-{MAX_STAMP_S:.0e} s)"
+        )
     return t
 
 
@@ -165,13 +173,14 @@ class Scan:
     def __post_init__(self) -> None:
         try:
             self._check()
-        except ValueError as e:     # (a ScanError: readers report it as a skipped scan)
+        except ValueError as e:  # (a ScanError: readers report it as a skipped scan)
             raise ScanError(str(e), self.index, self.name) from None
 
     def _check(self) -> None:
         where = scan_label(self.index, self.name)
-        self.points_sensor = np.asarray(_numeric(self.points_sensor, "points", where),
-                                        dtype=np.float32)
+        self.points_sensor = np.asarray(
+            _numeric(self.points_sensor, "points", where), dtype=np.float32
+        )
         if self.points_sensor.ndim != 2 or self.points_sensor.shape[1] != 3:
             raise ValueError(f"{where}: points must be (N, 3), got {self.points_sensor.shape}")
         n = self.points_sensor.shape[0]
@@ -182,14 +191,16 @@ class Scan:
         if self.labels is not None:
             labels = _numeric(self.labels, "train ids", where)
             if labels.shape != (n,):
-                raise ValueError(f"{where}: {labels.shape[0] if labels.ndim else 0} labels "
-                                 f"for {n} points")
+                raise ValueError(
+                    f"{where}: {labels.shape[0] if labels.ndim else 0} labels for {n} points"
+                )
             self.labels = checked_ids(labels, "train ids", where)
         if self.probs is not None:
             probs = _numeric(self.probs, "probabilities", where)
             if probs.ndim != 2 or probs.shape[0] != n:
-                raise ValueError(f"{where}: probabilities must be (N, C) with N={n}, "
-                                 f"got {probs.shape}")
+                raise ValueError(
+                    f"{where}: probabilities must be (N, C) with N={n}, got {probs.shape}"
+                )
             self.probs = checked_probabilities(probs, where, finite_rows(self.points_sensor))
         if self.gt_labels is not None:
             gt = _numeric(self.gt_labels, "ground-truth train ids", where)
@@ -201,8 +212,10 @@ class Scan:
             if flags is not None:
                 flags = np.asarray(flags)
                 if flags.shape != (n,) or flags.dtype.kind not in "biu":
-                    raise ValueError(f"{where}: {name} flags must be (N,) booleans with N={n}, "
-                                     f"got {flags.dtype} {flags.shape}")
+                    raise ValueError(
+                        f"{where}: {name} flags must be (N,) booleans with N={n}, "
+                        f"got {flags.dtype} {flags.shape}"
+                    )
                 setattr(self, name, flags.astype(bool, copy=False))
 
     @property

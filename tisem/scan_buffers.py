@@ -1,6 +1,7 @@
 """Host buffers of one scan's steps 2-3 (the mapper's): the per-point arrays the kernels fill
 and the training rows, kept across scans and grown on demand so that the hot path allocates
 nothing."""
+
 from __future__ import annotations
 
 from dataclasses import dataclass, field
@@ -23,11 +24,11 @@ class ScanPoints(NamedTuple):
 class TrainingRows(NamedTuple):
     """The scan's training points (kernels/training.py), one row per kept voxel."""
 
-    xyz: np.ndarray       # (K, 3) centroid, local metres
-    hist: np.ndarray      # (K, C) class evidence
-    classes: np.ndarray   # (K,) bit c: evidence for class c
-    single: np.ndarray    # (K,) the one class, or 0
-    voxel: np.ndarray     # (K,) the voxel's index in its leaf block
+    xyz: np.ndarray  # (K, 3) centroid, local metres
+    hist: np.ndarray  # (K, C) class evidence
+    classes: np.ndarray  # (K,) bit c: evidence for class c
+    single: np.ndarray  # (K,) the one class, or 0
+    voxel: np.ndarray  # (K,) the voxel's index in its leaf block
 
 
 @dataclass
@@ -47,7 +48,9 @@ class ScanBuffers:
     def training(self, n: int, num_classes: int) -> TrainingRows:
         if self.rows is None or len(self.rows.xyz) < n:
             cap = max(n, int(len(self.rows.xyz) * 1.5) if self.rows is not None else n)
-            self.rows = TrainingRows(np.zeros((cap, 3), np.float32),
-                                     np.zeros((cap, num_classes), np.float32),
-                                     *(np.zeros(cap, np.int32) for _ in range(3)))
+            self.rows = TrainingRows(
+                np.zeros((cap, 3), np.float32),
+                np.zeros((cap, num_classes), np.float32),
+                *(np.zeros(cap, np.int32) for _ in range(3)),
+            )
         return self.rows

@@ -1,4 +1,5 @@
 """`MapSnapshot`: the whole map as host arrays (what exports, checkpoints and the store use)."""
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -56,8 +57,15 @@ class MapSnapshot:
     def subset(self, keep: np.ndarray) -> MapSnapshot:
         """The voxels `keep` selects (a mask or indices), in order."""
         occ = None if self.occupancy is None else self.occupancy[keep]
-        return MapSnapshot(self.keys[keep], self.counts[keep], self.t_last[keep],
-                           self.ell_m[keep], self.resolution_m, occ, self.empty_evidence)
+        return MapSnapshot(
+            self.keys[keep],
+            self.counts[keep],
+            self.t_last[keep],
+            self.ell_m[keep],
+            self.resolution_m,
+            occ,
+            self.empty_evidence,
+        )
 
     def static_map(self) -> MapSnapshot:
         """The map without its empty voxels: what stays once what moved is gone."""

@@ -15,6 +15,7 @@ Every write either completes or leaves all existing records as they were and rai
 `SpillError` (an OSError with the errno of the failed call) that names the spill directory (a
 full disk, typically), so the caller can keep its own state unchanged too.
 """
+
 from __future__ import annotations
 
 import os
@@ -22,7 +23,7 @@ import tempfile
 
 import numpy as np
 
-_ALIGN = 8          # each array starts 8-byte aligned, so the views `read` returns are aligned
+_ALIGN = 8  # each array starts 8-byte aligned, so the views `read` returns are aligned
 _COPY_CHUNK = 8 << 20
 
 
@@ -46,15 +47,16 @@ class Record:
 
 
 class SpillFile:
-    def __init__(self, directory: str | os.PathLike | None = None,
-                 rewrite_floor: int = 64 << 20):
+    def __init__(self, directory: str | os.PathLike | None = None, rewrite_floor: int = 64 << 20):
         self.dir = os.fspath(directory) if directory is not None else tempfile.gettempdir()
         if not os.path.isdir(self.dir):
-            raise ValueError(f"store_dir {self.dir!r} is not an existing directory (the host "
-                             f"store spills its voxels to a temporary file there)")
+            raise ValueError(
+                f"store_dir {self.dir!r} is not an existing directory (the host "
+                f"store spills its voxels to a temporary file there)"
+            )
         self.rewrite_floor = int(rewrite_floor)
         self._file = self._new_file()
-        self._size = 0                   # bytes of the file in use, live records and garbage
+        self._size = 0  # bytes of the file in use, live records and garbage
         self._live: set[Record] = set()
         self.live_bytes = 0
         self.rewrites = 0
@@ -64,9 +66,12 @@ class SpillFile:
         return self._size
 
     def _error(self, action: str, e: OSError) -> SpillError:
-        return SpillError(e.errno, f"host store: could not {action} its spill file in "
-                                   f"{self.dir} ({e.strerror or e}); set store_dir to a folder "
-                                   f"with free space")
+        return SpillError(
+            e.errno,
+            f"host store: could not {action} its spill file in "
+            f"{self.dir} ({e.strerror or e}); set store_dir to a folder "
+            f"with free space",
+        )
 
     def _new_file(self):
         try:
@@ -81,7 +86,7 @@ class SpillFile:
         for chunk in chunks:
             view = memoryview(chunk).cast("B")
             while len(view):
-                view = view[f.write(view):]      # unbuffered writes may be short
+                view = view[f.write(view) :]  # unbuffered writes may be short
 
     @staticmethod
     def _read_into(f, offset: int, buf: memoryview) -> None:
@@ -111,7 +116,7 @@ class SpillFile:
         except SpillError:
             raise
         except OSError as e:
-            try:   # give the disk back; the bytes past _size are never read either way
+            try:  # give the disk back; the bytes past _size are never read either way
                 self._file.truncate(self._size)
             except OSError:
                 pass
@@ -132,7 +137,7 @@ class SpillFile:
         out, pos = [], 0
         for dtype, shape in layout:
             n = int(np.prod(shape)) * np.dtype(dtype).itemsize
-            out.append(buf[pos:pos + n].view(dtype).reshape(shape))
+            out.append(buf[pos : pos + n].view(dtype).reshape(shape))
             pos += _padded(n)
         if pos != rec.nbytes:
             raise AssertionError(f"spill record of {rec.nbytes} B read as {pos} B")

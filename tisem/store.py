@@ -28,14 +28,24 @@ every segment's bounding box, so it only looks inside the few segments that over
 Keys are voxel indices relative to the map origin; |key| <= KEY_LIMIT per axis (packed in
 21 bits), which at 0.2 m is +-209 km around the first scan.
 """
+
 from __future__ import annotations
 
 import numpy as np
 
 from tisem.kernels.layout import LEAF
 from tisem.spill import SpillError, SpillFile
-from tisem.store_segments import (COMPACT, KEY_LIMIT, LOCAL_INDEX, SEGMENT_VOXELS, Payload,
-                                  Segment, pack, pieces, ranges)
+from tisem.store_segments import (
+    COMPACT,
+    KEY_LIMIT,
+    LOCAL_INDEX,
+    SEGMENT_VOXELS,
+    Payload,
+    Segment,
+    pack,
+    pieces,
+    ranges,
+)
 
 __all__ = ["BlockStore", "KEY_LIMIT", "SpillError", "pack"]
 
@@ -52,16 +62,21 @@ class BlockStore:
     `segment_voxels`: the most voxels per segment (segments are read whole).
     """
 
-    def __init__(self, num_classes: int, spill_dir: str | None = None,
-                 rewrite_floor: int = 64 << 20, segment_voxels: int = SEGMENT_VOXELS):
+    def __init__(
+        self,
+        num_classes: int,
+        spill_dir: str | None = None,
+        rewrite_floor: int = 64 << 20,
+        segment_voxels: int = SEGMENT_VOXELS,
+    ):
         self.C = num_classes
         self._segment_voxels = int(segment_voxels)
         self._spill = SpillFile(spill_dir, rewrite_floor)
         self._segments: list[Segment] = []
         self._voxels = 0
         self._blocks = 0
-        self._box = np.zeros((0, 6), np.int64)    # (S, 6) segment bounds in blocks, lo then hi
-        self._index = None                         # sorted block keys -> (segment, block)
+        self._box = np.zeros((0, 6), np.int64)  # (S, 6) segment bounds in blocks, lo then hi
+        self._index = None  # sorted block keys -> (segment, block)
 
     def __len__(self) -> int:
         return self._voxels
@@ -118,8 +133,10 @@ class BlockStore:
     def _build(self, keys, counts, t_last_rel, length_m) -> list[tuple[Segment, Payload]]:
         """Segments, not yet written, for the given voxels; a big set is cut in pieces, as a
         segment is read whole whenever a block of it is used."""
-        return [Segment.build(keys[i], counts[i], t_last_rel[i], length_m[i])
-                for i in pieces(keys, self._segment_voxels)]
+        return [
+            Segment.build(keys[i], counts[i], t_last_rel[i], length_m[i])
+            for i in pieces(keys, self._segment_voxels)
+        ]
 
     def _add(self, seg: Segment) -> None:
         self._segments.append(seg)
@@ -143,15 +160,26 @@ class BlockStore:
         if len(keys) == 0:
             return 0
         counts = np.asarray(counts, np.float32)
-        if keys.ndim != 2 or keys.shape[1] != 3 or counts.shape != (len(keys), self.C) \
-                or len(t_last_rel) != len(keys) or len(length_m) != len(keys):
-            raise ValueError(f"put: keys (n, 3), counts (n, {self.C}), t_last_rel (n,), "
-                             f"length_m (n,) expected; got {keys.shape}, {counts.shape}, "
-                             f"{np.shape(t_last_rel)}, {np.shape(length_m)}")
+        if (
+            keys.ndim != 2
+            or keys.shape[1] != 3
+            or counts.shape != (len(keys), self.C)
+            or len(t_last_rel) != len(keys)
+            or len(length_m) != len(keys)
+        ):
+            raise ValueError(
+                f"put: keys (n, 3), counts (n, {self.C}), t_last_rel (n,), "
+                f"length_m (n,) expected; got {keys.shape}, {counts.shape}, "
+                f"{np.shape(t_last_rel)}, {np.shape(length_m)}"
+            )
         if np.abs(keys).max() > KEY_LIMIT:
             raise ValueError(f"put: voxel keys beyond +-{KEY_LIMIT} of the map origin")
-        voxels = (keys, counts, np.asarray(t_last_rel, np.float32),
-                  np.asarray(length_m, np.float32))
+        voxels = (
+            keys,
+            counts,
+            np.asarray(t_last_rel, np.float32),
+            np.asarray(length_m, np.float32),
+        )
         if box is None:
             new = self._build(*voxels)
         else:
@@ -160,12 +188,15 @@ class BlockStore:
             below, above = off < -h, off > h
             out = below | above
             if not out.any(axis=1).all():
-                raise ValueError("put: voxels inside the live window cannot be stored (they "
-                                 "would be live and stored at once)")
-            axis = np.argmax(out, axis=1)                       # the first axis it is outside on
+                raise ValueError(
+                    "put: voxels inside the live window cannot be stored (they "
+                    "would be live and stored at once)"
+                )
+            axis = np.argmax(out, axis=1)  # the first axis it is outside on
             face = 2 * axis + above[np.arange(len(keys)), axis]
-            new = [seg for f in np.unique(face)
-                   for seg in self._build(*(a[face == f] for a in voxels))]
+            new = [
+                seg for f in np.unique(face) for seg in self._build(*(a[face == f] for a in voxels))
+            ]
         self._write(new)
         for seg, _ in new:
             self._add(seg)
@@ -180,7 +211,7 @@ class BlockStore:
             self._voxels -= seg.alive_voxels
             self._blocks -= seg.alive_blocks
         if segments:
-            self._box = self._box[:len(self._segments)]
+            self._box = self._box[: len(self._segments)]
             self._index = None
 
     @staticmethod
@@ -192,7 +223,7 @@ class BlockStore:
         take = meets & np.all((vlo >= c - h) & (vhi <= c + h), axis=1)
         part = np.flatnonzero(meets & ~take)
         p = None
-        if len(part):     # only blocks whose voxels lie on both sides of a face need them
+        if len(part):  # only blocks whose voxels lie on both sides of a face need them
             p = read(s)
             inside = np.all(np.abs(s.keys_of(p, p.voxels_of(part)) - c) <= h, axis=1)
             owner = np.repeat(np.arange(len(part)), np.diff(p.vstart)[part])
@@ -209,7 +240,7 @@ class BlockStore:
         """
         c = np.asarray(center_vox, np.int64)
         h = np.asarray(half_vox, np.int64)
-        plans, parts = [], []       # (segment index, blocks taken, payload, voxels taken)
+        plans, parts = [], []  # (segment index, blocks taken, payload, voxels taken)
         for i in self._overlapping(np.floor_divide(c - h, LEAF), np.floor_divide(c + h, LEAF)):
             s = self._segments[i]
             take, p = self._select(s, c, h, self._read)
@@ -226,7 +257,7 @@ class BlockStore:
         inside = np.all(np.abs(got[0].astype(np.int64) - c) <= h, axis=1)
         # the outside part of a cut block stays stored
         new = self._build(*(a[~inside] for a in got)) if not inside.all() else []
-        compacted = {}              # segment index -> its compacted self, or None (all taken)
+        compacted = {}  # segment index -> its compacted self, or None (all taken)
         for i, take, p, nv in plans:
             s = self._segments[i]
             if s.alive_voxels - nv < COMPACT * s.nvox:
@@ -235,7 +266,7 @@ class BlockStore:
                 compacted[i] = s.subset(p, np.flatnonzero(keep)) if keep.any() else None
         self._write(new + [x for x in compacted.values() if x is not None])
 
-        for i, take, p, nv in plans:      # nothing from here on can fail
+        for i, take, _p, nv in plans:  # nothing from here on can fail
             s = self._segments[i]
             self._voxels -= nv
             self._blocks -= len(take)
@@ -282,14 +313,21 @@ class BlockStore:
                 p = self._read(s)
                 parts.append(s.decode(p, p.voxels_of(np.flatnonzero(s.alive)), self.C))
         if not parts:
-            return (np.zeros((0, 3), np.int32), np.zeros((0, self.C), np.float32),
-                    np.zeros(0, np.float32), np.zeros(0, np.float32))
+            return (
+                np.zeros((0, 3), np.int32),
+                np.zeros((0, self.C), np.float32),
+                np.zeros(0, np.float32),
+                np.zeros(0, np.float32),
+            )
         return tuple(np.concatenate([p[i] for p in parts]) for i in range(4))
 
     def _block_index(self):
         if self._index is None:
-            packed, seg, blk = [np.zeros(0, np.int64)], [np.zeros(0, np.int32)], \
-                [np.zeros(0, np.int32)]
+            packed, seg, blk = (
+                [np.zeros(0, np.int64)],
+                [np.zeros(0, np.int32)],
+                [np.zeros(0, np.int32)],
+            )
             for i, s in enumerate(self._segments):
                 alive = np.flatnonzero(s.alive)
                 packed.append(pack(s.blocks(alive)))
@@ -327,7 +365,7 @@ class BlockStore:
             mine = ask[a:b]
             ub, row = np.unique(blk_of[pos[a:b]], return_inverse=True)
             # a (blocks, LEAF^3) table of voxel indices for the blocks asked about
-            table = np.full((len(ub), LEAF ** 3), -1, np.int64)
+            table = np.full((len(ub), LEAF**3), -1, np.int64)
             vox = p.voxels_of(ub)
             table[np.repeat(np.arange(len(ub)), np.diff(p.vstart)[ub]), p.local[vox]] = vox
             v = table[row, local[mine]]

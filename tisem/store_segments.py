@@ -7,6 +7,7 @@ file, its `Payload`: the voxels sorted by leaf block, each as a 1-byte index ins
 block, t_last_rel and length_m as float32, and the counters compressed to their non-zero entries
 (a bit mask says which classes, then a float32 per set class; a voxel holds ~5 of 20).
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -15,9 +16,9 @@ from tisem.kernels.layout import LEAF
 
 _BITS = 21
 _HALF = 1 << (_BITS - 1)
-KEY_LIMIT = _HALF - 1   # |voxel index| (relative to the map origin) the packed keys can hold
+KEY_LIMIT = _HALF - 1  # |voxel index| (relative to the map origin) the packed keys can hold
 _MASK = (1 << _BITS) - 1
-LOCAL_INDEX = np.array([LEAF * LEAF, LEAF, 1], np.int64)   # voxel within block -> 0..LEAF^3-1
+LOCAL_INDEX = np.array([LEAF * LEAF, LEAF, 1], np.int64)  # voxel within block -> 0..LEAF^3-1
 # A segment is rewritten without the blocks taken back from it (the sensor returned) once
 # fewer than this fraction of its voxels are left.
 COMPACT = 0.8
@@ -72,7 +73,7 @@ def pieces(keys: np.ndarray, max_voxels: int = SEGMENT_VOXELS) -> list[np.ndarra
         col = b[:, int(np.argmax(b.max(axis=0) - b.min(axis=0)))]
         cut = np.partition(col, len(col) // 2)[len(col) // 2]
         left = col < cut if (col < cut).any() else col <= cut
-        if left.all():      # a single column of blocks: no cut between blocks
+        if left.all():  # a single column of blocks: no cut between blocks
             out.append(idx)
             continue
         todo += [idx[left], idx[~left]]
@@ -103,8 +104,10 @@ class Payload:
 
     def voxels_of(self, block_idx: np.ndarray) -> np.ndarray:
         """Indices of the voxels of the given blocks (in block order)."""
-        return ranges(self.vstart[block_idx].astype(np.int64),
-                       self.vstart[np.asarray(block_idx) + 1].astype(np.int64))
+        return ranges(
+            self.vstart[block_idx].astype(np.int64),
+            self.vstart[np.asarray(block_idx) + 1].astype(np.int64),
+        )
 
     def entries(self, vox: np.ndarray) -> np.ndarray:
         """Indices into `val` of the given voxels' values, voxel by voxel."""
@@ -127,8 +130,14 @@ class Payload:
             mask, val = None, self.val[vox]
         else:
             mask, val = self.mask[vox], self.val[self.entries(vox)]
-        return Payload(np.r_[0, np.cumsum(sizes)].astype(np.int32), self.local[vox], mask, val,
-                        self.t_last_rel[vox], self.length_m[vox])
+        return Payload(
+            np.r_[0, np.cumsum(sizes)].astype(np.int32),
+            self.local[vox],
+            mask,
+            val,
+            self.t_last_rel[vox],
+            self.length_m[vox],
+        )
 
 
 class Segment:
@@ -136,8 +145,17 @@ class Segment:
     fit), each block's voxel extent, which blocks are still here, and where its `Payload` lies
     in the spill file."""
 
-    __slots__ = ("base", "rel", "ext", "alive", "nvox", "nent", "record", "alive_blocks",
-                 "alive_voxels")
+    __slots__ = (
+        "base",
+        "rel",
+        "ext",
+        "alive",
+        "nvox",
+        "nent",
+        "record",
+        "alive_blocks",
+        "alive_voxels",
+    )
 
     def __init__(self, blocks: np.ndarray, ext: np.ndarray, payload: Payload):
         self.base = blocks.min(axis=0)
@@ -146,12 +164,13 @@ class Segment:
         self.ext = ext
         self.alive = np.ones(len(blocks), bool)
         self.nvox, self.nent = len(payload.local), len(payload.val)
-        self.record = None                     # set once the payload is written
+        self.record = None  # set once the payload is written
         self.alive_blocks, self.alive_voxels = len(blocks), self.nvox
 
     @classmethod
-    def build(cls, keys: np.ndarray, counts: np.ndarray, t_last_rel: np.ndarray,
-              length_m: np.ndarray) -> tuple[Segment, Payload]:
+    def build(
+        cls, keys: np.ndarray, counts: np.ndarray, t_last_rel: np.ndarray, length_m: np.ndarray
+    ) -> tuple[Segment, Payload]:
         keys = np.asarray(keys, np.int64)
         blocks = np.floor_divide(keys, LEAF)
         packed = pack(blocks)
@@ -163,18 +182,24 @@ class Segment:
         starts = np.flatnonzero(np.r_[True, packed[1:] != packed[:-1]])
         lo, hi = np.minimum.reduceat(inner, starts), np.maximum.reduceat(inner, starts)
         ext = (np.concatenate([lo, hi], axis=1).astype(np.uint16) << _SHIFTS).sum(
-            axis=1, dtype=np.uint16)
+            axis=1, dtype=np.uint16
+        )
         dtype = _mask_dtype(counts.shape[1])
         if dtype is None:
             mask, val = None, counts
         else:
             nz = counts != 0
-            bits = (np.ones(1, dtype) << np.arange(counts.shape[1], dtype=dtype))
+            bits = np.ones(1, dtype) << np.arange(counts.shape[1], dtype=dtype)
             mask = (nz * bits).sum(axis=1, dtype=dtype)
-            val = counts[nz]                     # row-major: each voxel's values in class order
-        p = Payload(np.r_[starts, len(packed)].astype(np.int32), local.astype(np.uint8), mask,
-                    val, np.asarray(t_last_rel, np.float32)[order],
-                    np.asarray(length_m, np.float32)[order])
+            val = counts[nz]  # row-major: each voxel's values in class order
+        p = Payload(
+            np.r_[starts, len(packed)].astype(np.int32),
+            local.astype(np.uint8),
+            mask,
+            val,
+            np.asarray(t_last_rel, np.float32)[order],
+            np.asarray(length_m, np.float32)[order],
+        )
         return cls(blocks[starts], ext, p), p
 
     def subset(self, p: Payload, block_idx: np.ndarray) -> tuple[Segment, Payload]:
@@ -186,8 +211,11 @@ class Segment:
         """[(dtype, shape)] of `Payload.arrays()`, to read the record back."""
         v = (self.nvox,)
         dtype = _mask_dtype(num_classes)
-        mid = [(np.float32, (self.nvox, num_classes))] if dtype is None else \
-            [(dtype, v), (np.float32, (self.nent,))]
+        mid = (
+            [(np.float32, (self.nvox, num_classes))]
+            if dtype is None
+            else [(dtype, v), (np.float32, (self.nent,))]
+        )
         return [(np.int32, (len(self.alive) + 1,)), (np.uint8, v)] + mid + [(np.float32, v)] * 2
 
     @property
@@ -216,9 +244,14 @@ class Segment:
         block = np.searchsorted(p.vstart, vox, side="right") - 1
         local = p.local[vox].astype(np.int64)
         return self.blocks(block) * LEAF + np.stack(
-            [local // (LEAF * LEAF), (local // LEAF) % LEAF, local % LEAF], axis=1)
+            [local // (LEAF * LEAF), (local // LEAF) % LEAF, local % LEAF], axis=1
+        )
 
     def decode(self, p: Payload, vox: np.ndarray, num_classes: int):
         """(keys int32 (n,3), counts f32 (n,C), t_last_rel, length_m) of the given voxel indices."""
-        return self.keys_of(p, vox).astype(np.int32), p.decode_counts(vox, num_classes), \
-            p.t_last_rel[vox], p.length_m[vox]
+        return (
+            self.keys_of(p, vox).astype(np.int32),
+            p.decode_counts(vox, num_classes),
+            p.t_last_rel[vox],
+            p.length_m[vox],
+        )

@@ -11,29 +11,41 @@ with its voxel count and time range, the map's resolution, class count, mapper c
 frame. Querying needs no Taichi: voxel keys are packed into one int64 and looked up with a
 binary search in the sorted keys of each tile.
 """
+
 from __future__ import annotations
 
 import json
 import os
 from collections import OrderedDict
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Iterable, Iterator
 
 import numpy as np
 
 from tisem.io.mapfile import atomic_write, load_map_file, save_map
 from tisem.snapshot import MapSnapshot
 
-__all__ = ["TILE_VOX", "INDEX_NAME", "TiledMap", "TileIndex", "is_tiled_map", "tile_ids",
-           "split_by_tile", "write_tile", "write_index", "pack_keys", "empty_snapshot",
-           "concat_snapshots"]
+__all__ = [
+    "TILE_VOX",
+    "INDEX_NAME",
+    "TiledMap",
+    "TileIndex",
+    "is_tiled_map",
+    "tile_ids",
+    "split_by_tile",
+    "write_tile",
+    "write_index",
+    "pack_keys",
+    "empty_snapshot",
+    "concat_snapshots",
+]
 
-TILE_VOX = 256            # voxels per tile edge in x and y: 51.2 m at 0.2 m, 8 top cells
+TILE_VOX = 256  # voxels per tile edge in x and y: 51.2 m at 0.2 m, 8 top cells
 INDEX_NAME = "tiles.json"
 INDEX_FORMAT = "tisem-tiles"
 INDEX_VERSION = 1
-_PACK_BITS = 21           # per axis: |key| < 2^20 voxels (+-209 km at 0.2 m)
+_PACK_BITS = 21  # per axis: |key| < 2^20 voxels (+-209 km at 0.2 m)
 _PACK_OFFSET = 1 << (_PACK_BITS - 1)
 
 
@@ -52,31 +64,42 @@ def tile_ids(keys: np.ndarray, tile_vox: int = TILE_VOX) -> np.ndarray:
 
 
 def empty_snapshot(num_classes: int, resolution_m: float) -> MapSnapshot:
-    return MapSnapshot(np.zeros((0, 3), np.int64), np.zeros((0, num_classes), np.float32),
-                       np.zeros(0), np.zeros(0, np.float32), resolution_m)
+    return MapSnapshot(
+        np.zeros((0, 3), np.int64),
+        np.zeros((0, num_classes), np.float32),
+        np.zeros(0),
+        np.zeros(0, np.float32),
+        resolution_m,
+    )
 
 
 def take_rows(snap: MapSnapshot, rows: np.ndarray) -> MapSnapshot:
     """The voxels `rows` (indices or a mask) of `snap`, in that order."""
-    return MapSnapshot(snap.keys[rows], snap.counts[rows], snap.t_last[rows], snap.ell_m[rows],
-                       snap.resolution_m)
+    return MapSnapshot(
+        snap.keys[rows], snap.counts[rows], snap.t_last[rows], snap.ell_m[rows], snap.resolution_m
+    )
 
 
-def concat_snapshots(parts: list[MapSnapshot], num_classes: int,
-                     resolution_m: float) -> MapSnapshot:
+def concat_snapshots(
+    parts: list[MapSnapshot], num_classes: int, resolution_m: float
+) -> MapSnapshot:
     """The voxels of every part, sorted by key (the parts must not share a voxel)."""
     parts = [p for p in parts if len(p)]
     if not parts:
         return empty_snapshot(num_classes, resolution_m)
-    snap = MapSnapshot(np.concatenate([p.keys for p in parts]),
-                       np.concatenate([p.counts for p in parts]),
-                       np.concatenate([p.t_last for p in parts]),
-                       np.concatenate([p.ell_m for p in parts]), resolution_m)
+    snap = MapSnapshot(
+        np.concatenate([p.keys for p in parts]),
+        np.concatenate([p.counts for p in parts]),
+        np.concatenate([p.t_last for p in parts]),
+        np.concatenate([p.ell_m for p in parts]),
+        resolution_m,
+    )
     return take_rows(snap, MapSnapshot.sort_order(snap.keys))
 
 
-def split_by_tile(snap: MapSnapshot,
-                  tile_vox: int = TILE_VOX) -> Iterator[tuple[tuple[int, int], MapSnapshot]]:
+def split_by_tile(
+    snap: MapSnapshot, tile_vox: int = TILE_VOX
+) -> Iterator[tuple[tuple[int, int], MapSnapshot]]:
     """((tx, ty), the tile's voxels sorted by key) for every tile `snap` has voxels in."""
     if not len(snap):
         return
@@ -87,24 +110,36 @@ def split_by_tile(snap: MapSnapshot,
     ends = np.r_[starts[1:], len(order)]
     for lo, hi in zip(starts, ends):
         part = take_rows(snap, order[lo:hi])
-        yield (int(tiles[lo, 0]), int(tiles[lo, 1])), take_rows(part,
-                                                                MapSnapshot.sort_order(part.keys))
+        yield (
+            (int(tiles[lo, 0]), int(tiles[lo, 1])),
+            take_rows(part, MapSnapshot.sort_order(part.keys)),
+        )
 
 
 def tile_file(tile: tuple[int, int]) -> str:
     return f"tiles/tile_{tile[0]}_{tile[1]}.npz"
 
 
-def write_tile(folder: str | os.PathLike, tile: tuple[int, int], snap: MapSnapshot,
-               mapper_config: dict, meta: dict | None = None) -> dict:
+def write_tile(
+    folder: str | os.PathLike,
+    tile: tuple[int, int],
+    snap: MapSnapshot,
+    mapper_config: dict,
+    meta: dict | None = None,
+) -> dict:
     """Write one tile's map file under `folder/tiles/`; returns its index entry."""
     rel = tile_file(tile)
     path = Path(folder) / rel
     path.parent.mkdir(parents=True, exist_ok=True)
     save_map(path, snap, mapper_config, dict(meta or {}, tile=list(tile)))
-    return {"tile": list(tile), "file": rel, "voxels": len(snap), "bytes": path.stat().st_size,
-            "t_last_min": float(snap.t_last.min()) if len(snap) else None,
-            "t_last_max": float(snap.t_last.max()) if len(snap) else None}
+    return {
+        "tile": list(tile),
+        "file": rel,
+        "voxels": len(snap),
+        "bytes": path.stat().st_size,
+        "t_last_min": float(snap.t_last.min()) if len(snap) else None,
+        "t_last_max": float(snap.t_last.max()) if len(snap) else None,
+    }
 
 
 @dataclass
@@ -124,11 +159,18 @@ class TileIndex:
         return int(sum(t["voxels"] for t in self.tiles))
 
     def to_dict(self) -> dict:
-        return {"format": INDEX_FORMAT, "format_version": INDEX_VERSION,
-                "resolution_m": self.resolution_m, "num_classes": self.num_classes,
-                "tile_vox": self.tile_vox, "world_frame": self.world_frame,
-                "voxels": self.voxels, "mapper_config": self.mapper_config, "meta": self.meta,
-                "tiles": sorted(self.tiles, key=lambda t: tuple(t["tile"]))}
+        return {
+            "format": INDEX_FORMAT,
+            "format_version": INDEX_VERSION,
+            "resolution_m": self.resolution_m,
+            "num_classes": self.num_classes,
+            "tile_vox": self.tile_vox,
+            "world_frame": self.world_frame,
+            "voxels": self.voxels,
+            "mapper_config": self.mapper_config,
+            "meta": self.meta,
+            "tiles": sorted(self.tiles, key=lambda t: tuple(t["tile"])),
+        }
 
     @classmethod
     def read(cls, folder: str | os.PathLike) -> TileIndex:
@@ -142,11 +184,19 @@ class TileIndex:
         if data.get("format") != INDEX_FORMAT:
             raise ValueError(f"{path}: not a tisem tile index")
         if int(data.get("format_version", 0)) > INDEX_VERSION:
-            raise ValueError(f"{path}: tile index version {data['format_version']} is newer "
-                             f"than this tisem understands ({INDEX_VERSION})")
-        return cls(float(data["resolution_m"]), int(data["num_classes"]), int(data["tile_vox"]),
-                   str(data["world_frame"]), dict(data["mapper_config"]), list(data["tiles"]),
-                   dict(data.get("meta") or {}))
+            raise ValueError(
+                f"{path}: tile index version {data['format_version']} is newer "
+                f"than this tisem understands ({INDEX_VERSION})"
+            )
+        return cls(
+            float(data["resolution_m"]),
+            int(data["num_classes"]),
+            int(data["tile_vox"]),
+            str(data["world_frame"]),
+            dict(data["mapper_config"]),
+            list(data["tiles"]),
+            dict(data.get("meta") or {}),
+        )
 
 
 def write_index(folder: str | os.PathLike, index: TileIndex) -> Path:
@@ -171,7 +221,7 @@ class TiledMap:
         self.cache_tiles = int(cache_tiles)
         self._entries = {tuple(t["tile"]): t for t in index.tiles}
         self._cache: OrderedDict[tuple[int, int], tuple[MapSnapshot, np.ndarray]] = OrderedDict()
-        self.tiles_loaded = 0           # tile files read so far (a re-read counts again)
+        self.tiles_loaded = 0  # tile files read so far (a re-read counts again)
 
     @classmethod
     def open(cls, folder: str | os.PathLike, cache_tiles: int = 32) -> TiledMap:
@@ -227,8 +277,9 @@ class TiledMap:
         for tile in self.tile_keys:
             yield tile, self.tile(tile)
 
-    def query(self, points_world: np.ndarray,
-              with_probs: bool = True) -> tuple[np.ndarray, np.ndarray | None]:
+    def query(
+        self, points_world: np.ndarray, with_probs: bool = True
+    ) -> tuple[np.ndarray, np.ndarray | None]:
         """Labels (N,) int32 and probabilities (N, C) float32 of world points, as
         `Mapper.query` gives them: a point in no voxel gets label 0 and zeros."""
         pts = np.asarray(points_world, np.float64)
@@ -259,13 +310,16 @@ class TiledMap:
                 probs[target] = voxels.probabilities()
         return labels, probs
 
-    def snapshot(self, max_voxels: int | None = None,
-                 tiles: Iterable[tuple[int, int]] | None = None) -> MapSnapshot:
+    def snapshot(
+        self, max_voxels: int | None = None, tiles: Iterable[tuple[int, int]] | None = None
+    ) -> MapSnapshot:
         """The map (or the given tiles) as one snapshot; refuses more than `max_voxels`."""
         chosen = self.tile_keys if tiles is None else [tuple(t) for t in tiles]
         total = sum(self._entries[t]["voxels"] for t in chosen if t in self._entries)
         if max_voxels is not None and total > max_voxels:
-            raise MemoryError(f"{self.folder}: {total:,} voxels do not fit the limit of "
-                              f"{max_voxels:,}; read it tile by tile (iter_tiles / query)")
+            raise MemoryError(
+                f"{self.folder}: {total:,} voxels do not fit the limit of "
+                f"{max_voxels:,}; read it tile by tile (iter_tiles / query)"
+            )
         parts = [self.tile(t) for t in chosen]
         return concat_snapshots(parts, self.num_classes, self.resolution_m)

@@ -7,6 +7,7 @@
 The mapper fills it only when one is passed (copying the arrays a step produced, and the scan's
 table after step 3), so integrating without a trace costs nothing.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass, field
@@ -65,9 +66,17 @@ class IntegrationTrace:
 
     scans: list[ScanTrace] = field(default_factory=list)
 
-    def points_located(self, cell: np.ndarray, code: np.ndarray, occupied: np.ndarray,
-                       block_order: np.ndarray, table_half: tuple, center_vox: np.ndarray,
-                       origin_vox: np.ndarray, resolution_m: float) -> None:
+    def points_located(
+        self,
+        cell: np.ndarray,
+        code: np.ndarray,
+        occupied: np.ndarray,
+        block_order: np.ndarray,
+        table_half: tuple,
+        center_vox: np.ndarray,
+        origin_vox: np.ndarray,
+        resolution_m: float,
+    ) -> None:
         """Step 2 of a new scan: the kernels' per-point cells and voxel codes, the list of
         occupied cells and the block sort, decoded with the table's geometry."""
         kept = cell != DROPPED
@@ -80,19 +89,34 @@ class IntegrationTrace:
         voxel[kept] = world_blk * LEAF + local + origin_vox
         evidence = np.zeros(len(cell), bool)
         evidence[kept] = code[kept] // EVIDENCE > 0
-        self.scans.append(ScanTrace(cell.copy(), voxel, evidence, occupied.copy(),
-                                    block_order.copy(), np.array(origin_vox, np.int64),
-                                    float(resolution_m)))
+        self.scans.append(
+            ScanTrace(
+                cell.copy(),
+                voxel,
+                evidence,
+                occupied.copy(),
+                block_order.copy(),
+                np.array(origin_vox, np.int64),
+                float(resolution_m),
+            )
+        )
 
-    def training_written(self, rows: int, row_start: np.ndarray, layers: np.ndarray,
-                         xyz: np.ndarray, hist: np.ndarray) -> None:
+    def training_written(
+        self,
+        rows: int,
+        row_start: np.ndarray,
+        layers: np.ndarray,
+        xyz: np.ndarray,
+        hist: np.ndarray,
+    ) -> None:
         """Step 3 of the current scan: the row count, the table's packed slices (b_start,
         b_layers) and the training arrays."""
         s = self.scans[-1]
         s.training_rows = int(rows)
         s.row_start = row_start.ravel().copy()
         packed = layers.ravel()
-        s.layer_rows = np.stack([(packed >> (LAYER_BITS * k)) & ((1 << LAYER_BITS) - 1)
-                                 for k in range(LEAF)], axis=1)
+        s.layer_rows = np.stack(
+            [(packed >> (LAYER_BITS * k)) & ((1 << LAYER_BITS) - 1) for k in range(LEAF)], axis=1
+        )
         s.training_xyz = xyz[:rows].copy()
         s.training_hist = hist[:rows].copy()

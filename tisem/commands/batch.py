@@ -7,6 +7,7 @@
 A cell is one log under one config (--set / --config, then one value of every --sweep); it
 is a mapping run in its own process into <out>/<log>/<cell>/. Finished cells are kept.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -24,12 +25,22 @@ log = logging.getLogger("tisem.batch")
 
 def build_parser() -> argparse.ArgumentParser:
     p = new_parser("batch", __doc__)
-    p.add_argument("logs", nargs="+", type=Path, metavar="LOG",
-                   help="a SemanticKITTI dataset root or sequence folder, an .mcap file or a "
-                        "ROS 2 bag folder (one or more)")
+    p.add_argument(
+        "logs",
+        nargs="+",
+        type=Path,
+        metavar="LOG",
+        help="a SemanticKITTI dataset root or sequence folder, an .mcap file or a "
+        "ROS 2 bag folder (one or more)",
+    )
     add_config_args(p)
-    p.add_argument("--sweep", action="append", default=[], metavar="KEY=V1,V2,...",
-                   help="run every value of a config key (repeatable: the product)")
+    p.add_argument(
+        "--sweep",
+        action="append",
+        default=[],
+        metavar="KEY=V1,V2,...",
+        help="run every value of a config key (repeatable: the product)",
+    )
     p.add_argument("--no-map-files", action="store_true", help="no map.npz / ply / png per cell")
     add_cluster_args(p)
     return p
@@ -42,25 +53,39 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 def batch(args: argparse.Namespace) -> int:
     from tisem.batch import BatchOptions, batch_table, run_batch
     from tisem.logs import discover_logs
+
     overrides = list(args.overrides) + ([f"mode={args.mode}"] if args.mode else [])
     with cli.bad_input():
         logs = discover_logs([p.resolve() for p in args.logs], args.sequences)
-        options = BatchOptions(threads=args.threads or 2, retries=args.retries,
-                               address=args.address, num_cpus=args.num_cpus, arch=args.arch,
-                               map_files=not args.no_map_files)
+        options = BatchOptions(
+            threads=args.threads or 2,
+            retries=args.retries,
+            address=args.address,
+            num_cpus=args.num_cpus,
+            arch=args.arch,
+            map_files=not args.no_map_files,
+        )
         out = results_folder(args.out)
-        result = run_batch(logs, out, overrides=overrides, sweeps=args.sweep, options=options,
-                           config_path=args.config)
+        result = run_batch(
+            logs,
+            out,
+            overrides=overrides,
+            sweeps=args.sweep,
+            options=options,
+            config_path=args.config,
+        )
     print(batch_table(result.rows))
-    print(f"\n{result.ran} cells ran, {result.kept} kept, {len(result.failed)} failed; "
-          f"batch.json in {result.out_dir}")
+    print(
+        f"\n{result.ran} cells ran, {result.kept} kept, {len(result.failed)} failed; "
+        f"batch.json in {result.out_dir}"
+    )
     return 1 if result.failed else 0
 
 
 @entry
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
-    require("ray")                 # --help works without the extra
+    require("ray")  # --help works without the extra
     return cli.run_app(batch, args, log)
 
 

@@ -6,6 +6,7 @@
 
 Every value is checked as a run would check it: a bad key or value is one line and exit 2.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -25,8 +26,14 @@ log = logging.getLogger("tisem.dump_config")
 def build_parser() -> argparse.ArgumentParser:
     p = new_parser("dump_config", __doc__)
     p.add_argument("--config", type=Path, help="YAML config (a RunConfig or its mapper section)")
-    p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
-                   help="override a config value, e.g. --set tau_s=1.5 (repeatable)")
+    p.add_argument(
+        "--set",
+        dest="overrides",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="override a config value, e.g. --set tau_s=1.5 (repeatable)",
+    )
     p.add_argument("--mode", choices=MODES, help="method (default st)")
     p.add_argument("-v", "--verbose", action="store_true", help="also tisem's debug lines")
     return p

@@ -12,6 +12,7 @@ maps of logs in one world frame are merged by sharded reducers into the tiled ma
 ground truth, and fleet.json says what every task did and what is missing. Without
 --address, Ray starts a local cluster on this machine's cores (--num-cpus).
 """
+
 from __future__ import annotations
 
 import argparse
@@ -29,20 +30,37 @@ log = logging.getLogger("tisem.fleet")
 
 def build_parser() -> argparse.ArgumentParser:
     p = new_parser("fleet", __doc__)
-    p.add_argument("logs", nargs="+", type=Path, metavar="LOG",
-                   help="a SemanticKITTI dataset root or sequence folder, an .mcap file or a "
-                        "ROS 2 bag folder (one or more)")
+    p.add_argument(
+        "logs",
+        nargs="+",
+        type=Path,
+        metavar="LOG",
+        help="a SemanticKITTI dataset root or sequence folder, an .mcap file or a "
+        "ROS 2 bag folder (one or more)",
+    )
     add_config_args(p)
     p.add_argument("--chunks", type=int, default=1, help="cut every log into N time chunks")
-    p.add_argument("--overlap-scans", type=int, default=20,
-                   help="warm-up scans a chunk maps before its first one")
-    p.add_argument("--refine", choices=("auto", "on", "off"), default="auto",
-                   help="map tasks again seeded with the maps of the tasks before them "
-                        "(auto: in the kernel modes)")
+    p.add_argument(
+        "--overlap-scans",
+        type=int,
+        default=20,
+        help="warm-up scans a chunk maps before its first one",
+    )
+    p.add_argument(
+        "--refine",
+        choices=("auto", "on", "off"),
+        default="auto",
+        help="map tasks again seeded with the maps of the tasks before them "
+        "(auto: in the kernel modes)",
+    )
     p.add_argument("--reducers", type=int, default=2, help="reducer tasks (tile shards)")
     p.add_argument("--world-frame", help="all logs' poses are in this one frame")
-    p.add_argument("--max-merged-voxels", type=int, default=20_000_000,
-                   help="also write map.npz / map.ply / map_bev.png up to this many voxels")
+    p.add_argument(
+        "--max-merged-voxels",
+        type=int,
+        default=20_000_000,
+        help="also write map.npz / map.ply / map_bev.png up to this many voxels",
+    )
     p.add_argument("--no-eval", action="store_true", help="do not score the merged maps")
     add_cluster_args(p)
     return p
@@ -55,15 +73,23 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 def fleet(args: argparse.Namespace) -> int:
     from tisem.fleet import FleetOptions, run_fleet
     from tisem.logs import discover_logs
+
     with cli.bad_input("config: "):
         cfg = cli.run_config_from_args(argparse.Namespace(**vars(args), first=None, last=None))
-        options = FleetOptions(chunks=args.chunks, overlap_scans=args.overlap_scans,
-                               refine={"auto": None, "on": True, "off": False}[args.refine],
-                               reducers=args.reducers, threads=args.threads or 1,
-                               retries=args.retries, address=args.address,
-                               num_cpus=args.num_cpus, arch=args.arch,
-                               max_merged_voxels=args.max_merged_voxels,
-                               evaluate=not args.no_eval, world_frame=args.world_frame)
+        options = FleetOptions(
+            chunks=args.chunks,
+            overlap_scans=args.overlap_scans,
+            refine={"auto": None, "on": True, "off": False}[args.refine],
+            reducers=args.reducers,
+            threads=args.threads or 1,
+            retries=args.retries,
+            address=args.address,
+            num_cpus=args.num_cpus,
+            arch=args.arch,
+            max_merged_voxels=args.max_merged_voxels,
+            evaluate=not args.no_eval,
+            world_frame=args.world_frame,
+        )
         options.validate()
     with cli.bad_input():
         logs = discover_logs([p.resolve() for p in args.logs], args.sequences)
@@ -72,22 +98,27 @@ def fleet(args: argparse.Namespace) -> int:
     report = result.report
     for group, folder in result.maps.items():
         m = report["metrics"].get(group)
-        score = (f"mIoU {m['final']['miou']:.4f}, accuracy {m['final']['accuracy']:.4f} "
-                 f"(network {m['input']['miou']:.4f} / {m['input']['accuracy']:.4f})"
-                 if m and m["scans"] else "not scored")
+        score = (
+            f"mIoU {m['final']['miou']:.4f}, accuracy {m['final']['accuracy']:.4f} "
+            f"(network {m['input']['miou']:.4f} / {m['input']['accuracy']:.4f})"
+            if m and m["scans"]
+            else "not scored"
+        )
         print(f"{group}: {folder} — {score}")
     for task, reason in result.failed.items():
         print(f"FAILED {task}: {reason}")
     missing = report["missing"]
-    print(f"\n{len(report['tasks'])} tasks mapped, {len(result.failed)} failed, "
-          f"{len(missing)} gaps; {sum(report['seconds'].values()):.0f} s; fleet.json in {out}")
+    print(
+        f"\n{len(report['tasks'])} tasks mapped, {len(result.failed)} failed, "
+        f"{len(missing)} gaps; {sum(report['seconds'].values()):.0f} s; fleet.json in {out}"
+    )
     return 1 if result.failed else 0
 
 
 @entry
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
-    require("ray")                 # --help works without the extra
+    require("ray")  # --help works without the extra
     return cli.run_app(fleet, args, log)
 
 

@@ -12,6 +12,7 @@ Header stamps come from times.txt (or 10 Hz); log times lag 20 ms like a recorde
 chunks by default. Scan k of the selected range is message k (`map_mcap.py` numbers by it).
 The conversion itself is `tisem.io.kitti_mcap.write_kitti_mcap`.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -29,22 +30,37 @@ log = logging.getLogger("tisem.kitti_to_mcap")
 def build_parser() -> argparse.ArgumentParser:
     p = new_parser("kitti_to_mcap", __doc__)
     p.add_argument("data", type=Path, help="a sequence folder, or a dataset root with --sequence")
-    p.add_argument("out", type=Path, help="the .mcap file to write (with --format rosbag2: "
-                                          "the bag folder)")
-    p.add_argument("--format", choices=("mcap", "rosbag2"), default="mcap",
-                   help="mcap: one .mcap file; rosbag2: a bag folder (metadata.yaml, QoS) "
-                        "for ros2 bag play")
-    p.add_argument("--start-time", default="0",
-                   help="added to times.txt: epoch seconds (1700000000.5) or, as a whole "
-                        "number from 10^12 on, nanoseconds")
+    p.add_argument(
+        "out", type=Path, help="the .mcap file to write (with --format rosbag2: the bag folder)"
+    )
+    p.add_argument(
+        "--format",
+        choices=("mcap", "rosbag2"),
+        default="mcap",
+        help="mcap: one .mcap file; rosbag2: a bag folder (metadata.yaml, QoS) for ros2 bag play",
+    )
+    p.add_argument(
+        "--start-time",
+        default="0",
+        help="added to times.txt: epoch seconds (1700000000.5) or, as a whole "
+        "number from 10^12 on, nanoseconds",
+    )
     p.add_argument("--ros-distro", default="humble", help="the ROS distro the bag names")
     p.add_argument("--sequence", help="sequence name under a dataset root, e.g. 08")
     p.add_argument("--first", type=int, default=0, help="first scan id (inclusive)")
     p.add_argument("--last", type=int, help="last scan id (inclusive)")
-    p.add_argument("--compression", choices=("zstd", "lz4", "none"), default="zstd",
-                   help="chunk compression of the recording")
-    p.add_argument("--label-type", choices=("uint32", "uint16"), default="uint32",
-                   help="uint32: raw id | instance << 16 as in .label files; uint16: raw id only")
+    p.add_argument(
+        "--compression",
+        choices=("zstd", "lz4", "none"),
+        default="zstd",
+        help="chunk compression of the recording",
+    )
+    p.add_argument(
+        "--label-type",
+        choices=("uint32", "uint16"),
+        default="uint32",
+        help="uint32: raw id | instance << 16 as in .label files; uint16: raw id only",
+    )
     p.add_argument("--topic", default="/velodyne_points", help="the point-cloud topic")
     p.add_argument("--frame-id", default="velodyne", help="the cloud frame (child of base_link)")
     p.add_argument("-v", "--verbose", action="store_true", help="also tisem's debug lines")
@@ -63,22 +79,34 @@ def main(argv: list[str] | None = None) -> int:
     from tisem.errors import DatasetError
     from tisem.io.kitti_mcap import write_kitti_mcap
     from tisem.io.stamps import parse_start_time_ns
+
     try:
         start_time_ns = parse_start_time_ns(args.start_time)
     except ValueError as exc:
         log.error("--start-time: %s", exc)
         return 2
     try:
-        result = write_kitti_mcap(args.data, args.out, sequence=args.sequence, first=args.first,
-                                  last=args.last, compression=args.compression,
-                                  label_type=args.label_type, topic=args.topic,
-                                  frame_id=args.frame_id, output_format=args.format,
-                                  start_time_ns=start_time_ns, ros_distro=args.ros_distro)
-    except (DatasetError, OSError) as exc:      # a bad sequence, or an .mcap it cannot write
+        result = write_kitti_mcap(
+            args.data,
+            args.out,
+            sequence=args.sequence,
+            first=args.first,
+            last=args.last,
+            compression=args.compression,
+            label_type=args.label_type,
+            topic=args.topic,
+            frame_id=args.frame_id,
+            output_format=args.format,
+            start_time_ns=start_time_ns,
+            ros_distro=args.ros_distro,
+        )
+    except (DatasetError, OSError) as exc:  # a bad sequence, or an .mcap it cannot write
         log.error("%s", exc)
         return 2
-    print(f"wrote {result.path}: {result.scans} scans of sequence {result.sequence} "
-          f"({result.size_bytes / 1e6:.1f} MB, {args.compression}), {len(result.skipped)} skipped")
+    print(
+        f"wrote {result.path}: {result.scans} scans of sequence {result.sequence} "
+        f"({result.size_bytes / 1e6:.1f} MB, {args.compression}), {len(result.skipped)} skipped"
+    )
     return 0
 
 

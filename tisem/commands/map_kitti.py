@@ -1,12 +1,13 @@
 """Map a SemanticKITTI sequence (or, given no data, a synthetic one) and score it.
 
-    tisem map-kitti --arch cpu                      # synthetic street, under a minute
-    tisem map-kitti --data path/to/semantickitti_08_mini --sequence 08
-    tisem map-kitti --data /data/kitti/dataset --sequence 08 --first 0 --last 99
-    tisem map-kitti --data my_drive/ --poses kiss_icp_poses.txt --classes my_classes.yaml
-    tisem map-kitti --data ... --out results/run --checkpoint-every 100
-    tisem map-kitti --resume results/run            # after a crash: go on
+tisem map-kitti --arch cpu                      # synthetic street, under a minute
+tisem map-kitti --data path/to/semantickitti_08_mini --sequence 08
+tisem map-kitti --data /data/kitti/dataset --sequence 08 --first 0 --last 99
+tisem map-kitti --data my_drive/ --poses kiss_icp_poses.txt --classes my_classes.yaml
+tisem map-kitti --data ... --out results/run --checkpoint-every 100
+tisem map-kitti --resume results/run            # after a crash: go on
 """
+
 from __future__ import annotations
 
 import argparse
@@ -20,7 +21,7 @@ from typing import TYPE_CHECKING
 from tisem import cli
 from tisem.commands import entry, new_parser
 
-if TYPE_CHECKING:                      # (imported when needed: the help stays fast)
+if TYPE_CHECKING:  # (imported when needed: the help stays fast)
     from tisem.config import RunConfig
     from tisem.io.semantickitti import SemanticKittiSequence
 
@@ -30,18 +31,34 @@ KEPT_ON_RESUME = {"input": "--input", "poses": "--poses"}
 
 def build_parser() -> argparse.ArgumentParser:
     p = new_parser("map_kitti", __doc__)
-    p.add_argument("--data", type=Path, help="a sequence folder, or a dataset root with --sequence "
-                                             "(default: generate a synthetic sequence)")
+    p.add_argument(
+        "--data",
+        type=Path,
+        help="a sequence folder, or a dataset root with --sequence "
+        "(default: generate a synthetic sequence)",
+    )
     p.add_argument("--sequence", help="sequence name under a dataset root, e.g. 08")
-    p.add_argument("--input", choices=("predictions", "labels"), default=None,
-                   help="which label files feed the map: the network's predictions/ or the "
-                        "ground truth labels/ (default predictions)")
-    p.add_argument("--poses", type=Path, metavar="FILE",
-                   help="LiDAR-frame trajectory, one pose per scan, KITTI (3x4 rows) or TUM "
-                        "(t x y z qx qy qz qw) format, e.g. a KISS-ICP result (default: the "
-                        "sequence's poses.txt or dataset/poses/NN.txt with calib.txt's Tr)")
-    p.add_argument("--synthetic-scans", type=int, default=20,
-                   help="scans of the synthetic street mapped when no --data is given")
+    p.add_argument(
+        "--input",
+        choices=("predictions", "labels"),
+        default=None,
+        help="which label files feed the map: the network's predictions/ or the "
+        "ground truth labels/ (default predictions)",
+    )
+    p.add_argument(
+        "--poses",
+        type=Path,
+        metavar="FILE",
+        help="LiDAR-frame trajectory, one pose per scan, KITTI (3x4 rows) or TUM "
+        "(t x y z qx qy qz qw) format, e.g. a KISS-ICP result (default: the "
+        "sequence's poses.txt or dataset/poses/NN.txt with calib.txt's Tr)",
+    )
+    p.add_argument(
+        "--synthetic-scans",
+        type=int,
+        default=20,
+        help="scans of the synthetic street mapped when no --data is given",
+    )
     p.add_argument("--seed", type=int, default=0, help="seed of the synthetic street")
     cli.add_run_args(p)
     return p
@@ -51,12 +68,15 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     return cli.parse_run_args(build_parser(), argv, kept_on_resume=KEPT_ON_RESUME)
 
 
-def open_sequence(data: Path, sequence: str | None, cfg: RunConfig,
-                  poses: Path | None = None) -> SemanticKittiSequence:
+def open_sequence(
+    data: Path, sequence: str | None, cfg: RunConfig, poses: Path | None = None
+) -> SemanticKittiSequence:
     from tisem.io.semantickitti import SemanticKittiSequence
+
     with cli.bad_input():
-        return SemanticKittiSequence(data, sequence=sequence, input=cfg.input, first=cfg.first,
-                                     last=cfg.last, poses=poses)
+        return SemanticKittiSequence(
+            data, sequence=sequence, input=cfg.input, first=cfg.first, last=cfg.last, poses=poses
+        )
 
 
 def cache_root() -> Path:
@@ -73,19 +93,20 @@ def synthetic_street(scans: int, seed: int, progress: bool) -> Path:
     renamed when complete, so an interrupted write is never mistaken for a street."""
     from tisem import __version__
     from tisem.synth.sequence import write_semantickitti
+
     folder = cache_root() / f"synthetic-street-{scans}scans-seed{seed}-v{__version__}"
     if folder.is_dir():
-        log.info("no --data: the synthetic street (%d scans, seed %d) from %s", scans, seed,
-                 folder)
+        log.info("no --data: the synthetic street (%d scans, seed %d) from %s", scans, seed, folder)
         return folder
-    log.info("no --data: generating a synthetic street (%d scans, seed %d) in %s", scans, seed,
-             folder)
+    log.info(
+        "no --data: generating a synthetic street (%d scans, seed %d) in %s", scans, seed, folder
+    )
     partial = folder.with_name(f"{folder.name}.partial-{os.getpid()}")
     shutil.rmtree(partial, ignore_errors=True)
     write_semantickitti(partial, scans, seed=seed, progress=progress)
     try:
         os.rename(partial, folder)
-    except OSError:                   # another run finished the same street first
+    except OSError:  # another run finished the same street first
         shutil.rmtree(partial, ignore_errors=True)
     return folder
 
@@ -99,9 +120,11 @@ def map_sequence(args: argparse.Namespace) -> int:
     if args.input:
         cfg.input = args.input
     if cfg.mapper.num_classes < num_classes():
-        raise cli.AppError(f"config: num_classes = {cfg.mapper.num_classes}: the labels are "
-                           f"train ids 0..{num_classes() - 1}; expected >= {num_classes()}, "
-                           f"or --classes YAML for another label space")
+        raise cli.AppError(
+            f"config: num_classes = {cfg.mapper.num_classes}: the labels are "
+            f"train ids 0..{num_classes() - 1}; expected >= {num_classes()}, "
+            f"or --classes YAML for another label space"
+        )
     data = plan.input_path(args.data, "data", "--data")
     sequence = args.sequence or plan.source.get("sequence")
     poses = args.poses or (Path(plan.source["poses"]) if plan.source.get("poses") else None)
@@ -112,15 +135,28 @@ def map_sequence(args: argparse.Namespace) -> int:
         with cli.bad_input("synthetic street: "):
             data = synthetic_street(args.synthetic_scans, args.seed, not args.no_progress)
         seq = open_sequence(data, sequence, cfg)
-    log.info("%s: sequence %s, %d scans, mode %s, %s", seq.sequence_dir, seq.sequence_name,
-             len(seq), cfg.mapper.mode, plan.device)
-    source_info = {"data": str(Path(seq.sequence_dir).resolve()), "first": cfg.first,
-                   "last": cfg.last, "scan_ids": list(map(int, seq.scan_ids)),
-                   "input": cfg.input, "arch": args.arch, "threads": plan.threads,
-                   "poses": str(poses.resolve()) if poses else None,
-                   "classes": str(plan.classes) if plan.classes else None}
-    run = plan.mapping_run(seq, args, sequence_name=seq.sequence_name, total=len(seq),
-                           source_info=source_info)
+    log.info(
+        "%s: sequence %s, %d scans, mode %s, %s",
+        seq.sequence_dir,
+        seq.sequence_name,
+        len(seq),
+        cfg.mapper.mode,
+        plan.device,
+    )
+    source_info = {
+        "data": str(Path(seq.sequence_dir).resolve()),
+        "first": cfg.first,
+        "last": cfg.last,
+        "scan_ids": list(map(int, seq.scan_ids)),
+        "input": cfg.input,
+        "arch": args.arch,
+        "threads": plan.threads,
+        "poses": str(poses.resolve()) if poses else None,
+        "classes": str(plan.classes) if plan.classes else None,
+    }
+    run = plan.mapping_run(
+        seq, args, sequence_name=seq.sequence_name, total=len(seq), source_info=source_info
+    )
     result = run.run(show_progress=not args.no_progress)
     input_name = "labels (input)" if cfg.input == "labels" else "network input"
     print(results_table(result.metrics, per_class=args.per_class, input_name=input_name))

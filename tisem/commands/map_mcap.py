@@ -15,6 +15,7 @@ the sensor mount). Damaged files (cut short, bad chunks, no index) are read as f
 can be; what was lost is printed and written to `mcap_report.json`. The output folder gets
 what `map_kitti.py` writes plus `map.mcap` (topic /semantic_map, open it in Foxglove).
 """
+
 from __future__ import annotations
 
 import argparse
@@ -30,45 +31,74 @@ from tisem.commands import entry, new_parser
 from tisem.errors import RunError, os_error_text
 from tisem.extras import require
 
-if TYPE_CHECKING:                      # (imported when needed: the help stays fast)
+if TYPE_CHECKING:  # (imported when needed: the help stays fast)
     from tisem.io.mcap_reader import McapOptions, McapScanReader
     from tisem.run import RunResult
 
 log = logging.getLogger("tisem.map_mcap")
 
 # the recording options: a resumed run reads the recording as it started (run.json "options")
-RECORDING_OPTIONS = {"topic": "--topic", "label_field": "--label-field",
-                     "label_space": "--label-space", "prob_field": "--prob-field",
-                     "gt_field": "--gt-field", "map_frame": "--map-frame",
-                     "pose_topic": "--pose-topic", "pose_child_frame": "--pose-child-frame",
-                     "tf_tolerance_ms": "--tf-tolerance-ms", "sequence": "--sequence"}
+RECORDING_OPTIONS = {
+    "topic": "--topic",
+    "label_field": "--label-field",
+    "label_space": "--label-space",
+    "prob_field": "--prob-field",
+    "gt_field": "--gt-field",
+    "map_frame": "--map-frame",
+    "pose_topic": "--pose-topic",
+    "pose_child_frame": "--pose-child-frame",
+    "tf_tolerance_ms": "--tf-tolerance-ms",
+    "sequence": "--sequence",
+}
 
 
 def build_parser() -> argparse.ArgumentParser:
     p = new_parser("map_mcap", __doc__)
-    p.add_argument("log", type=Path, nargs="?",
-                   help="the recording: .mcap, a rosbag2 folder, .db3 or ROS 1 .bag (with "
-                        "--resume: default the one it read)")
+    p.add_argument(
+        "log",
+        type=Path,
+        nargs="?",
+        help="the recording: .mcap, a rosbag2 folder, .db3 or ROS 1 .bag (with "
+        "--resume: default the one it read)",
+    )
     g = p.add_argument_group("recording")
     g.add_argument("--topic", help="point-cloud topic (needed only when there are several)")
     g.add_argument("--label-field", default="label", help="per-point label field (default label)")
-    g.add_argument("--label-space", choices=("raw", "train"), default="raw",
-                   help="label values are raw SemanticKITTI ids (default) or train ids 0..19")
-    g.add_argument("--prob-field", help="a count=C float field of class probabilities "
-                                        "(instead of --label-field)")
+    g.add_argument(
+        "--label-space",
+        choices=("raw", "train"),
+        default="raw",
+        help="label values are raw SemanticKITTI ids (default) or train ids 0..19",
+    )
+    g.add_argument(
+        "--prob-field",
+        help="a count=C float field of class probabilities (instead of --label-field)",
+    )
     g.add_argument("--gt-field", help="ground-truth label field (same label space): score the map")
     g.add_argument("--map-frame", default="map", help="the fixed frame of the map (default map)")
     g.add_argument("--pose-topic", help="Odometry / PoseStamped topic instead of /tf")
-    g.add_argument("--pose-child-frame", help="the frame a PoseStamped is the pose of (default: "
-                                              "the top of the cloud frame's /tf_static chain, "
-                                              "e.g. base_link, or the cloud frame itself)")
-    g.add_argument("--tf-tolerance-ms", type=float, default=0.0,
-                   help="accept a stamp this far outside a transform's samples (default 0)")
-    g.add_argument("--sequence", default="00",
-                   help="sequence name of the predictions folder (sequences/NN/predictions)")
-    g.add_argument("--save-scans", action="store_true",
-                   help="also write each scan with its mapped labels into map.mcap and "
-                        "map_ros2/")
+    g.add_argument(
+        "--pose-child-frame",
+        help="the frame a PoseStamped is the pose of (default: "
+        "the top of the cloud frame's /tf_static chain, "
+        "e.g. base_link, or the cloud frame itself)",
+    )
+    g.add_argument(
+        "--tf-tolerance-ms",
+        type=float,
+        default=0.0,
+        help="accept a stamp this far outside a transform's samples (default 0)",
+    )
+    g.add_argument(
+        "--sequence",
+        default="00",
+        help="sequence name of the predictions folder (sequences/NN/predictions)",
+    )
+    g.add_argument(
+        "--save-scans",
+        action="store_true",
+        help="also write each scan with its mapped labels into map.mcap and map_ros2/",
+    )
     cli.add_run_args(p)
     return p
 
@@ -85,6 +115,7 @@ def recording_options(args: argparse.Namespace, plan: cli.RunPlan) -> McapOption
     """`McapOptions` from the command line, or those the resumed run read with; the frame
     range and the class count always come from the run's config."""
     from tisem.io.mcap_reader import McapOptions
+
     cfg = plan.cfg
     frames = dict(first=cfg.first, last=cfg.last, num_classes=cfg.mapper.num_classes)
     if plan.checkpoint is not None:
@@ -100,11 +131,17 @@ def recording_options(args: argparse.Namespace, plan: cli.RunPlan) -> McapOption
         return options
     with cli.bad_input("options: "):
         options = McapOptions(
-            topic=args.topic, label_field=args.label_field, label_space=args.label_space,
-            prob_field=args.prob_field, gt_field=args.gt_field, map_frame=args.map_frame,
-            pose_topic=args.pose_topic, pose_child_frame=args.pose_child_frame,
+            topic=args.topic,
+            label_field=args.label_field,
+            label_space=args.label_space,
+            prob_field=args.prob_field,
+            gt_field=args.gt_field,
+            map_frame=args.map_frame,
+            pose_topic=args.pose_topic,
+            pose_child_frame=args.pose_child_frame,
             tf_tolerance_s=cli.finite_number("--tf-tolerance-ms", args.tf_tolerance_ms) / 1e3,
-            **frames)
+            **frames,
+        )
         options.validate()
     return options
 
@@ -120,40 +157,59 @@ def map_recording(args: argparse.Namespace) -> int:
         reader = open_scan_reader(path, options)
     for line in reader.report.lines():
         log.warning("%s: %s", path.name, line)
-    log.info("%s: %d scans on %s (frame %s), poses: %s", path, reader.total, reader.topic,
-             reader.frame_id, reader.tf.describe())
+    log.info(
+        "%s: %d scans on %s (frame %s), poses: %s",
+        path,
+        reader.total,
+        reader.topic,
+        reader.frame_id,
+        reader.tf.describe(),
+    )
 
     plan.start(args)
     sequence_name = plan.source.get("sequence", "00") if plan.checkpoint else args.sequence
-    run = plan.mapping_run(reader, args, sequence_name=sequence_name, total=reader.total,
-                           source_info={"mcap": str(path.resolve()), "topic": reader.topic,
-                                        "classes": str(plan.classes) if plan.classes else None,
-                                        "frame_id": reader.frame_id,
-                                        "options": vars(options), "arch": plan.device,
-                                        "threads": plan.threads})
+    run = plan.mapping_run(
+        reader,
+        args,
+        sequence_name=sequence_name,
+        total=reader.total,
+        source_info={
+            "mcap": str(path.resolve()),
+            "topic": reader.topic,
+            "classes": str(plan.classes) if plan.classes else None,
+            "frame_id": reader.frame_id,
+            "options": vars(options),
+            "arch": plan.device,
+            "threads": plan.threads,
+        },
+    )
     result = run.run(show_progress=not args.no_progress)
     out = plan.out_dir
     try:
-        map_path = write_map(result, reader, out / "map.mcap", args.save_scans,
-                             options.map_frame)
+        map_path = write_map(result, reader, out / "map.mcap", args.save_scans, options.map_frame)
         (out / "mcap_report.json").write_text(json.dumps(reader.report.to_dict(), indent=2))
     except OSError as exc:
-        raise RunError(f"cannot write map.mcap / mcap_report.json in {out}: "
-                       f"{os_error_text(exc)}; metrics.json and the map files are written")
+        raise RunError(
+            f"cannot write map.mcap / mcap_report.json in {out}: "
+            f"{os_error_text(exc)}; metrics.json and the map files are written"
+        ) from exc
     print(results_table(result.metrics, per_class=args.per_class))
     # the run has reported each skipped scan once already: here, only what was lost besides
     lines = dataclasses.replace(reader.report, skipped=[]).lines()
     if lines:
         print(f"\n{path.name}: not everything could be used:")
         print("\n".join(f"  - {line}" for line in lines))
-    print(f"\nmap: {map_path} (Foxglove: 3D panel, topic /semantic_map); ROS 2 bag: "
-          f"{out / 'map_ros2'} (ros2 bag play, RViz: fixed frame {options.map_frame})"
-          f"\nresults in {out}")
+    print(
+        f"\nmap: {map_path} (Foxglove: 3D panel, topic /semantic_map); ROS 2 bag: "
+        f"{out / 'map_ros2'} (ros2 bag play, RViz: fixed frame {options.map_frame})"
+        f"\nresults in {out}"
+    )
     return plan.finish(result)
 
 
-def write_map(result: RunResult, reader: McapScanReader, path: Path, save_scans: bool,
-              frame_id: str) -> Path:
+def write_map(
+    result: RunResult, reader: McapScanReader, path: Path, save_scans: bool, frame_id: str
+) -> Path:
     """map.mcap and map_ros2/ from the final map; with `save_scans`, the log is read once
     more and every mapped scan written with its labels looked up in the final map (the same
     as its predictions file; a scan that was not mapped has neither)."""
@@ -162,18 +218,26 @@ def write_map(result: RunResult, reader: McapScanReader, path: Path, save_scans:
 
     scans = None
     if save_scans:
-        scans = ((s, result.mapper.query(s.points_world(), with_probs=False)[0])
-                 for s in reader if isinstance(s, Scan) and result.is_mapped(s.index))
+        scans = (
+            (s, result.mapper.query(s.points_world(), with_probs=False)[0])
+            for s in reader
+            if isinstance(s, Scan) and result.is_mapped(s.index)
+        )
     info = write_recording_maps(path.parent, result.mapper.snapshot(), frame_id, scans)
-    log.info("wrote %s and %s: %d voxels, %d scans", info["mcap"], info["bag"], info["voxels"],
-             info["scans"])
+    log.info(
+        "wrote %s and %s: %d voxels, %d scans",
+        info["mcap"],
+        info["bag"],
+        info["voxels"],
+        info["scans"],
+    )
     return path
 
 
 @entry
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
-    require("mcap")                 # --help works without the extra
+    require("mcap")  # --help works without the extra
     return cli.run_app(map_recording, args, log)
 
 

@@ -9,6 +9,7 @@ a map's frame is known); a map in another frame needs `--transform K=...`, the t
 the K-th map's frame (K counts from 0, the first map is the reference) into the first's:
 tx,ty,tz[,yaw_deg], 12 or 16 numbers row-major, or a file holding them.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -24,13 +25,27 @@ log = logging.getLogger("tisem.merge_maps")
 
 def build_parser() -> argparse.ArgumentParser:
     p = new_parser("merge_maps", __doc__)
-    p.add_argument("maps", nargs="+", type=Path, metavar="MAP",
-                   help="a results folder, a map.npz or a tiled map folder")
+    p.add_argument(
+        "maps",
+        nargs="+",
+        type=Path,
+        metavar="MAP",
+        help="a results folder, a map.npz or a tiled map folder",
+    )
     p.add_argument("--out", type=Path, required=True, help="folder of the merged tiled map")
-    p.add_argument("--transform", action="append", default=[], metavar="K=T",
-                   help="transform of map K into the first map's frame (repeatable)")
-    p.add_argument("--max-merged-voxels", type=int, default=20_000_000,
-                   help="also write map.npz / map.ply / map_bev.png up to this many voxels")
+    p.add_argument(
+        "--transform",
+        action="append",
+        default=[],
+        metavar="K=T",
+        help="transform of map K into the first map's frame (repeatable)",
+    )
+    p.add_argument(
+        "--max-merged-voxels",
+        type=int,
+        default=20_000_000,
+        help="also write map.npz / map.ply / map_bev.png up to this many voxels",
+    )
     p.add_argument("-v", "--verbose", action="store_true", help="also tisem's debug lines")
     return p
 
@@ -41,6 +56,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 
 def parse_transforms(given: list[str]) -> dict:
     from tisem.merge_files import parse_transform
+
     transforms = {}
     for text in given:
         key, sep, value = text.partition("=")
@@ -52,11 +68,18 @@ def parse_transforms(given: list[str]) -> dict:
 
 def merge(args: argparse.Namespace) -> int:
     from tisem.merge_files import merge_maps
+
     with cli.bad_input():
-        result = merge_maps(args.maps, args.out, transforms=parse_transforms(args.transform),
-                            max_merged_voxels=args.max_merged_voxels)
-    print(f"merged {len(args.maps)} maps: {result.voxels:,} voxels in {result.tiles} tiles, "
-          f"{result.seconds:.1f} s -> {result.out_dir}")
+        result = merge_maps(
+            args.maps,
+            args.out,
+            transforms=parse_transforms(args.transform),
+            max_merged_voxels=args.max_merged_voxels,
+        )
+    print(
+        f"merged {len(args.maps)} maps: {result.voxels:,} voxels in {result.tiles} tiles, "
+        f"{result.seconds:.1f} s -> {result.out_dir}"
+    )
     return 0
 
 

@@ -13,6 +13,7 @@ What the path is decides the reader, by content (magic bytes, `metadata.yaml`), 
 - anything else is refused in one line naming what it is and how to convert it.
 All give a `McapScanReader` (topic, frame_id, total, tf, report; iterate for scans).
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -28,8 +29,10 @@ SQLITE_MAGIC = b"SQLite format 3\x00"
 ROS1_MAGIC = b"#ROSBAG V2.0"
 ZSTD_MAGIC = b"\x28\xb5\x2f\xfd"
 STORAGES = ("mcap", "sqlite3")
-CONVERT = ("`ros2 bag convert -i IN -o out.yaml` (ROS 2) or `rosbags-convert --src IN --dst "
-           "OUT` (ROS 1 -> ROS 2)")
+CONVERT = (
+    "`ros2 bag convert -i IN -o out.yaml` (ROS 2) or `rosbags-convert --src IN --dst "
+    "OUT` (ROS 1 -> ROS 2)"
+)
 
 
 @dataclass(frozen=True)
@@ -38,7 +41,7 @@ class BagInput:
 
     path: Path
     kind: str
-    what: str                        # for messages, e.g. "rosbag2 folder (sqlite3, 2 files)"
+    what: str  # for messages, e.g. "rosbag2 folder (sqlite3, 2 files)"
     files: tuple[Path, ...] = ()
 
 
@@ -50,13 +53,17 @@ def open_scan_reader(path: str | Path, options: McapOptions | None = None) -> Mc
         return McapScanReader(found.path, options)
     if found.kind == "mcap-split":
         from tisem.io.bag_records import SplitMcapRecords
+
         return McapScanReader(found.path, options, records=SplitMcapRecords(list(found.files)))
     try:
-        from tisem.io.bag_records import RosbagRecords
         import rosbags.highlevel  # noqa: F401 - only to say which package is missing
+
+        from tisem.io.bag_records import RosbagRecords
     except ImportError:
-        raise DatasetError(f"{found.path}: reading a {found.what} needs the `rosbags` package: "
-                           f"pip install 'tisem[mcap]' (or pip install rosbags)") from None
+        raise DatasetError(
+            f"{found.path}: reading a {found.what} needs the `rosbags` package: "
+            f"pip install 'tisem[mcap]' (or pip install rosbags)"
+        ) from None
     records = RosbagRecords(found.path, found.what)
     return McapScanReader(found.path, options, records=records, decoders=records.decoders)
 
@@ -77,18 +84,24 @@ def identify(path: str | Path) -> BagInput:
         return BagInput(path, "rosbags", "ROS 1 bag")
     if head.startswith(b"#ROSBAG"):
         version = head.split()[1].decode(errors="replace") if len(head.split()) > 1 else "?"
-        raise DatasetError(f"{path}: a ROS 1 bag of format {version} (tisem reads V2.0): run "
-                           f"`rosbag fix IN OUT`, then read OUT")
+        raise DatasetError(
+            f"{path}: a ROS 1 bag of format {version} (tisem reads V2.0): run "
+            f"`rosbag fix IN OUT`, then read OUT"
+        )
     if head.startswith(ZSTD_MAGIC):
-        raise DatasetError(f"{path}: a zstd-compressed file (a split of a per-file compressed "
-                           f"rosbag2 bag): give the bag folder (the one with metadata.yaml), or "
-                           f"decompress it with `zstd -d`")
+        raise DatasetError(
+            f"{path}: a zstd-compressed file (a split of a per-file compressed "
+            f"rosbag2 bag): give the bag folder (the one with metadata.yaml), or "
+            f"decompress it with `zstd -d`"
+        )
     if head.startswith(MCAP_MAGIC) or path.suffix == ".mcap":
         _refuse_message_compressed_split(path)
         return BagInput(path, "mcap", "MCAP file")
-    raise DatasetError(f"{path}: not a recording tisem reads (no MCAP, SQLite or ROS 1 bag "
-                       f"header); tisem reads .mcap, rosbag2 folders, .db3 and ROS 1 .bag: "
-                       f"convert with {CONVERT}")
+    raise DatasetError(
+        f"{path}: not a recording tisem reads (no MCAP, SQLite or ROS 1 bag "
+        f"header); tisem reads .mcap, rosbag2 folders, .db3 and ROS 1 .bag: "
+        f"convert with {CONVERT}"
+    )
 
 
 def _bag_metadata(folder: Path) -> dict:
@@ -100,37 +113,53 @@ def _bag_metadata(folder: Path) -> dict:
     except OSError as exc:
         raise DatasetError(f"{meta_path}: cannot read ({exc.strerror})") from None
     except (yaml.YAMLError, KeyError, TypeError) as exc:
-        raise DatasetError(f"{meta_path}: not rosbag2 metadata ({type(exc).__name__}: "
-                           f"{str(exc).splitlines()[0][:120] if str(exc) else ''}); "
-                           f"`ros2 bag reindex {folder}` writes it again") from None
+        raise DatasetError(
+            f"{meta_path}: not rosbag2 metadata ({type(exc).__name__}: "
+            f"{str(exc).splitlines()[0][:120] if str(exc) else ''}); "
+            f"`ros2 bag reindex {folder}` writes it again"
+        ) from None
     return meta
 
 
 def _identify_folder(folder: Path) -> BagInput:
     if not (folder / "metadata.yaml").is_file():
-        inside = sorted(p.name for p in folder.iterdir()
-                        if p.suffix in (".mcap", ".db3", ".bag", ".zstd"))[:4]
-        hint = (f"; it holds {', '.join(inside)}: give one file, or write the metadata with "
-                f"`ros2 bag reindex {folder}`" if inside else "")
-        raise DatasetError(f"{folder}: a folder without metadata.yaml is not a rosbag2 bag"
-                           f"{hint}")
+        inside = sorted(
+            p.name for p in folder.iterdir() if p.suffix in (".mcap", ".db3", ".bag", ".zstd")
+        )[:4]
+        hint = (
+            f"; it holds {', '.join(inside)}: give one file, or write the metadata with "
+            f"`ros2 bag reindex {folder}`"
+            if inside
+            else ""
+        )
+        raise DatasetError(f"{folder}: a folder without metadata.yaml is not a rosbag2 bag{hint}")
     meta = _bag_metadata(folder)
     storage = meta.get("storage_identifier")
     if storage not in STORAGES:
-        raise DatasetError(f"{folder}: rosbag2 storage {storage!r} is not readable here "
-                           f"(tisem reads {', '.join(STORAGES)}): convert with {CONVERT}")
+        raise DatasetError(
+            f"{folder}: rosbag2 storage {storage!r} is not readable here "
+            f"(tisem reads {', '.join(STORAGES)}): convert with {CONVERT}"
+        )
     names = meta.get("relative_file_paths") or []
     files = tuple(folder / Path(str(n)).name for n in names)
     missing = [f.name for f in files if not f.is_file()]
     if not files or missing:
-        raise DatasetError(f"{folder}/metadata.yaml: "
-                           + (f"its files are missing: {', '.join(missing[:4])}" if missing else
-                              "it lists no files (relative_file_paths)")
-                           + f"; `ros2 bag reindex {folder}` rewrites it from the files there")
+        raise DatasetError(
+            f"{folder}/metadata.yaml: "
+            + (
+                f"its files are missing: {', '.join(missing[:4])}"
+                if missing
+                else "it lists no files (relative_file_paths)"
+            )
+            + f"; `ros2 bag reindex {folder}` rewrites it from the files there"
+        )
     compression = str(meta.get("compression_mode") or "none").lower()
     compressed = compression not in ("", "none")
-    what = (f"rosbag2 folder ({storage}, {len(files)} file(s)"
-            + (f", {compression} compression" if compressed else "") + ")")
+    what = (
+        f"rosbag2 folder ({storage}, {len(files)} file(s)"
+        + (f", {compression} compression" if compressed else "")
+        + ")"
+    )
     if storage == "mcap" and not compressed:
         return BagInput(folder, "mcap-split", what, files)
     return BagInput(folder, "rosbags", what)
@@ -145,7 +174,9 @@ def _refuse_message_compressed_split(path: Path) -> None:
     try:
         meta = _bag_metadata(path.parent)
     except DatasetError:
-        return                      # a stray or damaged metadata.yaml: read the file itself
+        return  # a stray or damaged metadata.yaml: read the file itself
     if str(meta.get("compression_mode") or "").lower() == "message":
-        raise DatasetError(f"{path}: a split of a bag whose messages are compressed one by one "
-                           f"(metadata.yaml beside it); give the folder {path.parent} instead")
+        raise DatasetError(
+            f"{path}: a split of a bag whose messages are compressed one by one "
+            f"(metadata.yaml beside it); give the folder {path.parent} instead"
+        )

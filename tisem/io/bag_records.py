@@ -12,12 +12,14 @@ survey, topic choice, tf buffer and cloud decoding (`tisem.io.mcap_messages`):
   per-message or per-file compression, ROS 1 `.bag`); it raises on damage rather than
   recovering, so a damaged bag is refused with rosbags' reason.
 """
+
 from __future__ import annotations
 
 import dataclasses
 from collections import Counter
+from collections.abc import Iterator
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any
 
 from mcap.records import Channel, Schema
 
@@ -25,14 +27,17 @@ from tisem.errors import DatasetError
 from tisem.io.mcap_records import LostMessages, McapMessage, McapRecords, ReadReport
 
 
-
 def repair_hint(what: str) -> str:
     """How a user mends a bag that rosbags cannot read (a lost index, an old format)."""
     if what.startswith("ROS 1"):
-        return ("reindex it (`rosbag reindex IN`) or convert it to ROS 2 (`rosbags-convert "
-                "--src IN --dst OUT`)")
-    return ("rebuild its metadata (`ros2 bag reindex DIR`) or convert it (`ros2 bag convert "
-            "-i IN -o out.yaml`)")
+        return (
+            "reindex it (`rosbag reindex IN`) or convert it to ROS 2 (`rosbags-convert "
+            "--src IN --dst OUT`)"
+        )
+    return (
+        "rebuild its metadata (`ros2 bag reindex DIR`) or convert it (`ros2 bag convert "
+        "-i IN -o out.yaml`)"
+    )
 
 
 class SplitMcapRecords:
@@ -44,10 +49,11 @@ class SplitMcapRecords:
         self.excess: Counter = Counter()
         self.data_crc: str | None = None
 
-    def records(self, report: ReadReport) -> Iterator[Schema | Channel | McapMessage |
-                                                      LostMessages]:
-        schema_ids: dict[tuple, int] = {}          # (name, encoding, text) -> recording id
-        channel_ids: dict[tuple, int] = {}         # (topic, encoding, schema id) -> recording id
+    def records(
+        self, report: ReadReport
+    ) -> Iterator[Schema | Channel | McapMessage | LostMessages]:
+        schema_ids: dict[tuple, int] = {}  # (name, encoding, text) -> recording id
+        channel_ids: dict[tuple, int] = {}  # (topic, encoding, schema id) -> recording id
         for path, part in zip(self.paths, self.parts):
             # each file is checked against its own summary: counts must not mix across files
             own = ReadReport(path=str(path))
@@ -66,27 +72,28 @@ class SplitMcapRecords:
                     new = key not in channel_ids
                     local_channels[rec.id] = channel_ids.setdefault(key, len(channel_ids) + 1)
                     if new:
-                        yield dataclasses.replace(rec, id=local_channels[rec.id],
-                                                  schema_id=schema_id)
+                        yield dataclasses.replace(
+                            rec, id=local_channels[rec.id], schema_id=schema_id
+                        )
                 elif isinstance(rec, McapMessage):
                     if rec.channel_id in local_channels:
                         yield dataclasses.replace(rec, channel_id=local_channels[rec.channel_id])
                 else:
-                    channel = (None if rec.channel_id is None
-                               else local_channels.get(rec.channel_id))
-                    yield dataclasses.replace(rec, channel_id=channel,
-                                              where=f"{path.name}: {rec.where}")
+                    channel = None if rec.channel_id is None else local_channels.get(rec.channel_id)
+                    yield dataclasses.replace(
+                        rec, channel_id=channel, where=f"{path.name}: {rec.where}"
+                    )
             _merge_report(report, own, path.name)
         self.excess = sum((p.excess for p in self.parts), Counter())
         crcs = {p.data_crc for p in self.parts}
-        self.data_crc = ("mismatch" if "mismatch" in crcs else
-                         "match" if crcs == {"match"} else None)
+        self.data_crc = "mismatch" if "mismatch" in crcs else "match" if crcs == {"match"} else None
 
 
 def _merge_report(into: ReadReport, part: ReadReport, name: str) -> None:
     into.messages.update(part.messages)
-    into.losses += [dataclasses.replace(loss, where=f"{name}: {loss.where}")
-                    for loss in part.losses]
+    into.losses += [
+        dataclasses.replace(loss, where=f"{name}: {loss.where}") for loss in part.losses
+    ]
     into.notes += [f"{name}: {note}" for note in part.notes]
     into.partial_chunk_messages += part.partial_chunk_messages
 
@@ -101,12 +108,12 @@ class RosbagRecords:
 
     def __init__(self, path: str | Path, what: str) -> None:
         self.path = Path(path)
-        self.what = what                         # e.g. "rosbag2 folder (sqlite3)"
+        self.what = what  # e.g. "rosbag2 folder (sqlite3)"
         self.excess: Counter = Counter()
         self.data_crc: str | None = None
         with self._open() as reader:
             self._ros1 = not reader.is2
-            self.typestore = reader.typestore    # kept: closing the reader only drops its name
+            self.typestore = reader.typestore  # kept: closing the reader only drops its name
             self.topics = {c.topic: c.msgtype for c in reader.connections}
         self.decoders = RosbagDecoders(self.typestore, self._ros1, self.path)
 
@@ -118,8 +125,10 @@ class RosbagRecords:
             reader = AnyReader([self.path], default_typestore=get_typestore(Stores.ROS2_HUMBLE))
             reader.open()
         except Exception as exc:  # noqa: BLE001 - rosbags raises many kinds on bad bags
-            raise DatasetError(f"{self.path}: cannot read this {self.what} "
-                               f"({_reason(exc)}); {repair_hint(self.what)}") from None
+            raise DatasetError(
+                f"{self.path}: cannot read this {self.what} "
+                f"({_reason(exc)}); {repair_hint(self.what)}"
+            ) from None
         return _Closing(reader)
 
     def records(self, report: ReadReport) -> Iterator[Schema | Channel | McapMessage]:
@@ -129,19 +138,31 @@ class RosbagRecords:
             for conn in reader.connections:
                 if conn.msgtype not in schemas:
                     schemas[conn.msgtype] = len(schemas) + 1
-                    yield Schema(id=schemas[conn.msgtype], name=conn.msgtype, encoding=encoding,
-                                 data=conn.msgdef.data.encode())
-                yield Channel(id=conn.id, topic=conn.topic, schema_id=schemas[conn.msgtype],
-                              message_encoding="ros1" if self._ros1 else "cdr", metadata={})
+                    yield Schema(
+                        id=schemas[conn.msgtype],
+                        name=conn.msgtype,
+                        encoding=encoding,
+                        data=conn.msgdef.data.encode(),
+                    )
+                yield Channel(
+                    id=conn.id,
+                    topic=conn.topic,
+                    schema_id=schemas[conn.msgtype],
+                    message_encoding="ros1" if self._ros1 else "cdr",
+                    metadata={},
+                )
             try:
                 for conn, stamp_ns, data in reader.messages():
                     report.messages[conn.topic] += 1
-                    yield McapMessage(channel_id=conn.id, log_time=int(stamp_ns), data=data,
-                                      crc_checked=True)
+                    yield McapMessage(
+                        channel_id=conn.id, log_time=int(stamp_ns), data=data, crc_checked=True
+                    )
             except Exception as exc:  # noqa: BLE001 - a damaged storage file, mid-way
-                raise DatasetError(f"{self.path}: the {self.what} is damaged after "
-                                   f"{sum(report.messages.values())} messages "
-                                   f"({_reason(exc)}); {repair_hint(self.what)}") from None
+                raise DatasetError(
+                    f"{self.path}: the {self.what} is damaged after "
+                    f"{sum(report.messages.values())} messages "
+                    f"({_reason(exc)}); {repair_hint(self.what)}"
+                ) from None
 
 
 class _Closing:

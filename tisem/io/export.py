@@ -8,6 +8,7 @@ the SemanticKITTI colours without configuration; the extra scalar properties (`l
 `read_ply`. The header carries the voxel size and the class table as comments, so a file found
 on its own still says what its numbers mean.
 """
+
 from __future__ import annotations
 
 import os
@@ -21,8 +22,14 @@ from tisem.snapshot import MapSnapshot
 __all__ = ["write_ply", "read_ply", "ply_comments"]
 
 # position and colour under the names every viewer understands; the scalar fields follow
-_VERTEX_DTYPE_BASE = [("x", "<f4"), ("y", "<f4"), ("z", "<f4"),
-                      ("red", "u1"), ("green", "u1"), ("blue", "u1")]
+_VERTEX_DTYPE_BASE = [
+    ("x", "<f4"),
+    ("y", "<f4"),
+    ("z", "<f4"),
+    ("red", "u1"),
+    ("green", "u1"),
+    ("blue", "u1"),
+]
 
 
 def ply_comments(snapshot: MapSnapshot) -> list[str]:
@@ -31,11 +38,13 @@ def ply_comments(snapshot: MapSnapshot) -> list[str]:
     PLY comments are single lines, so the table is one line per class:
     ``class <train_id> <raw_id> <name>``.
     """
-    lines = ["tisem semantic map: one vertex per voxel centre",
-             f"resolution_m {snapshot.resolution_m!r}",
-             f"voxels {len(snapshot)}",
-             "label = train id (SemanticKITTI learning_map), raw_label = raw id, "
-             "probability = normalised counter of the label"]
+    lines = [
+        "tisem semantic map: one vertex per voxel centre",
+        f"resolution_m {snapshot.resolution_m!r}",
+        f"voxels {len(snapshot)}",
+        "label = train id (SemanticKITTI learning_map), raw_label = raw id, "
+        "probability = normalised counter of the label",
+    ]
     names = class_names()
     raw_ids = train_to_raw(np.arange(len(names)))
     lines += [f"class {i} {int(raw_ids[i])} {name}" for i, name in enumerate(names)]
@@ -54,13 +63,18 @@ def write_ply(path: str | os.PathLike, snapshot: MapSnapshot, binary: bool = Tru
     names = class_names()
     if num_classes > len(names):
         # colours and raw ids are only defined for the classes of the label space
-        raise ValueError(f"snapshot has {num_classes} classes; the PLY export knows the "
-                         f"{len(names)} classes of the label space only")
+        raise ValueError(
+            f"snapshot has {num_classes} classes; the PLY export knows the "
+            f"{len(names)} classes of the label space only"
+        )
     labels = snapshot.labels()
     # uchar holds the 20 SemanticKITTI train ids; a wider label space would need ushort
     label_type = "u1" if len(names) <= 256 else "<u2"
-    vertex = np.empty(len(snapshot), dtype=_VERTEX_DTYPE_BASE + [
-        ("label", label_type), ("raw_label", "<u4"), ("probability", "<f4")])
+    vertex = np.empty(
+        len(snapshot),
+        dtype=_VERTEX_DTYPE_BASE
+        + [("label", label_type), ("raw_label", "<u4"), ("probability", "<f4")],
+    )
     centers = snapshot.centers()
     vertex["x"], vertex["y"], vertex["z"] = centers[:, 0], centers[:, 1], centers[:, 2]
     rgb = class_colors()[labels]
@@ -69,8 +83,9 @@ def write_ply(path: str | os.PathLike, snapshot: MapSnapshot, binary: bool = Tru
     vertex["raw_label"] = train_to_raw(labels)
     vertex["probability"] = snapshot.confidence()
     element = PlyElement.describe(vertex, "vertex")
-    PlyData([element], text=not binary, byte_order="<",
-            comments=ply_comments(snapshot)).write(os.fspath(path))
+    PlyData([element], text=not binary, byte_order="<", comments=ply_comments(snapshot)).write(
+        os.fspath(path)
+    )
 
 
 def read_ply(path: str | os.PathLike) -> dict:

@@ -8,6 +8,7 @@ A plausible time is a finite number of seconds in [0, MAX_TIME_S] (seconds since
 the drive, or since the Unix epoch); `out_of_order` finds the times that would run the map's
 clock backwards.
 """
+
 from __future__ import annotations
 
 import logging
@@ -20,12 +21,21 @@ import numpy as np
 from tisem.errors import DatasetError
 from tisem.poses import pose_problem
 
-__all__ = ["read_calib_tr", "read_pose_lines", "read_poses", "read_time_lines", "read_times",
-           "read_trajectory", "out_of_order", "camera_poses_to_lidar", "MAX_TIME_S"]
+__all__ = [
+    "read_calib_tr",
+    "read_pose_lines",
+    "read_poses",
+    "read_time_lines",
+    "read_times",
+    "read_trajectory",
+    "out_of_order",
+    "camera_poses_to_lidar",
+    "MAX_TIME_S",
+]
 
 log = logging.getLogger(__name__)
 
-MAX_TIME_S = 1.0e10      # the year 2286 in Unix time: any later stamp is corrupt data
+MAX_TIME_S = 1.0e10  # the year 2286 in Unix time: any later stamp is corrupt data
 
 
 def _row_to_4x4(values: np.ndarray) -> np.ndarray:
@@ -41,11 +51,13 @@ def _parse_pose_row(text: str, where: str, line: str, subject: str) -> np.ndarra
     try:
         values = np.array([float(v) for v in text.split()], dtype=np.float64)
     except ValueError:
-        raise DatasetError(f"{where}: malformed {line}, non-numeric value in "
-                           f"{text.strip()[:80]!r}") from None
+        raise DatasetError(
+            f"{where}: malformed {line}, non-numeric value in {text.strip()[:80]!r}"
+        ) from None
     if values.size != 12:
-        raise DatasetError(f"{where}: malformed {line}, expected 12 numbers (3x4 row-major), "
-                           f"got {values.size}")
+        raise DatasetError(
+            f"{where}: malformed {line}, expected 12 numbers (3x4 row-major), got {values.size}"
+        )
     if not np.all(np.isfinite(values)):
         raise DatasetError(f"{where}: {subject} has NaN/inf values")
     return _row_to_4x4(values)
@@ -60,9 +72,12 @@ def _entry_lines(path: Path, what: str) -> list[tuple[int, str]]:
     last = max((n for n, line in numbered if line.strip()), default=0)
     inner = [n for n in blank if n < last]
     if inner:
-        log.warning("%s: blank line%s %s ignored (one entry per line)", path,
-                    "s" if len(inner) > 1 else "", ", ".join(map(str, inner[:5]))
-                    + (", ..." if len(inner) > 5 else ""))
+        log.warning(
+            "%s: blank line%s %s ignored (one entry per line)",
+            path,
+            "s" if len(inner) > 1 else "",
+            ", ".join(map(str, inner[:5])) + (", ..." if len(inner) > 5 else ""),
+        )
     return [(n, line) for n, line in numbered if line.strip()]
 
 
@@ -82,21 +97,25 @@ def read_calib_tr(path: str | os.PathLike) -> np.ndarray:
     """
     path = Path(path)
     if not path.is_file():
-        raise DatasetError(f"{path}: calibration file not found (needs a 'Tr:' line, "
-                           f"velodyne -> camera)")
+        raise DatasetError(
+            f"{path}: calibration file not found (needs a 'Tr:' line, velodyne -> camera)"
+        )
     found: tuple[int, np.ndarray] | None = None
     for lineno, line in enumerate(_read_text(path, "calibration file").splitlines(), start=1):
         key, sep, rest = line.partition(":")
         if not sep or key.strip() != "Tr":
             continue
         if found is not None:
-            raise DatasetError(f"{path}:{lineno}: a second 'Tr:' line (the first is line "
-                               f"{found[0]}); the calibration must be one transform")
+            raise DatasetError(
+                f"{path}:{lineno}: a second 'Tr:' line (the first is line "
+                f"{found[0]}); the calibration must be one transform"
+            )
         T = _parse_pose_row(rest, f"{path}:{lineno}", "'Tr:' line", "'Tr:' line")
         problem = pose_problem(T)
         if problem is not None:
-            raise DatasetError(f"{path}:{lineno}: 'Tr:' (velodyne -> camera) is not a rigid "
-                               f"transform: {problem}")
+            raise DatasetError(
+                f"{path}:{lineno}: 'Tr:' (velodyne -> camera) is not a rigid transform: {problem}"
+            )
         found = (lineno, T)
     if found is None:
         raise DatasetError(f"{path}: no 'Tr:' line (velodyne -> camera calibration) in the file")
@@ -107,9 +126,9 @@ def read_pose_lines(path: str | os.PathLike) -> tuple[np.ndarray, dict[int, str]
     """poses.txt (one 3x4 row-major pose per line) as (M, 4, 4) float64, NaN where a line is
     not a pose, and {line index: why} for those lines (messages name the file and line).
 
-    Blank lines are ignored (logged when inside the file). A line is a pose when it holds 12 finite numbers that
-    `tisem.poses.pose_problem` accepts. DatasetError when the file is missing, unreadable or
-    empty. The poses are in the frame they are stored in (the left camera for
+    Blank lines are ignored (logged when inside the file). A line is a pose when it holds 12
+    finite numbers that `tisem.poses.pose_problem` accepts. DatasetError when the file is
+    missing, unreadable or empty. The poses are in the frame they are stored in (the left camera for
     SemanticKITTI): see `camera_poses_to_lidar`.
     """
     path = Path(path)
@@ -135,8 +154,9 @@ def read_pose_lines(path: str | os.PathLike) -> tuple[np.ndarray, dict[int, str]
     return poses, problems
 
 
-def read_trajectory(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray | None,
-                                                     dict[int, str]]:
+def read_trajectory(
+    path: str | os.PathLike,
+) -> tuple[np.ndarray, np.ndarray | None, dict[int, str]]:
     """A trajectory of LiDAR poses, one per scan in order: (M, 4, 4) float64 poses (NaN where
     a line is not a pose), the TUM stamps (M,) in seconds or None, and {pose index: why}.
 
@@ -149,10 +169,15 @@ def read_trajectory(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray | N
 
     path = Path(path)
     if not path.is_file():
-        raise DatasetError(f"{path}: trajectory file not found (--poses: one LiDAR pose per "
-                           f"scan, KITTI or TUM format)")
-    rows = [(i + 1, line) for i, line in enumerate(_read_text(path, "trajectory").splitlines())
-            if line.strip() and not line.lstrip().startswith("#")]
+        raise DatasetError(
+            f"{path}: trajectory file not found (--poses: one LiDAR pose per "
+            f"scan, KITTI or TUM format)"
+        )
+    rows = [
+        (i + 1, line)
+        for i, line in enumerate(_read_text(path, "trajectory").splitlines())
+        if line.strip() and not line.lstrip().startswith("#")
+    ]
     if not rows:
         raise DatasetError(f"{path}: the trajectory file is empty")
     width = len(rows[0][1].split())
@@ -160,8 +185,10 @@ def read_trajectory(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray | N
         poses, problems = read_pose_lines(path)
         return poses, None, problems
     if width != 8:
-        raise DatasetError(f"{path}:{rows[0][0]}: {width} numbers; a trajectory line is KITTI "
-                           f"(12: a 3x4 pose) or TUM (8: t x y z qx qy qz qw)")
+        raise DatasetError(
+            f"{path}:{rows[0][0]}: {width} numbers; a trajectory line is KITTI "
+            f"(12: a 3x4 pose) or TUM (8: t x y z qx qy qz qw)"
+        )
     poses = np.full((len(rows), 4, 4), np.nan)
     stamps = np.full(len(rows), np.nan)
     problems: dict[int, str] = {}
@@ -173,8 +200,10 @@ def read_trajectory(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray | N
             problems[k] = f"{where}: non-numeric value in {line.strip()[:80]!r}"
             continue
         if values.size != 8 or not np.all(np.isfinite(values)) or not values[4:].any():
-            problems[k] = f"{where}: expected 8 finite numbers t x y z qx qy qz qw (a unit " \
-                          f"quaternion), got {line.strip()[:80]!r}"
+            problems[k] = (
+                f"{where}: expected 8 finite numbers t x y z qx qy qz qw (a unit "
+                f"quaternion), got {line.strip()[:80]!r}"
+            )
             continue
         T = np.eye(4)
         T[:3, :3] = quat_to_matrix(values[4:])
@@ -233,12 +262,14 @@ def read_time_lines(path: str | os.PathLike) -> tuple[np.ndarray, dict[int, str]
                 raise ValueError
             t = float(fields[0])
         except ValueError:
-            problems[i] = (f"{where}: malformed time line, expected one number, got "
-                           f"{line.strip()[:80]!r}")
+            problems[i] = (
+                f"{where}: malformed time line, expected one number, got {line.strip()[:80]!r}"
+            )
             continue
         if not (np.isfinite(t) and 0.0 <= t <= MAX_TIME_S):
-            problems[i] = (f"{where}: time {t:g} s is not a plausible time (finite, 0 to "
-                           f"{MAX_TIME_S:.0e} s)")
+            problems[i] = (
+                f"{where}: time {t:g} s is not a plausible time (finite, 0 to {MAX_TIME_S:.0e} s)"
+            )
             continue
         times[i] = t
     return times, problems
@@ -285,8 +316,11 @@ def out_of_order(times: np.ndarray, scan_ids: list[int], path: Path) -> dict[int
             continue
         prev = max((j for j in ordered if j < k), default=None)
         nxt = min((j for j in ordered if j > k), default=None)
-        around = " and ".join(f"scan {scan_ids[j]} at {times[j]:g} s" for j in (prev, nxt)
-                              if j is not None)
-        problems[k] = (f"{path}:{scan_ids[k] + 1}: time {times[k]:g} s is out of order "
-                       f"({around}): the map's clock cannot run backwards")
+        around = " and ".join(
+            f"scan {scan_ids[j]} at {times[j]:g} s" for j in (prev, nxt) if j is not None
+        )
+        problems[k] = (
+            f"{path}:{scan_ids[k] + 1}: time {times[k]:g} s is out of order "
+            f"({around}): the map's clock cannot run backwards"
+        )
     return problems

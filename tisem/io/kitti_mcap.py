@@ -18,6 +18,7 @@ the selected range is message k on the cloud topic (the MCAP reader numbers scan
 bag folder (`tisem.io.rosbag_writer`) adds metadata.yaml, the QoS of every topic
 (transient_local for /tf_static) and the ROS distro.
 """
+
 from __future__ import annotations
 
 import logging
@@ -28,8 +29,8 @@ import numpy as np
 
 from tisem.errors import SkippedScan
 from tisem.io.mcap_writer import Ros2McapWriter
-from tisem.io.semantickitti import SemanticKittiSequence
 from tisem.io.rosbag_writer import Rosbag2Writer
+from tisem.io.semantickitti import SemanticKittiSequence
 from tisem.io.stamps import decimal_seconds_to_ns, seconds_to_ns
 from tisem.io.tf import invert
 
@@ -38,26 +39,29 @@ log = logging.getLogger(__name__)
 # base_link -> velodyne: the KITTI roof mount (1.73 m up, 0.81 m ahead of the rear axle) with a
 # small yaw and roll, so that no step of the tf chain is an identity by accident
 _YAW, _ROLL = np.deg2rad(1.5), np.deg2rad(-0.7)
-T_BASE_VELODYNE = np.array([
-    [np.cos(_YAW), -np.sin(_YAW) * np.cos(_ROLL), np.sin(_YAW) * np.sin(_ROLL), 0.81],
-    [np.sin(_YAW), np.cos(_YAW) * np.cos(_ROLL), -np.cos(_YAW) * np.sin(_ROLL), -0.32],
-    [0.0, np.sin(_ROLL), np.cos(_ROLL), 1.73],
-    [0.0, 0.0, 0.0, 1.0]])
+T_BASE_VELODYNE = np.array(
+    [
+        [np.cos(_YAW), -np.sin(_YAW) * np.cos(_ROLL), np.sin(_YAW) * np.sin(_ROLL), 0.81],
+        [np.sin(_YAW), np.cos(_YAW) * np.cos(_ROLL), -np.cos(_YAW) * np.sin(_ROLL), -0.32],
+        [0.0, np.sin(_ROLL), np.cos(_ROLL), 1.73],
+        [0.0, 0.0, 0.0, 1.0],
+    ]
+)
 RECEIVE_LAG_NS = 20_000_000
 LABEL_TYPES = {"uint32": "<u4", "uint16": "<u2"}
 OUTPUT_FORMATS = ("mcap", "rosbag2")
-SCAN_PERIOD_NS = 100_000_000          # 10 Hz when there is no times.txt
+SCAN_PERIOD_NS = 100_000_000  # 10 Hz when there is no times.txt
 
 
 @dataclass(frozen=True)
 class KittiMcapResult:
     """What `write_kitti_mcap` wrote."""
 
-    path: Path                      # the .mcap file, or the bag folder
-    scans: int                      # clouds written
-    skipped: list[SkippedScan]      # scans the SemanticKITTI reader could not use
-    sequence: str                   # the sequence name
-    size_bytes: int                 # of every file written
+    path: Path  # the .mcap file, or the bag folder
+    scans: int  # clouds written
+    skipped: list[SkippedScan]  # scans the SemanticKITTI reader could not use
+    sequence: str  # the sequence name
+    size_bytes: int  # of every file written
 
 
 def scan_stamps_ns(seq: SemanticKittiSequence) -> list[int]:
@@ -81,11 +85,21 @@ def _raw_labels(path: Path, label_type: str) -> np.ndarray:
     return raw if label_type == "uint32" else (raw & 0xFFFF).astype("<u2")
 
 
-def write_kitti_mcap(data: str | Path, out: str | Path, *, sequence: str | None = None,
-                     first: int = 0, last: int | None = None, compression: str = "zstd",
-                     label_type: str = "uint32", topic: str = "/velodyne_points",
-                     frame_id: str = "velodyne", output_format: str = "mcap",
-                     start_time_ns: int = 0, ros_distro: str = "humble") -> KittiMcapResult:
+def write_kitti_mcap(
+    data: str | Path,
+    out: str | Path,
+    *,
+    sequence: str | None = None,
+    first: int = 0,
+    last: int | None = None,
+    compression: str = "zstd",
+    label_type: str = "uint32",
+    topic: str = "/velodyne_points",
+    frame_id: str = "velodyne",
+    output_format: str = "mcap",
+    start_time_ns: int = 0,
+    ros_distro: str = "humble",
+) -> KittiMcapResult:
     """Write scans `first`..`last` (inclusive scan ids) of a SemanticKITTI sequence.
 
     data: a sequence folder, or a dataset root with `sequence` (e.g. "08"). compression: zstd |
@@ -100,25 +114,39 @@ def write_kitti_mcap(data: str | Path, out: str | Path, *, sequence: str | None 
         raise ValueError(f"label_type must be one of {sorted(LABEL_TYPES)}, got {label_type!r}")
     if output_format not in OUTPUT_FORMATS:
         raise ValueError(f"output_format must be one of {OUTPUT_FORMATS}, got {output_format!r}")
-    if not (isinstance(start_time_ns, int) and 0 <= start_time_ns < 2 ** 62):
+    if not (isinstance(start_time_ns, int) and 0 <= start_time_ns < 2**62):
         raise ValueError(f"start_time_ns must be whole nanoseconds >= 0, got {start_time_ns!r}")
     out = Path(out)
-    seq = SemanticKittiSequence(data, sequence=sequence, input="predictions", first=first,
-                                last=last)
-    fields = [("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("intensity", "<f4"),
-              ("label", LABEL_TYPES[label_type])]
+    seq = SemanticKittiSequence(
+        data, sequence=sequence, input="predictions", first=first, last=last
+    )
+    fields = [
+        ("x", "<f4"),
+        ("y", "<f4"),
+        ("z", "<f4"),
+        ("intensity", "<f4"),
+        ("label", LABEL_TYPES[label_type]),
+    ]
     if seq.has_ground_truth:
         fields.append(("gt_label", LABEL_TYPES[label_type]))
     T_velodyne_base = invert(T_BASE_VELODYNE)
     written, skipped = 0, []
     out.parent.mkdir(parents=True, exist_ok=True)
     stamps = scan_stamps_ns(seq)
-    writer = (Rosbag2Writer(out, ros_distro=ros_distro, compression=compression)
-              if output_format == "rosbag2" else Ros2McapWriter(out, compression=compression))
+    writer = (
+        Rosbag2Writer(out, ros_distro=ros_distro, compression=compression)
+        if output_format == "rosbag2"
+        else Ros2McapWriter(out, compression=compression)
+    )
     with writer as w:
-        w.add_metadata("source", {"sequence_dir": str(seq.sequence_dir),
-                                  "sequence": seq.sequence_name,
-                                  "scan_ids": ",".join(map(str, seq.scan_ids))})
+        w.add_metadata(
+            "source",
+            {
+                "sequence_dir": str(seq.sequence_dir),
+                "sequence": seq.sequence_name,
+                "scan_ids": ",".join(map(str, seq.scan_ids)),
+            },
+        )
         static_done = False
         for k, scan in enumerate(seq):
             if isinstance(scan, SkippedScan):
@@ -127,11 +155,13 @@ def write_kitti_mcap(data: str | Path, out: str | Path, *, sequence: str | None 
                 continue
             # (a line the reader accepted that is no decimal: cannot happen, but stay exact
             # to the float the reader has rather than fail)
-            stamp_ns = start_time_ns + (stamps[k] if stamps[k] is not None
-                                        else seconds_to_ns(scan.stamp_s))
-            if not static_done:   # rosbag2 records /tf_static once, latched, at the start
-                w.write_transforms([("base_link", frame_id, stamp_ns, T_BASE_VELODYNE)],
-                                   stamp_ns, static=True)
+            stamp_ns = start_time_ns + (
+                stamps[k] if stamps[k] is not None else seconds_to_ns(scan.stamp_s)
+            )
+            if not static_done:  # rosbag2 records /tf_static once, latched, at the start
+                w.write_transforms(
+                    [("base_link", frame_id, stamp_ns, T_BASE_VELODYNE)], stamp_ns, static=True
+                )
                 static_done = True
             T_map_base = scan.T_world_sensor @ T_velodyne_base
             w.write_transforms([("map", "base_link", stamp_ns, T_map_base)], stamp_ns)
@@ -144,10 +174,11 @@ def write_kitti_mcap(data: str | Path, out: str | Path, *, sequence: str | None 
             arr["label"] = _raw_labels(seq.predictions_dir / f"{stem}.label", label_type)
             if seq.has_ground_truth:
                 arr["gt_label"] = _raw_labels(seq.labels_dir / f"{stem}.label", label_type)
-            w.write_cloud(topic, arr, frame_id, stamp_ns, stamp_ns + RECEIVE_LAG_NS,
-                          sequence=written)
+            w.write_cloud(
+                topic, arr, frame_id, stamp_ns, stamp_ns + RECEIVE_LAG_NS, sequence=written
+            )
             written += 1
-    size = (sum(p.stat().st_size for p in out.iterdir()) if out.is_dir()
-            else out.stat().st_size)
-    return KittiMcapResult(path=out, scans=written, skipped=skipped,
-                           sequence=seq.sequence_name, size_bytes=size)
+    size = sum(p.stat().st_size for p in out.iterdir()) if out.is_dir() else out.stat().st_size
+    return KittiMcapResult(
+        path=out, scans=written, skipped=skipped, sequence=seq.sequence_name, size_bytes=size
+    )

@@ -10,6 +10,7 @@ Writes are atomic: the file is written under a temporary name in the same folder
 then `os.replace`d over the target. A crash or kill mid-save leaves either the old file or
 the new one, never a torn one, which is what makes `--checkpoint-every N` safe to rely on.
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -18,8 +19,9 @@ import os
 import tempfile
 import zipfile
 import zlib
+from collections.abc import Callable
 from pathlib import Path
-from typing import BinaryIO, Callable
+from typing import BinaryIO
 
 import numpy as np
 import yaml
@@ -28,17 +30,35 @@ from tisem.config import MapperConfig
 from tisem.labels import CLASS_COLORS_RGB, CLASS_NAMES, LEARNING_MAP_INV
 from tisem.snapshot import MapSnapshot
 
-__all__ = ["MapFileError", "atomic_write", "save_map", "load_map_file", "save_checkpoint_file",
-           "load_checkpoint_file", "remove_stale_temp_files", "CHECKPOINT_NAME", "FORMAT_NAME",
-           "FORMAT_VERSION"]
+__all__ = [
+    "MapFileError",
+    "atomic_write",
+    "save_map",
+    "load_map_file",
+    "save_checkpoint_file",
+    "load_checkpoint_file",
+    "remove_stale_temp_files",
+    "CHECKPOINT_NAME",
+    "FORMAT_NAME",
+    "FORMAT_VERSION",
+]
 
 FORMAT_NAME = "tisem-map"
 FORMAT_VERSION = 1
 CHECKPOINT_NAME = "checkpoint.npz"
 
 # every array a valid file must hold (the class table is informative, see load_map_file)
-_REQUIRED = ("format", "format_version", "keys", "counts", "t_last", "ell_m", "resolution_m",
-             "mapper_config_yaml", "meta_json")
+_REQUIRED = (
+    "format",
+    "format_version",
+    "keys",
+    "counts",
+    "t_last",
+    "ell_m",
+    "resolution_m",
+    "mapper_config_yaml",
+    "meta_json",
+)
 
 
 # mkstemp creates 0600 files; give the final file the mode a plain open() would have. Read
@@ -108,16 +128,24 @@ def _class_table_arrays(num_classes: int) -> dict:
     has one row per counter (extra classes get generic names, grey and raw id 0)."""
     known = min(num_classes, len(CLASS_NAMES))
     extra = num_classes - known
-    return {"class_names": np.array(list(CLASS_NAMES[:known])
-                                    + [f"class-{i}" for i in range(known, num_classes)]),
-            "class_colors_rgb": np.concatenate([CLASS_COLORS_RGB[:known],
-                                                np.full((extra, 3), 128, np.uint8)]),
-            "class_raw_ids": np.concatenate([LEARNING_MAP_INV[:known],
-                                             np.zeros(extra, np.uint32)])}
+    return {
+        "class_names": np.array(
+            list(CLASS_NAMES[:known]) + [f"class-{i}" for i in range(known, num_classes)]
+        ),
+        "class_colors_rgb": np.concatenate(
+            [CLASS_COLORS_RGB[:known], np.full((extra, 3), 128, np.uint8)]
+        ),
+        "class_raw_ids": np.concatenate([LEARNING_MAP_INV[:known], np.zeros(extra, np.uint32)]),
+    }
 
 
-def save_map(path: str | os.PathLike, snapshot: MapSnapshot, mapper_config: MapperConfig | dict,
-             meta: dict | None = None, compress: bool = True) -> Path:
+def save_map(
+    path: str | os.PathLike,
+    snapshot: MapSnapshot,
+    mapper_config: MapperConfig | dict,
+    meta: dict | None = None,
+    compress: bool = True,
+) -> Path:
     """Write `snapshot` + config + meta to `path` (an .npz), atomically. Returns the path.
 
     `mapper_config` is a dict or a `MapperConfig`. `compress=False` trades size for speed
@@ -133,11 +161,12 @@ def save_map(path: str | os.PathLike, snapshot: MapSnapshot, mapper_config: Mapp
         "ell_m": np.asarray(snapshot.ell_m, dtype=np.float32),
         "resolution_m": np.array(snapshot.resolution_m, dtype=np.float64),
         **_class_table_arrays(np.shape(snapshot.counts)[1]),
-        "mapper_config_yaml": np.array(yaml.safe_dump(_config_dict(mapper_config),
-                                                      sort_keys=False)),
+        "mapper_config_yaml": np.array(
+            yaml.safe_dump(_config_dict(mapper_config), sort_keys=False)
+        ),
         "meta_json": np.array(json.dumps(meta or {}, default=_json_default, sort_keys=True)),
     }
-    if snapshot.occupancy is not None:       # free space: the occupancy evidence, optional
+    if snapshot.occupancy is not None:  # free space: the occupancy evidence, optional
         arrays["occupancy"] = np.asarray(snapshot.occupancy, dtype=np.float32)
         arrays["empty_evidence"] = np.array(snapshot.empty_evidence, dtype=np.float64)
     savez = np.savez_compressed if compress else np.savez
@@ -158,64 +187,96 @@ def load_map_file(path: str | os.PathLike) -> tuple[MapSnapshot, dict, dict]:
         magic = f.read(4)
     if magic != b"PK\x03\x04":
         # checked before np.load, which would take any other file for a pickle or .npy
-        raise MapFileError(f"{path}: not a tisem map file (not an npz archive: starts with "
-                           f"{magic!r})")
+        raise MapFileError(
+            f"{path}: not a tisem map file (not an npz archive: starts with {magic!r})"
+        )
     try:
         # read everything inside the try: npz members are decompressed (and CRC-checked) lazily
         with np.load(path, allow_pickle=False) as npz:
             missing = [k for k in _REQUIRED if k not in npz.files]
             if "format" not in npz.files or str(npz["format"]) != FORMAT_NAME:
-                raise MapFileError(f"{path}: not a tisem map file (no '{FORMAT_NAME}' marker; "
-                                   f"arrays present: {', '.join(npz.files) or 'none'})")
+                raise MapFileError(
+                    f"{path}: not a tisem map file (no '{FORMAT_NAME}' marker; "
+                    f"arrays present: {', '.join(npz.files) or 'none'})"
+                )
             if missing:
-                raise MapFileError(f"{path}: damaged tisem map file, missing arrays: "
-                                   f"{', '.join(missing)}")
+                raise MapFileError(
+                    f"{path}: damaged tisem map file, missing arrays: {', '.join(missing)}"
+                )
             version = int(npz["format_version"])
             data = {k: npz[k] for k in _REQUIRED}
-            for k in ("occupancy", "empty_evidence"):     # free space, when the map had it
+            for k in ("occupancy", "empty_evidence"):  # free space, when the map had it
                 if k in npz.files:
                     data[k] = npz[k]
             class_names = npz["class_names"] if "class_names" in npz.files else None
     except MapFileError:
         raise
-    except (zipfile.BadZipFile, zlib.error, EOFError, OSError, ValueError, KeyError,
-            TypeError) as exc:
-        raise MapFileError(f"{path}: not a readable tisem map file (truncated or damaged?): "
-                           f"{type(exc).__name__}: {exc}") from exc
+    except (
+        zipfile.BadZipFile,
+        zlib.error,
+        EOFError,
+        OSError,
+        ValueError,
+        KeyError,
+        TypeError,
+    ) as exc:
+        raise MapFileError(
+            f"{path}: not a readable tisem map file (truncated or damaged?): "
+            f"{type(exc).__name__}: {exc}"
+        ) from exc
     if version > FORMAT_VERSION:
-        raise MapFileError(f"{path}: map file format version {version} is newer than this "
-                           f"tisem understands ({FORMAT_VERSION})")
+        raise MapFileError(
+            f"{path}: map file format version {version} is newer than this "
+            f"tisem understands ({FORMAT_VERSION})"
+        )
 
     keys, counts, t_last, ell_m = data["keys"], data["counts"], data["t_last"], data["ell_m"]
     m = keys.shape[0] if keys.ndim == 2 else -1
-    if (keys.ndim != 2 or keys.shape[1] != 3 or counts.ndim != 2 or counts.shape[0] != m
-            or t_last.shape != (m,) or ell_m.shape != (m,)):
-        raise MapFileError(f"{path}: damaged tisem map file, inconsistent array shapes: keys "
-                           f"{keys.shape}, counts {counts.shape}, t_last {t_last.shape}, "
-                           f"ell_m {ell_m.shape}")
+    if (
+        keys.ndim != 2
+        or keys.shape[1] != 3
+        or counts.ndim != 2
+        or counts.shape[0] != m
+        or t_last.shape != (m,)
+        or ell_m.shape != (m,)
+    ):
+        raise MapFileError(
+            f"{path}: damaged tisem map file, inconsistent array shapes: keys "
+            f"{keys.shape}, counts {counts.shape}, t_last {t_last.shape}, "
+            f"ell_m {ell_m.shape}"
+        )
     if class_names is not None and class_names.shape != (counts.shape[1],):
-        raise MapFileError(f"{path}: damaged tisem map file, {counts.shape[1]} class counters "
-                           f"but a class table of {class_names.size} names")
+        raise MapFileError(
+            f"{path}: damaged tisem map file, {counts.shape[1]} class counters "
+            f"but a class table of {class_names.size} names"
+        )
     try:
         config = yaml.safe_load(str(data["mapper_config_yaml"])) or {}
         meta = json.loads(str(data["meta_json"]))
     except (yaml.YAMLError, json.JSONDecodeError) as exc:
-        raise MapFileError(f"{path}: damaged tisem map file, unreadable config/meta text: "
-                           f"{' '.join(str(exc).split())}") from None
+        raise MapFileError(
+            f"{path}: damaged tisem map file, unreadable config/meta text: "
+            f"{' '.join(str(exc).split())}"
+        ) from None
     if not isinstance(config, dict) or not isinstance(meta, dict):
-        raise MapFileError(f"{path}: damaged tisem map file, its mapper config and meta must "
-                           f"be mappings")
+        raise MapFileError(
+            f"{path}: damaged tisem map file, its mapper config and meta must be mappings"
+        )
     _check_values(path, keys, counts, t_last, ell_m, data["resolution_m"])
-    snapshot = MapSnapshot(keys=keys.astype(np.int64, copy=False),
-                           counts=counts.astype(np.float32, copy=False),
-                           t_last=t_last.astype(np.float64, copy=False),
-                           ell_m=ell_m.astype(np.float32, copy=False),
-                           resolution_m=float(data["resolution_m"]))
+    snapshot = MapSnapshot(
+        keys=keys.astype(np.int64, copy=False),
+        counts=counts.astype(np.float32, copy=False),
+        t_last=t_last.astype(np.float64, copy=False),
+        ell_m=ell_m.astype(np.float32, copy=False),
+        resolution_m=float(data["resolution_m"]),
+    )
     if "occupancy" in data:
         occupancy = np.asarray(data["occupancy"], np.float32)
         if occupancy.shape != (m,) or not np.isfinite(occupancy).all():
-            raise MapFileError(f"{path}: damaged tisem map file, occupancy must be {m} finite "
-                               f"values, got {occupancy.shape}")
+            raise MapFileError(
+                f"{path}: damaged tisem map file, occupancy must be {m} finite "
+                f"values, got {occupancy.shape}"
+            )
         snapshot.occupancy = occupancy
         snapshot.empty_evidence = float(data["empty_evidence"])
     return snapshot, config, meta
@@ -224,6 +285,7 @@ def load_map_file(path: str | os.PathLike) -> tuple[MapSnapshot, dict, dict]:
 def _check_values(path: Path, keys, counts, t_last, ell_m, resolution_m) -> None:
     """What no map can hold: MapFileError naming the array and the value (the arrays' CRCs
     can be right and their contents still not a map, e.g. a file written by other code)."""
+
     def bad(what: str) -> MapFileError:
         return MapFileError(f"{path}: damaged tisem map file, {what}")
 
@@ -256,12 +318,16 @@ def remove_stale_temp_files(path: str | os.PathLike) -> list[Path]:
             tmp.unlink()
             removed.append(tmp)
         except OSError:
-            pass        # not ours to fight over: the next save tries again
+            pass  # not ours to fight over: the next save tries again
     return removed
 
 
-def save_checkpoint_file(directory: str | os.PathLike, snapshot: MapSnapshot,
-                         mapper_config: MapperConfig | dict, meta: dict | None = None) -> Path:
+def save_checkpoint_file(
+    directory: str | os.PathLike,
+    snapshot: MapSnapshot,
+    mapper_config: MapperConfig | dict,
+    meta: dict | None = None,
+) -> Path:
     """Write the map file `directory/checkpoint.npz` atomically (uncompressed: checkpoints are
     frequent). `tisem.checkpoint.save_checkpoint` fills `meta` with a run's progress.
 
@@ -279,6 +345,7 @@ def load_checkpoint_file(directory: str | os.PathLike) -> tuple[MapSnapshot, dic
     as `load_map_file` does (`tisem.checkpoint.load_checkpoint` gives a `Checkpoint`)."""
     path = Path(directory) / CHECKPOINT_NAME
     if not path.is_file():
-        raise FileNotFoundError(f"{path}: no checkpoint to resume from (expected "
-                                f"{CHECKPOINT_NAME} in {directory})")
+        raise FileNotFoundError(
+            f"{path}: no checkpoint to resume from (expected {CHECKPOINT_NAME} in {directory})"
+        )
     return load_map_file(path)

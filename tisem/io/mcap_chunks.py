@@ -6,6 +6,7 @@ Anything else raises `BadChunk` with the reason. Decompression never allocates f
 it has not checked: a size the compressed frame declares must equal the chunk's, and otherwise
 output is produced piece by piece and stopped as soon as it exceeds the declared size.
 """
+
 from __future__ import annotations
 
 import struct
@@ -20,9 +21,9 @@ from mcap.opcode import Opcode
 from tisem.io.mcap_summary import RECORD_HEADER, Fields, Malformed
 
 COMPRESSIONS = ("", "zstd", "lz4")
-MAX_CHUNK_BYTES = 1 << 31            # a chunk declaring more is taken as damaged
-_PIECE = 1 << 24                     # output per step of a bounded decompression
-_CUT_STEP = 1 << 14                  # input per step when inflating a cut chunk
+MAX_CHUNK_BYTES = 1 << 31  # a chunk declaring more is taken as damaged
+_PIECE = 1 << 24  # output per step of a bounded decompression
+_CUT_STEP = 1 << 14  # input per step when inflating a cut chunk
 
 
 class BadChunk(Exception):
@@ -33,11 +34,11 @@ class BadChunk(Exception):
 class ChunkHeader:
     start_time: int
     end_time: int
-    size: int                        # uncompressed
-    crc: int                         # 0 = none
+    size: int  # uncompressed
+    crc: int  # 0 = none
     compression: str
-    data: memoryview                 # may be shorter than `declared` in a cut chunk
-    declared: int                    # the compressed length the record gives
+    data: memoryview  # may be shorter than `declared` in a cut chunk
+    declared: int  # the compressed length the record gives
 
 
 def chunk_header(buf, complete: bool = True) -> ChunkHeader:
@@ -51,8 +52,9 @@ def chunk_header(buf, complete: bool = True) -> ChunkHeader:
         raise BadChunk(str(e)) from None
     if complete and declared > f.left:
         raise BadChunk(f"its data claims {declared} bytes, the record holds {f.left}")
-    return ChunkHeader(start, end, size, crc, compression, f.buf[f.pos:f.pos + declared],
-                       declared)
+    return ChunkHeader(
+        start, end, size, crc, compression, f.buf[f.pos : f.pos + declared], declared
+    )
 
 
 def _bounded(pieces, limit: int) -> bytes:
@@ -73,7 +75,7 @@ def _zstd_pieces(data, complete: bool):
     # can be stopped early
     dobj = zstandard.ZstdDecompressor().decompressobj()
     for at in range(0, len(data), _CUT_STEP):
-        yield dobj.decompress(bytes(data[at:at + _CUT_STEP]))
+        yield dobj.decompress(bytes(data[at : at + _CUT_STEP]))
 
 
 def _lz4_pieces(data):
@@ -92,13 +94,15 @@ def inflate(head: ChunkHeader, complete: bool = True) -> bytes | memoryview:
     if head.compression not in COMPRESSIONS:
         raise BadChunk(f"unknown compression {head.compression!r}")
     if size > MAX_CHUNK_BYTES:
-        raise BadChunk(f"it declares {size} uncompressed bytes, more than a chunk can hold here "
-                       f"({MAX_CHUNK_BYTES})")
+        raise BadChunk(
+            f"it declares {size} uncompressed bytes, more than a chunk can hold here "
+            f"({MAX_CHUNK_BYTES})"
+        )
     if head.compression == "":
         return data
     if head.compression == "zstd":
         framed = zstandard.frame_content_size(data) if complete else -1
-        if framed == size:           # the frame and the chunk agree: one allocation of `size`
+        if framed == size:  # the frame and the chunk agree: one allocation of `size`
             return zstandard.ZstdDecompressor().decompress(data)
         if framed not in (-1, size):
             raise BadChunk(f"its zstd frame declares {framed} bytes, the chunk {size}")
@@ -120,7 +124,7 @@ def inner_records(data, complete: bool = True) -> list[tuple[int, memoryview]]:
         end = pos + RECORD_HEADER + length
         if end > len(view):
             break
-        out.append((opcode, view[pos + RECORD_HEADER:end]))
+        out.append((opcode, view[pos + RECORD_HEADER : end]))
         pos = end
     if complete and pos != len(view):
         raise BadChunk("its records do not fill it exactly")

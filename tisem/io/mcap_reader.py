@@ -12,23 +12,32 @@ which survives damage and reports what was lost):
   for in a file known to be damaged, or posed across lost /tf messages, is marked in
   `report.suspect`; labels that are no labels count as unknown (0, no evidence).
 """
+
 from __future__ import annotations
 
 import logging
 import math
 from collections import Counter
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Iterator
 
 import numpy as np
 from mcap.records import Channel, Schema
 
 from tisem.errors import DatasetError, ScanError, SkippedScan
 from tisem.io import pointcloud2 as pc2
-from tisem.io.mcap_messages import (CLOUD_SCHEMAS, POSE_SCHEMAS, TF_SCHEMAS, UNSUPPORTED_CLOUDS,
-                                    MessageDecoders, cloud_labels, cloud_parts,
-                                    cloud_probabilities, pose_edges)
+from tisem.io.mcap_messages import (
+    CLOUD_SCHEMAS,
+    POSE_SCHEMAS,
+    TF_SCHEMAS,
+    UNSUPPORTED_CLOUDS,
+    MessageDecoders,
+    cloud_labels,
+    cloud_parts,
+    cloud_probabilities,
+    pose_edges,
+)
 from tisem.io.mcap_records import Loss, LostMessages, McapMessage, McapRecords, ReadReport
 from tisem.io.stamps import split_ns
 from tisem.io.tf import TfBuffer, TfError
@@ -42,17 +51,17 @@ log = logging.getLogger(__name__)
 class McapOptions:
     """How to turn a recording into scans (the `map_mcap.py` options)."""
 
-    topic: str | None = None            # the cloud topic; found automatically when there is one
-    label_field: str = "label"          # per-point label field ...
-    label_space: str = "raw"            # ... holding raw SemanticKITTI ids or train ids
-    prob_field: str | None = None       # or a count=C float field of class probabilities
-    gt_field: str | None = None         # ground-truth label field (same label space), for metrics
+    topic: str | None = None  # the cloud topic; found automatically when there is one
+    label_field: str = "label"  # per-point label field ...
+    label_space: str = "raw"  # ... holding raw SemanticKITTI ids or train ids
+    prob_field: str | None = None  # or a count=C float field of class probabilities
+    gt_field: str | None = None  # ground-truth label field (same label space), for metrics
     map_frame: str = "map"
-    pose_topic: str | None = None       # Odometry / PoseStamped instead of /tf (dynamic)
-    pose_child_frame: str | None = None # the frame a PoseStamped is the pose of (default: the
-                                        # top of the cloud frame's /tf_static chain)
-    tf_tolerance_s: float = 0.0         # allowed extrapolation beyond a transform's samples
-    first: int = 0                      # scans by message order, last inclusive
+    pose_topic: str | None = None  # Odometry / PoseStamped instead of /tf (dynamic)
+    pose_child_frame: str | None = None  # the frame a PoseStamped is the pose of (default: the
+    # top of the cloud frame's /tf_static chain)
+    tf_tolerance_s: float = 0.0  # allowed extrapolation beyond a transform's samples
+    first: int = 0  # scans by message order, last inclusive
     last: int | None = None
     num_classes: int = NUM_CLASSES
 
@@ -65,16 +74,15 @@ class McapOptions:
             raise ValueError(f"tf_tolerance_s must be a finite number >= 0, got {tolerance!r}")
         for name in ("label_field", "map_frame"):
             if not (isinstance(getattr(self, name), str) and getattr(self, name)):
-                raise ValueError(f"{name} must be a non-empty string, got "
-                                 f"{getattr(self, name)!r}")
+                raise ValueError(f"{name} must be a non-empty string, got {getattr(self, name)!r}")
         if not (_is_int(self.first) and self.first >= 0):
             raise ValueError(f"first must be a whole number >= 0, got {self.first!r}")
         if self.last is not None and not (_is_int(self.last) and self.last >= self.first):
-            raise ValueError(f"last must be a whole number >= first ({self.first}) or None, "
-                             f"got {self.last!r}")
+            raise ValueError(
+                f"last must be a whole number >= first ({self.first}) or None, got {self.last!r}"
+            )
         if not (_is_int(self.num_classes) and self.num_classes >= 2):
-            raise ValueError(f"num_classes must be a whole number >= 2, got "
-                             f"{self.num_classes!r}")
+            raise ValueError(f"num_classes must be a whole number >= 2, got {self.num_classes!r}")
 
 
 def _is_int(value) -> bool:
@@ -95,9 +103,14 @@ class McapScanReader:
     iterating).
     """
 
-    def __init__(self, path: str | Path, options: McapOptions | None = None, *,
-                 records: McapRecords | None = None,
-                 decoders: MessageDecoders | None = None) -> None:
+    def __init__(
+        self,
+        path: str | Path,
+        options: McapOptions | None = None,
+        *,
+        records: McapRecords | None = None,
+        decoders: MessageDecoders | None = None,
+    ) -> None:
         """`records` and `decoders` replace the MCAP file's (`tisem.io.bag_open`: split files,
         bags that `rosbags` reads); they default to those of the file at `path`."""
         self.options = options or McapOptions()
@@ -106,7 +119,7 @@ class McapScanReader:
         self.report = ReadReport(path=self.path)
         self._records = records if records is not None else McapRecords(path)
         self._decoders = decoders if decoders is not None else MessageDecoders()
-        self._unknown: dict[int, tuple[int, int]] = {}    # scan index -> unknown labels, gt
+        self._unknown: dict[int, tuple[int, int]] = {}  # scan index -> unknown labels, gt
         self._survey()
 
     # -- pass 1
@@ -114,14 +127,14 @@ class McapScanReader:
         opts = self.options
         schemas: dict[int, Schema] = {}
         channels: dict[int, Channel] = {}
-        kinds: dict[str, str] = {}                    # topic -> schema name
-        samples = []                                  # (static, foxglove, parent, child, t, xyz, q)
-        first_cloud: dict[str, object] = {}           # topic -> first usable cloud
-        misfits: dict[str, object] = {}               # topic -> first cloud lacking a field
-        self._cloud_errors: dict[str, str] = {}       # topic -> why its first bad cloud failed
+        kinds: dict[str, str] = {}  # topic -> schema name
+        samples = []  # (static, foxglove, parent, child, t, xyz, q)
+        first_cloud: dict[str, object] = {}  # topic -> first usable cloud
+        misfits: dict[str, object] = {}  # topic -> first cloud lacking a field
+        self._cloud_errors: dict[str, str] = {}  # topic -> why its first bad cloud failed
         undecodable = Counter()
         pose_errors: dict[str, str] = {}
-        lost_clouds = Counter()                       # channel id -> messages in lost chunks
+        lost_clouds = Counter()  # channel id -> messages in lost chunks
         for rec in self._records.records(self.report):
             if isinstance(rec, Schema):
                 schemas[rec.id] = rec
@@ -129,8 +142,9 @@ class McapScanReader:
             if isinstance(rec, Channel):
                 channels[rec.id] = rec
                 schema = schemas.get(rec.schema_id)
-                kinds[rec.topic] = (schema.name if schema else
-                                    "unknown schema" if rec.schema_id else "no schema")
+                kinds[rec.topic] = (
+                    schema.name if schema else "unknown schema" if rec.schema_id else "no schema"
+                )
                 continue
             if isinstance(rec, LostMessages):
                 if rec.channel_id is not None:
@@ -140,10 +154,16 @@ class McapScanReader:
             name = kinds[ch.topic]
             # with --pose-topic, /tf is ignored but /tf_static still gives the sensor mount
             static = ch.topic.endswith("tf_static")
-            is_pose = (name in TF_SCHEMAS and (opts.pose_topic is None or static)
-                       or ch.topic == opts.pose_topic)
-            wants_cloud = (name in CLOUD_SCHEMAS and ch.topic not in first_cloud
-                           and (opts.topic is None or ch.topic == opts.topic))
+            is_pose = (
+                name in TF_SCHEMAS
+                and (opts.pose_topic is None or static)
+                or ch.topic == opts.pose_topic
+            )
+            wants_cloud = (
+                name in CLOUD_SCHEMAS
+                and ch.topic not in first_cloud
+                and (opts.topic is None or ch.topic == opts.topic)
+            )
             if not (is_pose or wants_cloud):
                 continue
             try:
@@ -152,7 +172,7 @@ class McapScanReader:
                     parts = cloud_parts(name, msg)
                     if self._cloud_problem(parts, ch.topic) is None:
                         first_cloud[ch.topic] = parts
-                    else:                             # one odd cloud must not refuse the file
+                    else:  # one odd cloud must not refuse the file
                         misfits.setdefault(ch.topic, parts)
                     continue
                 edges = pose_edges(name, msg, default_parent=opts.map_frame, default_child=None)
@@ -170,27 +190,35 @@ class McapScanReader:
             fox = name.startswith("foxglove.")
             samples += [(static, fox, *e) for e in edges]
         for topic, n in undecodable.items():
-            self.report.losses.append(Loss(topic, f"messages could not be decoded (the first: "
-                                           f"{pose_errors[topic][:200]})", messages=n,
-                                           topics=Counter({topic: n})))
+            self.report.losses.append(
+                Loss(
+                    topic,
+                    f"messages could not be decoded (the first: {pose_errors[topic][:200]})",
+                    messages=n,
+                    topics=Counter({topic: n}),
+                )
+            )
         pose_topics = {t for t, k in kinds.items() if k in TF_SCHEMAS or t == opts.pose_topic}
         # a lost pose message changes the poses interpolated across where it was
         self._poses_lost = bool(undecodable) or any(
-            loss.uncounted or pose_topics & set(loss.topics) for loss in self.report.losses)
+            loss.uncounted or pose_topics & set(loss.topics) for loss in self.report.losses
+        )
         self._kinds = kinds
         self._schemas, self._channels = schemas, channels
         try:
             self.topic = self._pick_topic(kinds, {*first_cloud, *misfits})
-            if self.topic not in first_cloud:         # no cloud has what the options need
+            if self.topic not in first_cloud:  # no cloud has what the options need
                 raise DatasetError(self._cloud_problem(misfits[self.topic], self.topic))
             self.frame_id = first_cloud[self.topic][1]
             self._build_tf(samples)
             self._check_tf()
-        except DatasetError as e:                     # what was lost may be why
+        except DatasetError as e:  # what was lost may be why
             raise DatasetError(f"{e}{self._damage()}") from None
         n = self.report.messages[self.topic] + sum(
-            k for cid, k in lost_clouds.items()
-            if cid in channels and channels[cid].topic == self.topic)
+            k
+            for cid, k in lost_clouds.items()
+            if cid in channels and channels[cid].topic == self.topic
+        )
         last = n - 1 if opts.last is None else min(opts.last, n - 1)
         self.total = max(0, last - opts.first + 1)
 
@@ -205,26 +233,38 @@ class McapScanReader:
         if self.options.topic is not None:
             t = self.options.topic
             if t not in kinds:
-                raise DatasetError(f"{where}: no topic {t!r}; point-cloud topics: "
-                                   f"{listing(clouds)}")
+                raise DatasetError(
+                    f"{where}: no topic {t!r}; point-cloud topics: {listing(clouds)}"
+                )
             if kinds[t] not in CLOUD_SCHEMAS:
-                raise DatasetError(f"{where}: topic {t!r} carries {kinds[t]}, not a point cloud "
-                                   f"tisem reads ({', '.join(CLOUD_SCHEMAS)})")
+                raise DatasetError(
+                    f"{where}: topic {t!r} carries {kinds[t]}, not a point cloud "
+                    f"tisem reads ({', '.join(CLOUD_SCHEMAS)})"
+                )
             clouds = {t}
         if not clouds:
             other = [t for t, k in kinds.items() if k in UNSUPPORTED_CLOUDS]
-            hint = (f"; {', '.join(f'{t} ({kinds[t]})' for t in other)} cannot be read "
-                    f"(supported: {', '.join(CLOUD_SCHEMAS)})" if other else "")
-            raise DatasetError(f"{where}: no point-cloud messages found{hint}; topics: "
-                               f"{_describe_topics(counts, kinds) or 'none'}")
+            hint = (
+                f"; {', '.join(f'{t} ({kinds[t]})' for t in other)} cannot be read "
+                f"(supported: {', '.join(CLOUD_SCHEMAS)})"
+                if other
+                else ""
+            )
+            raise DatasetError(
+                f"{where}: no point-cloud messages found{hint}; topics: "
+                f"{_describe_topics(counts, kinds) or 'none'}"
+            )
         if len(clouds) > 1:
-            raise DatasetError(f"{where}: several point-cloud topics, choose one with --topic: "
-                               f"{listing(clouds)}")
+            raise DatasetError(
+                f"{where}: several point-cloud topics, choose one with --topic: {listing(clouds)}"
+            )
         topic = clouds.pop()
         if topic not in decoded:
             why = self._cloud_errors.get(topic, "unknown")
-            raise DatasetError(f"{where}: none of the {counts[topic]} messages on {topic} "
-                               f"could be decoded (the first: {why[:300]})")
+            raise DatasetError(
+                f"{where}: none of the {counts[topic]} messages on {topic} "
+                f"could be decoded (the first: {why[:300]})"
+            )
         return topic
 
     def _damage(self) -> str:
@@ -245,12 +285,16 @@ class McapScanReader:
             needed.append(opts.gt_field)
         missing = [f for f in needed if not pc2.has_field(arr, f)]
         if missing:
-            what = {opts.label_field: "label field (--label-field)",
-                    opts.prob_field: "probability field (--prob-field)",
-                    opts.gt_field: "ground-truth field (--gt-field)"}
-            return (f"{self.path}: the clouds on {topic} have no "
-                    f"{' and no '.join(repr(f) + ' ' + what.get(f, 'field') for f in missing)}; "
-                    f"their fields are: {pc2.describe_fields(arr)}")
+            what = {
+                opts.label_field: "label field (--label-field)",
+                opts.prob_field: "probability field (--prob-field)",
+                opts.gt_field: "ground-truth field (--gt-field)",
+            }
+            return (
+                f"{self.path}: the clouds on {topic} have no "
+                f"{' and no '.join(repr(f) + ' ' + what.get(f, 'field') for f in missing)}; "
+                f"their fields are: {pc2.describe_fields(arr)}"
+            )
         if not frame_id:
             return f"{self.path}: the clouds on {topic} have an empty frame_id"
         return None
@@ -258,7 +302,7 @@ class McapScanReader:
     def _build_tf(self, samples: list) -> None:
         opts = self.options
         self.tf = TfBuffer(max_extrapolation_s=opts.tf_tolerance_s)
-        for static, fox, parent, child, t, xyz, q in samples:
+        for static, _fox, parent, child, t, xyz, q in samples:
             if static:
                 self.tf.add(parent, child, t, xyz, q, static=True)
         # a PoseStamped names no child: by default it is the pose of the top of the sensor's
@@ -274,38 +318,46 @@ class McapScanReader:
         if fox_children:
             promoted = self.tf.promote_constant_edges(fox_children)
             if promoted:
-                self.report.notes.append(f"foxglove transforms that never change were taken as "
-                                         f"static: {', '.join(sorted(promoted))}")
+                self.report.notes.append(
+                    f"foxglove transforms that never change were taken as "
+                    f"static: {', '.join(sorted(promoted))}"
+                )
         self.report.notes += [f"tf: {w}" for w in self.tf.warnings]
 
     def _check_tf(self) -> None:
         opts = self.options
         if opts.pose_topic is not None and opts.pose_topic not in self._kinds:
-            raise DatasetError(f"{self.path}: no topic {opts.pose_topic!r}; topics: "
-                               f"{_describe_topics(self.report.messages, self._kinds)}")
+            raise DatasetError(
+                f"{self.path}: no topic {opts.pose_topic!r}; topics: "
+                f"{_describe_topics(self.report.messages, self._kinds)}"
+            )
         if opts.pose_topic is not None and self._kinds[opts.pose_topic] not in POSE_SCHEMAS:
-            raise DatasetError(f"{self.path}: --pose-topic {opts.pose_topic} carries "
-                               f"{self._kinds[opts.pose_topic]}; supported: "
-                               f"{', '.join(POSE_SCHEMAS)}")
+            raise DatasetError(
+                f"{self.path}: --pose-topic {opts.pose_topic} carries "
+                f"{self._kinds[opts.pose_topic]}; supported: "
+                f"{', '.join(POSE_SCHEMAS)}"
+            )
         if self.frame_id.lstrip("/") == opts.map_frame.lstrip("/"):
             return
         if not self.tf.can_connect(opts.map_frame, self.frame_id):
             try:
                 self.tf.lookup(opts.map_frame, self.frame_id, 0)
             except TfError as e:
-                raise DatasetError(f"{self.path}: no transform from the map frame "
-                                   f"{opts.map_frame!r} to the cloud frame {self.frame_id!r} "
-                                   f"(--map-frame, --pose-topic): {e}") from None
+                raise DatasetError(
+                    f"{self.path}: no transform from the map frame "
+                    f"{opts.map_frame!r} to the cloud frame {self.frame_id!r} "
+                    f"(--map-frame, --pose-topic): {e}"
+                ) from None
 
     # -- pass 2
     def __len__(self) -> int:
         return self.total
 
     def __iter__(self) -> Iterator[Scan | SkippedScan]:
-        scratch = ReadReport()               # damage was reported by the survey already
+        scratch = ReadReport()  # damage was reported by the survey already
         index = -1
-        targets = set()                      # channel ids of the topic (usually one)
-        renumbered = None                    # what before may have changed the numbering
+        targets = set()  # channel ids of the topic (usually one)
+        renumbered = None  # what before may have changed the numbering
         for rec in self._records.records(scratch):
             if isinstance(rec, Channel):
                 if rec.topic == self.topic:
@@ -319,14 +371,21 @@ class McapScanReader:
                 for _ in range(rec.count):
                     index += 1
                     if self._selected(index):
-                        yield self._skip(SkippedScan(index, f"{self.topic}#{index}",
-                                                     f"message lost in a damaged {rec.where}"))
+                        yield self._skip(
+                            SkippedScan(
+                                index,
+                                f"{self.topic}#{index}",
+                                f"message lost in a damaged {rec.where}",
+                            )
+                        )
                 continue
             if not isinstance(rec, McapMessage) or rec.channel_id not in targets:
                 continue
             if not rec.crc_checked and self._records.excess[self.topic]:
-                renumbered = renumbered or (f"a message outside CRC-checked chunks (the data "
-                                            f"holds more on {self.topic} than the summary counts)")
+                renumbered = renumbered or (
+                    f"a message outside CRC-checked chunks (the data "
+                    f"holds more on {self.topic} than the summary counts)"
+                )
             index += 1
             if self._selected(index):
                 item = self._skip(self._scan(index, rec))
@@ -339,28 +398,35 @@ class McapScanReader:
         across where pose messages were lost."""
         index = scan.index
         gap = None
-        if self._poses_lost and scan.source.frame_id.lstrip("/") != \
-                self.options.map_frame.lstrip("/"):
-            gap = self.tf.interpolation_gap(self.options.map_frame, scan.source.frame_id,
-                                            scan.source.stamp_ns)
+        if self._poses_lost and scan.source.frame_id.lstrip("/") != self.options.map_frame.lstrip(
+            "/"
+        ):
+            gap = self.tf.interpolation_gap(
+                self.options.map_frame, scan.source.frame_id, scan.source.stamp_ns
+            )
         if gap is not None:
-            self.report.suspect[index] = (f"pose messages were lost and its pose is "
-                                          f"interpolated across the gap: {gap}")
+            self.report.suspect[index] = (
+                f"pose messages were lost and its pose is interpolated across the gap: {gap}"
+            )
         elif renumbered is not None:
-            self.report.suspect[index] = (f"{renumbered} came before it, so its number may "
-                                          f"differ from the intact file's")
+            self.report.suspect[index] = (
+                f"{renumbered} came before it, so its number may differ from the intact file's"
+            )
         elif not rec.crc_checked and self._records.data_crc == "mismatch":
-            self.report.suspect[index] = ("the data section's CRC does not match and no CRC of "
-                                          "its own covers this cloud")
+            self.report.suspect[index] = (
+                "the data section's CRC does not match and no CRC of its own covers this cloud"
+            )
 
     def _selected(self, index: int) -> bool:
-        return index >= self.options.first and (self.options.last is None
-                                                or index <= self.options.last)
+        return index >= self.options.first and (
+            self.options.last is None or index <= self.options.last
+        )
 
     def _skip(self, item: Scan | SkippedScan) -> Scan | SkippedScan:
         """Record a skipped scan once (the pipeline may read the log twice) and pass it on."""
-        if isinstance(item, SkippedScan) and all(s.index != item.index
-                                                 for s in self.report.skipped):
+        if isinstance(item, SkippedScan) and all(
+            s.index != item.index for s in self.report.skipped
+        ):
             self.report.skipped.append(item)
         return item
 
@@ -374,7 +440,8 @@ class McapScanReader:
             sec, nsec = split_ns(stamp_ns)
             name = f"{self.topic}@{sec}.{nsec:09d}"
             used = ["x", "y", "z", opts.prob_field or opts.label_field] + (
-                [opts.gt_field] if opts.gt_field else [])
+                [opts.gt_field] if opts.gt_field else []
+            )
             pc2.check_used_fields(arr, used)
             if not frame_id:
                 raise pc2.CloudFormatError("the cloud has an empty frame_id")
@@ -383,8 +450,11 @@ class McapScanReader:
                 raise pc2.CloudFormatError("the cloud has 0 points")
             if not finite_rows(points).any():
                 raise pc2.CloudFormatError(f"all {len(points)} points are non-finite (NaN/inf)")
-            T = np.eye(4) if frame_id.lstrip("/") == opts.map_frame.lstrip("/") else \
-                self.tf.lookup(opts.map_frame, frame_id, stamp_ns)
+            T = (
+                np.eye(4)
+                if frame_id.lstrip("/") == opts.map_frame.lstrip("/")
+                else self.tf.lookup(opts.map_frame, frame_id, stamp_ns)
+            )
             if T_frame_cloud is not None:
                 T = T @ T_frame_cloud
             labels = probs = gt = None
@@ -392,17 +462,32 @@ class McapScanReader:
             if opts.prob_field:
                 probs, unknown = cloud_probabilities(arr, opts.prob_field, opts.num_classes)
             else:
-                labels, unknown = cloud_labels(arr, opts.label_field, opts.label_space,
-                                               opts.num_classes)
+                labels, unknown = cloud_labels(
+                    arr, opts.label_field, opts.label_space, opts.num_classes
+                )
             if opts.gt_field:
-                gt, unknown_gt = cloud_labels(arr, opts.gt_field, opts.label_space,
-                                              opts.num_classes)
+                gt, unknown_gt = cloud_labels(
+                    arr, opts.gt_field, opts.label_space, opts.num_classes
+                )
             self._count_unknown(index, unknown, unknown_gt)
-            return Scan(points_sensor=points, T_world_sensor=T, stamp_s=stamp_ns / 1e9,
-                        labels=labels, probs=probs, gt_labels=gt, index=index, name=name,
-                        source=McapSource(unknown_raw_ids=unknown, unknown_gt_ids=unknown_gt,
-                                          topic=self.topic, frame_id=frame_id,
-                                          stamp_ns=stamp_ns, log_time_ns=rec.log_time))
+            return Scan(
+                points_sensor=points,
+                T_world_sensor=T,
+                stamp_s=stamp_ns / 1e9,
+                labels=labels,
+                probs=probs,
+                gt_labels=gt,
+                index=index,
+                name=name,
+                source=McapSource(
+                    unknown_raw_ids=unknown,
+                    unknown_gt_ids=unknown_gt,
+                    topic=self.topic,
+                    frame_id=frame_id,
+                    stamp_ns=stamp_ns,
+                    log_time_ns=rec.log_time,
+                ),
+            )
         except (TfError, pc2.CloudFormatError, ScanError) as e:
             return SkippedScan(index, name, str(e))
         except Exception as e:  # noqa: BLE001 - undecodable bytes raise anything

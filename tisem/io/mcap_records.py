@@ -12,11 +12,12 @@ from the message index records after it in the data (or from its own records, wh
 parse); when that is impossible the loss says so, and the reader marks the scans after it.
 A file cut short gives every message that was completely written.
 """
+
 from __future__ import annotations
 
 from collections import Counter
+from collections.abc import Iterator
 from pathlib import Path
-from typing import Iterator
 
 from mcap.records import Channel, ChunkIndex, Schema
 
@@ -46,35 +47,39 @@ class McapRecords:
             raise DatasetError(f"{path}: the file is empty")
         with open(path, "rb") as f:
             if f.read(len(MAGIC)) != MAGIC:
-                raise DatasetError(f"{path}: not an MCAP file (it does not start with the MCAP "
-                                   f"magic bytes)")
+                raise DatasetError(
+                    f"{path}: not an MCAP file (it does not start with the MCAP magic bytes)"
+                )
             self.footer = read_footer(f, self.size)
-            self.summary, self.summary_problem = (read_summary(f, self.footer) if self.footer
-                                                  else (None, None))
+            self.summary, self.summary_problem = (
+                read_summary(f, self.footer) if self.footer else (None, None)
+            )
         # where the data ends: the summary's start (when it is used), the footer, the file's end
-        self.limit = (self.summary.start if self.summary else
-                      self.footer.offset if self.footer else self.size)
-        self.index: dict[int, list[ChunkIndex]] = {}                      # offset -> entries
+        self.limit = (
+            self.summary.start if self.summary else self.footer.offset if self.footer else self.size
+        )
+        self.index: dict[int, list[ChunkIndex]] = {}  # offset -> entries
         for entry in self.summary.chunk_indexes if self.summary else ():
             self.index.setdefault(entry.chunk_start_offset, []).append(entry)
         self.data_crc: str | None = None
-        self.excess = Counter()            # topic -> messages beyond the summary's counts
+        self.excess = Counter()  # topic -> messages beyond the summary's counts
 
-    def records(self, report: ReadReport) -> Iterator[Schema | Channel | McapMessage |
-                                                      LostMessages]:
+    def records(
+        self, report: ReadReport
+    ) -> Iterator[Schema | Channel | McapMessage | LostMessages]:
         """Yield Schema, Channel, McapMessage and LostMessages records in data order; count
         messages per topic and append what was dropped or distrusted to `report`."""
         self._notes(report)
         with open(self.path, "rb") as f:
             walk = Walk(self, f, report)
-            if self.summary is not None:       # they survive a lost chunk
+            if self.summary is not None:  # they survive a lost chunk
                 yield from self.summary.schemas.values()
                 yield from self.summary.channels.values()
             orphans = Counter()
             for rec in walk.run():
                 if isinstance(rec, McapMessage):
                     ch = walk.channels.get(rec.channel_id)
-                    if ch is None:             # its Channel record was in a lost chunk
+                    if ch is None:  # its Channel record was in a lost chunk
                         orphans[rec.channel_id] += 1
                         continue
                     report.messages[ch.topic] += 1
@@ -82,9 +87,14 @@ class McapRecords:
         walk.finish()
         self._check_data_crc(report, walk)
         for cid, n in orphans.items():
-            report.losses.append(Loss(f"channel {cid}", "its Channel record was lost, so its "
-                                      "messages cannot be decoded", messages=n,
-                                      topics=Counter({f"channel {cid}": n})))
+            report.losses.append(
+                Loss(
+                    f"channel {cid}",
+                    "its Channel record was lost, so its messages cannot be decoded",
+                    messages=n,
+                    topics=Counter({f"channel {cid}": n}),
+                )
+            )
         self._check_counts(report)
 
     def _check_data_crc(self, report: ReadReport, walk: Walk) -> None:
@@ -103,14 +113,21 @@ class McapRecords:
 
     def _notes(self, report: ReadReport) -> None:
         if self.footer is None:
-            report.notes.append("no summary section (the file does not end with a footer: cut "
-                                "short, or its end is damaged): the file was read linearly")
+            report.notes.append(
+                "no summary section (the file does not end with a footer: cut "
+                "short, or its end is damaged): the file was read linearly"
+            )
         elif self.footer.summary_start == 0:
-            report.notes.append("no summary section (written without one): the file was read "
-                                "linearly")
+            report.notes.append(
+                "no summary section (written without one): the file was read linearly"
+            )
         elif self.summary_problem is not None:
-            report.losses.append(Loss("summary section", f"{self.summary_problem}; it was not "
-                                      f"used and the file was read from its data"))
+            report.losses.append(
+                Loss(
+                    "summary section",
+                    f"{self.summary_problem}; it was not used and the file was read from its data",
+                )
+            )
         elif not self.summary.chunk_indexes:
             report.notes.append("no chunk index: the file was read linearly")
 
@@ -130,12 +147,22 @@ class McapRecords:
             accounted.update(loss.topics)
         unaccounted = missing - accounted
         if unaccounted:
-            report.losses.append(Loss("summary statistics", "messages counted in the summary "
-                                      "were not found", messages=sum(unaccounted.values()),
-                                      topics=unaccounted))
+            report.losses.append(
+                Loss(
+                    "summary statistics",
+                    "messages counted in the summary were not found",
+                    messages=sum(unaccounted.values()),
+                    topics=unaccounted,
+                )
+            )
         self.excess = report.messages - counted if counted else Counter()
         if self.excess:
             extra = ", ".join(f"{n} on {t}" for t, n in sorted(self.excess.items()))
-            report.losses.append(Loss("summary statistics", f"the data holds more messages "
-                                      f"than the summary counts ({extra}): records outside "
-                                      f"CRC-checked chunks were damaged into messages"))
+            report.losses.append(
+                Loss(
+                    "summary statistics",
+                    f"the data holds more messages "
+                    f"than the summary counts ({extra}): records outside "
+                    f"CRC-checked chunks were damaged into messages",
+                )
+            )

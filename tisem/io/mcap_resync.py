@@ -9,6 +9,7 @@ it). What the skipped stretch held is counted from the message index records of 
 the index places there; without an index the count is unknown, and the reader says so.
 After a pass, `index_disagreements` compares the index with the chunks the data held.
 """
+
 from __future__ import annotations
 
 import re
@@ -20,11 +21,19 @@ from mcap.opcode import Opcode
 from mcap.records import ChunkIndex
 
 from tisem.io.mcap_chunks import COMPRESSIONS
-from tisem.io.mcap_summary import (MAGIC, RECORD_HEADER, Malformed, parse_channel,
-                                   parse_message_index, parse_schema, read_record, valid_opcode)
+from tisem.io.mcap_summary import (
+    MAGIC,
+    RECORD_HEADER,
+    Malformed,
+    parse_channel,
+    parse_message_index,
+    parse_schema,
+    read_record,
+    valid_opcode,
+)
 
-_SCAN_WINDOW = 1 << 20             # bytes per read while looking for the next intact record
-_MAX_DEFINITION = 1 << 20          # a schema or channel record longer than this is not one
+_SCAN_WINDOW = 1 << 20  # bytes per read while looking for the next intact record
+_MAX_DEFINITION = 1 << 20  # a schema or channel record longer than this is not one
 
 
 class RecordFinder:
@@ -41,8 +50,11 @@ class RecordFinder:
         if end == self.limit:
             return True
         head = self._at(end, RECORD_HEADER)
-        return (len(head) == RECORD_HEADER and valid_opcode(head[0])
-                and end + RECORD_HEADER + struct.unpack_from("<Q", head, 1)[0] <= self.limit)
+        return (
+            len(head) == RECORD_HEADER
+            and valid_opcode(head[0])
+            and end + RECORD_HEADER + struct.unpack_from("<Q", head, 1)[0] <= self.limit
+        )
 
     def looks_like_chunk(self, pos: int) -> bool:
         head = self._at(pos, RECORD_HEADER + 48)
@@ -52,10 +64,13 @@ class RecordFinder:
         name_length = struct.unpack_from("<I", head, RECORD_HEADER + 28)[0]
         if name_length > 4 or pos + RECORD_HEADER + length > self.limit:
             return False
-        name = head[RECORD_HEADER + 32:RECORD_HEADER + 32 + name_length]
+        name = head[RECORD_HEADER + 32 : RECORD_HEADER + 32 + name_length]
         data = struct.unpack_from("<Q", head, RECORD_HEADER + 32 + name_length)[0]
-        return (name.decode("latin-1") in COMPRESSIONS and 40 + name_length + data == length
-                and self._record_follows(pos + RECORD_HEADER + length))
+        return (
+            name.decode("latin-1") in COMPRESSIONS
+            and 40 + name_length + data == length
+            and self._record_follows(pos + RECORD_HEADER + length)
+        )
 
     def looks_like_message(self, pos: int, channels) -> bool:
         head = self._at(pos, RECORD_HEADER + 2)
@@ -63,8 +78,12 @@ class RecordFinder:
             return False
         length = struct.unpack_from("<Q", head, 1)[0]
         end = pos + RECORD_HEADER + length
-        return (length >= 22 and end <= self.limit and self._record_follows(end)
-                and struct.unpack_from("<H", head, RECORD_HEADER)[0] in channels)
+        return (
+            length >= 22
+            and end <= self.limit
+            and self._record_follows(end)
+            and struct.unpack_from("<H", head, RECORD_HEADER)[0] in channels
+        )
 
     def looks_like_message_index(self, pos: int, channels) -> bool:
         head = self._at(pos, RECORD_HEADER + 6)
@@ -73,9 +92,13 @@ class RecordFinder:
         length = struct.unpack_from("<Q", head, 1)[0]
         channel_id, entries = struct.unpack_from("<HI", head, RECORD_HEADER)
         end = pos + RECORD_HEADER + length
-        return (entries == length - 6 and entries % 16 == 0
-                and (channel_id in channels or not channels)
-                and end <= self.limit and self._record_follows(end))
+        return (
+            entries == length - 6
+            and entries % 16 == 0
+            and (channel_id in channels or not channels)
+            and end <= self.limit
+            and self._record_follows(end)
+        )
 
     def looks_like_definition(self, pos: int) -> bool:
         """A Schema or Channel record that parses and fills its record exactly, with printable
@@ -106,12 +129,18 @@ class RecordFinder:
         known channel."""
         listed = sorted(o for o in self.index if pos < o < self.limit)
         bound = next((o for o in listed if self.looks_like_chunk(o)), self.limit)
-        checks = {Opcode.CHUNK: self.looks_like_chunk,
-                  Opcode.MESSAGE_INDEX: lambda p: self.looks_like_message_index(p, channels)}
+        checks = {
+            Opcode.CHUNK: self.looks_like_chunk,
+            Opcode.MESSAGE_INDEX: lambda p: self.looks_like_message_index(p, channels),
+        }
         if not chunked:
-            checks.update({Opcode.MESSAGE: lambda p: self.looks_like_message(p, channels),
-                           Opcode.SCHEMA: self.looks_like_definition,
-                           Opcode.CHANNEL: self.looks_like_definition})
+            checks.update(
+                {
+                    Opcode.MESSAGE: lambda p: self.looks_like_message(p, channels),
+                    Opcode.SCHEMA: self.looks_like_definition,
+                    Opcode.CHANNEL: self.looks_like_definition,
+                }
+            )
         wanted = re.compile(b"[" + b"".join(re.escape(bytes([o])) for o in checks) + b"]")
         at = pos + 1
         while at < bound:
@@ -128,7 +157,7 @@ class RecordFinder:
         """Messages per channel the chunk index places in [start, end) (but not at the offsets
         in `skip`, chunks already read or lost), counted from their message index records in
         the data; None when one cannot be read."""
-        if not self.index:                     # an index of no chunks says nothing
+        if not self.index:  # an index of no chunks says nothing
             return None
         counts = Counter()
         for offset, entries in self.index.items():
@@ -162,8 +191,10 @@ def index_disagreements(index: dict[int, list], seen: dict[int, int], reached: i
     dupes = {o: len(es) - 1 for o, es in index.items() if len(es) > 1}
     if dupes:
         n = sum(dupes.values())
-        problems.append(f"{n} duplicated {'entry' if n == 1 else 'entries'} for the chunk(s) "
-                        f"at byte {_offsets(dupes)}")
+        problems.append(
+            f"{n} duplicated {'entry' if n == 1 else 'entries'} for the chunk(s) "
+            f"at byte {_offsets(dupes)}"
+        )
     missing = [o for o in seen if o not in index]
     if missing:
         problems.append(f"no entry for the chunk(s) at byte {_offsets(missing)}")

@@ -6,6 +6,7 @@ huge allocation or a short read taken for a whole one. The summary (schemas, cha
 index, statistics) is used only when its CRC matches (or it carries none) and it holds nothing
 but summary records; otherwise `read_summary` says why, and the file is read from its data.
 """
+
 from __future__ import annotations
 
 import struct
@@ -17,14 +18,22 @@ from mcap.opcode import Opcode
 from mcap.records import Channel, ChunkIndex, Schema, Statistics
 
 MAGIC = b"\x89MCAP0\r\n"
-RECORD_HEADER = 9                                  # opcode u8 + content length u64
-FOOTER_RECORD = RECORD_HEADER + 20                 # summary start, offset start, crc
-DATA_END_RECORD = RECORD_HEADER + 4                # the data section's crc
-TAIL = FOOTER_RECORD + len(MAGIC)                  # what a whole file ends with
-SUMMARY_OPCODES = frozenset((Opcode.SCHEMA, Opcode.CHANNEL, Opcode.CHUNK_INDEX,
-                             Opcode.ATTACHMENT_INDEX, Opcode.METADATA_INDEX, Opcode.STATISTICS,
-                             Opcode.SUMMARY_OFFSET))
-_CRC_PIECE = 1 << 22                               # bytes per read while checking a CRC
+RECORD_HEADER = 9  # opcode u8 + content length u64
+FOOTER_RECORD = RECORD_HEADER + 20  # summary start, offset start, crc
+DATA_END_RECORD = RECORD_HEADER + 4  # the data section's crc
+TAIL = FOOTER_RECORD + len(MAGIC)  # what a whole file ends with
+SUMMARY_OPCODES = frozenset(
+    (
+        Opcode.SCHEMA,
+        Opcode.CHANNEL,
+        Opcode.CHUNK_INDEX,
+        Opcode.ATTACHMENT_INDEX,
+        Opcode.METADATA_INDEX,
+        Opcode.STATISTICS,
+        Opcode.SUMMARY_OFFSET,
+    )
+)
+_CRC_PIECE = 1 << 22  # bytes per read while checking a CRC
 
 
 class Malformed(ValueError):
@@ -57,9 +66,11 @@ class Fields:
 
     def take(self, n: int) -> memoryview:
         if n > self.left:
-            raise Malformed(f"{self.what}: a field at byte {self.pos} of the record needs {n} "
-                            f"bytes, {self.left} are left")
-        out = self.buf[self.pos:self.pos + n]
+            raise Malformed(
+                f"{self.what}: a field at byte {self.pos} of the record needs {n} "
+                f"bytes, {self.left} are left"
+            )
+        out = self.buf[self.pos : self.pos + n]
         self.pos += n
         return out
 
@@ -102,6 +113,7 @@ class Fields:
 
 # ---- record contents -------------------------------------------------------------------------
 
+
 def _done(f: Fields, exact: bool) -> None:
     """Later versions of the format may append fields to a record: extra bytes are allowed,
     except where a record found by searching the bytes must prove it is one."""
@@ -118,8 +130,13 @@ def parse_schema(buf, exact: bool = False) -> Schema:
 
 def parse_channel(buf, exact: bool = False) -> Channel:
     f = Fields(buf, "channel record")
-    channel = Channel(id=f.u16(), schema_id=f.u16(), topic=f.text(), message_encoding=f.text(),
-                      metadata=f.text_map())
+    channel = Channel(
+        id=f.u16(),
+        schema_id=f.u16(),
+        topic=f.text(),
+        message_encoding=f.text(),
+        metadata=f.text_map(),
+    )
     _done(f, exact)
     return channel
 
@@ -128,17 +145,31 @@ def parse_chunk_index(buf) -> ChunkIndex:
     f = Fields(buf, "chunk index record")
     start, end, offset, length = f.u64(), f.u64(), f.u64(), f.u64()
     offsets = f.id_map()
-    return ChunkIndex(message_start_time=start, message_end_time=end, chunk_start_offset=offset,
-                      chunk_length=length, message_index_offsets=offsets,
-                      message_index_length=f.u64(), compression=f.text(),
-                      compressed_size=f.u64(), uncompressed_size=f.u64())
+    return ChunkIndex(
+        message_start_time=start,
+        message_end_time=end,
+        chunk_start_offset=offset,
+        chunk_length=length,
+        message_index_offsets=offsets,
+        message_index_length=f.u64(),
+        compression=f.text(),
+        compressed_size=f.u64(),
+        uncompressed_size=f.u64(),
+    )
 
 
 def parse_statistics(buf) -> Statistics:
     f = Fields(buf, "statistics record")
-    counts = dict(message_count=f.u64(), schema_count=f.u16(), channel_count=f.u32(),
-                  attachment_count=f.u32(), metadata_count=f.u32(), chunk_count=f.u32(),
-                  message_start_time=f.u64(), message_end_time=f.u64())
+    counts = dict(
+        message_count=f.u64(),
+        schema_count=f.u16(),
+        channel_count=f.u32(),
+        attachment_count=f.u32(),
+        metadata_count=f.u32(),
+        chunk_count=f.u32(),
+        message_start_time=f.u64(),
+        message_end_time=f.u64(),
+    )
     return Statistics(channel_message_counts=f.id_map(), **counts)
 
 
@@ -148,8 +179,9 @@ def parse_message_index(buf) -> tuple[int, int]:
     channel_id = f.u16()
     entries = f.blob()
     if len(entries) % 16:
-        raise Malformed(f"message index record: {len(entries)} bytes of entries is not a "
-                        f"multiple of 16")
+        raise Malformed(
+            f"message index record: {len(entries)} bytes of entries is not a multiple of 16"
+        )
     return channel_id, len(entries) // 16
 
 
@@ -179,6 +211,7 @@ def attachment_problem(f: BinaryIO, pos: int, length: int) -> str | None:
 
 # ---- footer and summary ----------------------------------------------------------------------
 
+
 def read_record(f: BinaryIO, pos: int, end: int) -> tuple[int, bytes] | str:
     """(opcode, content) of the record at `pos`, or why it cannot be one ending by `end`."""
     f.seek(pos)
@@ -189,8 +222,10 @@ def read_record(f: BinaryIO, pos: int, end: int) -> tuple[int, bytes] | str:
     if not valid_opcode(opcode):
         return f"invalid record opcode {opcode:#x} at byte {pos}"
     if length > end - pos - RECORD_HEADER:
-        return (f"the {opcode_name(opcode)} record at byte {pos} claims {length} bytes, more "
-                f"than the {end - pos - RECORD_HEADER} left")
+        return (
+            f"the {opcode_name(opcode)} record at byte {pos} claims {length} bytes, more "
+            f"than the {end - pos - RECORD_HEADER} left"
+        )
     return opcode, f.read(length)
 
 
@@ -208,11 +243,11 @@ def crc_of_range(f: BinaryIO, start: int, end: int, crc: int = 0) -> int:
 
 @dataclass
 class Footer:
-    offset: int                 # where the footer record starts (the data or summary ends here)
-    summary_start: int          # 0 = no summary
+    offset: int  # where the footer record starts (the data or summary ends here)
+    summary_start: int  # 0 = no summary
     summary_crc: int
-    data_end_at: int | None = None    # where the DataEnd record is, when found ...
-    data_end_crc: int = 0             # ... and its data-section CRC (0: none)
+    data_end_at: int | None = None  # where the DataEnd record is, when found ...
+    data_end_crc: int = 0  # ... and its data-section CRC (0: none)
 
 
 @dataclass
@@ -235,12 +270,13 @@ def read_footer(f: BinaryIO, size: int) -> Footer | None:
     f.seek(size - TAIL)
     tail = f.read(TAIL)
     opcode, length, summary_start, _, summary_crc = struct.unpack_from("<BQQQI", tail)
-    if tail[-len(MAGIC):] != MAGIC or opcode != Opcode.FOOTER or length != 20:
+    if tail[-len(MAGIC) :] != MAGIC or opcode != Opcode.FOOTER or length != 20:
         return None
     footer = Footer(size - TAIL, summary_start, summary_crc)
     # the DataEnd record sits right before the summary (or the footer, without one)
-    data_end = (summary_start if len(MAGIC) <= summary_start <= footer.offset
-                else footer.offset) - DATA_END_RECORD
+    data_end = (
+        summary_start if len(MAGIC) <= summary_start <= footer.offset else footer.offset
+    ) - DATA_END_RECORD
     if data_end >= len(MAGIC):
         f.seek(data_end)
         opcode, length, crc = struct.unpack("<BQI", f.read(DATA_END_RECORD))
@@ -255,10 +291,11 @@ def read_summary(f: BinaryIO, footer: Footer) -> tuple[Summary | None, str | Non
     if start == 0:
         return None, None
     if not len(MAGIC) <= start <= end:
-        return None, (f"the footer's summary offset {start} lies outside the file's "
-                      f"{len(MAGIC)}..{end}")
+        return None, (
+            f"the footer's summary offset {start} lies outside the file's {len(MAGIC)}..{end}"
+        )
     if footer.summary_crc:
-        crc = crc_of_range(f, start, end + RECORD_HEADER + 16)   # up to the footer's crc field
+        crc = crc_of_range(f, start, end + RECORD_HEADER + 16)  # up to the footer's crc field
         if crc != footer.summary_crc:
             return None, "the summary section's CRC does not match (corrupted bytes)"
     summary = Summary(start=start, crc_checked=bool(footer.summary_crc))
@@ -269,8 +306,10 @@ def read_summary(f: BinaryIO, footer: Footer) -> tuple[Summary | None, str | Non
             return None, f"the summary section is malformed: {rec}"
         opcode, content = rec
         if opcode not in SUMMARY_OPCODES:
-            return None, (f"the summary section holds a {opcode_name(opcode)} record (at byte "
-                          f"{pos}): its offset in the footer is wrong")
+            return None, (
+                f"the summary section holds a {opcode_name(opcode)} record (at byte "
+                f"{pos}): its offset in the footer is wrong"
+            )
         try:
             if opcode == Opcode.SCHEMA:
                 schema = parse_schema(content)

@@ -6,32 +6,57 @@ from the message index records after them, or from their own records), records w
 is damaged (reading goes on at the next intact record, `tisem.io.mcap_resync`), a file cut
 short, CRC mismatches, and a chunk index that disagrees with the data.
 """
+
 from __future__ import annotations
 
 import bisect
 import struct
 from collections import Counter
+from collections.abc import Iterator
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, BinaryIO, Iterator
+from typing import TYPE_CHECKING, BinaryIO
 
 import zstandard
 from mcap.opcode import Opcode
 from mcap.records import Channel
 
-from tisem.io.mcap_chunks import (BadChunk, checked_records, chunk_header, inflate, inner_records,
-                                  messages_in_damaged)
+from tisem.io.mcap_chunks import (
+    BadChunk,
+    checked_records,
+    chunk_header,
+    inflate,
+    inner_records,
+    messages_in_damaged,
+)
 from tisem.io.mcap_report import Loss, ReadReport
 from tisem.io.mcap_resync import RecordFinder, index_disagreements
-from tisem.io.mcap_summary import (MAGIC, RECORD_HEADER, Malformed, attachment_problem,
-                                   crc_of_range, opcode_name, parse_channel, parse_message_index,
-                                   parse_schema, valid_opcode)
+from tisem.io.mcap_summary import (
+    MAGIC,
+    RECORD_HEADER,
+    Malformed,
+    attachment_problem,
+    crc_of_range,
+    opcode_name,
+    parse_channel,
+    parse_message_index,
+    parse_schema,
+    valid_opcode,
+)
 
 if TYPE_CHECKING:
     from tisem.io.mcap_records import McapRecords
 
 # what untrusted bytes make decompressors and parsers raise: "these bytes are damaged"
-_UNTRUSTED = (BadChunk, Malformed, zstandard.ZstdError, RuntimeError, struct.error, ValueError,
-              OverflowError, EOFError)
+_UNTRUSTED = (
+    BadChunk,
+    Malformed,
+    zstandard.ZstdError,
+    RuntimeError,
+    struct.error,
+    ValueError,
+    OverflowError,
+    EOFError,
+)
 
 
 @dataclass
@@ -41,7 +66,7 @@ class McapMessage:
     channel_id: int
     log_time: int
     data: bytes
-    crc_checked: bool              # its chunk's CRC matched (False outside chunks)
+    crc_checked: bool  # its chunk's CRC matched (False outside chunks)
 
 
 @dataclass
@@ -59,8 +84,8 @@ class _LostChunk:
     """A skipped chunk whose count waits for the message index records after it."""
 
     loss: Loss
-    from_records: Counter | None              # what its damaged records still show
-    from_index: Counter | None = None         # what the message index records after it say
+    from_records: Counter | None  # what its damaged records still show
+    from_index: Counter | None = None  # what the message index records after it say
     index_damaged: bool = False
 
 
@@ -86,20 +111,22 @@ class Walk:
         self.o, self.f, self.report = owner, f, report
         self.channels: dict[int, Channel] = dict(owner.summary.channels) if owner.summary else {}
         self.lost: _LostChunk | None = None
-        self.seen: dict[int, int] = {}         # chunk offset -> its record's length in bytes
-        self.reached = len(MAGIC)              # how far the walk got
+        self.seen: dict[int, int] = {}  # chunk offset -> its record's length in bytes
+        self.reached = len(MAGIC)  # how far the walk got
         # where the record before the current one started, and whether its length was vouched
         # for (a chunk that checked out): a damaged length elsewhere may have misled the walk
         # by a few bytes, so the next intact record is looked for from just after that record
         self.previous, self.previous_sure = len(MAGIC) - 1, True
-        self.last_sure = len(MAGIC) - 1        # where the last vouched-for record started
-        self.listed = sorted(owner.index)      # chunk offsets the index gives
-        self.index_at = set(owner.index) | {   # ... and message index offsets
-            at for entries in owner.index.values() for at in
-            entries[0].message_index_offsets.values()}
-        self.chunk_ok = False                  # the last chunk checked out
-        self.no_crc = 0                        # chunks without a CRC
-        self.outside = 0                       # messages outside chunks
+        self.last_sure = len(MAGIC) - 1  # where the last vouched-for record started
+        self.listed = sorted(owner.index)  # chunk offsets the index gives
+        self.index_at = set(owner.index) | {  # ... and message index offsets
+            at
+            for entries in owner.index.values()
+            for at in entries[0].message_index_offsets.values()
+        }
+        self.chunk_ok = False  # the last chunk checked out
+        self.no_crc = 0  # chunks without a CRC
+        self.outside = 0  # messages outside chunks
         self.finder = RecordFinder(f, owner.limit, owner.index)
 
     # -- the walk
@@ -117,10 +144,14 @@ class Walk:
                 return
             inside = self._listed_inside(pos)
             if inside is not None:
-                self.report.losses.append(Loss(
-                    f"byte {self.previous}", f"the record there claims {pos - inside} byte(s) "
-                    f"too many: the chunk index has a chunk at byte {inside}, inside it; "
-                    f"reading went on there"))
+                self.report.losses.append(
+                    Loss(
+                        f"byte {self.previous}",
+                        f"the record there claims {pos - inside} byte(s) "
+                        f"too many: the chunk index has a chunk at byte {inside}, inside it; "
+                        f"reading went on there",
+                    )
+                )
                 pos = inside
                 continue
             self.f.seek(pos)
@@ -128,9 +159,13 @@ class Walk:
             opcode = head[0]
             if opcode != Opcode.MESSAGE_INDEX:
                 yield from self._settle()
-            if len(head) < RECORD_HEADER:      # only where there is no footer
-                self.report.losses.append(Loss(f"byte {pos}", f"the file ends inside a record "
-                                               f"header ({len(head)} of 9 bytes): cut short"))
+            if len(head) < RECORD_HEADER:  # only where there is no footer
+                self.report.losses.append(
+                    Loss(
+                        f"byte {pos}",
+                        f"the file ends inside a record header ({len(head)} of 9 bytes): cut short",
+                    )
+                )
                 return
             length = struct.unpack_from("<Q", head, 1)[0]
             end = pos + RECORD_HEADER + length
@@ -144,21 +179,28 @@ class Walk:
             elif end > limit and cut and (nxt := self._next_record(pos)) is not None:
                 # past the end of a file without a footer, yet an intact record follows: the
                 # length is damaged, the file is not cut there
-                pos = yield from self._broken(pos, f"the {opcode_name(opcode)} record claims "
-                                              f"{length} bytes, past the end of the file", nxt)
+                pos = yield from self._broken(
+                    pos,
+                    f"the {opcode_name(opcode)} record claims "
+                    f"{length} bytes, past the end of the file",
+                    nxt,
+                )
             elif end > limit and cut:
                 yield from self._cut_record(pos, opcode, length)
                 return
             elif end > limit:
-                pos = yield from self._broken(pos, f"the {opcode_name(opcode)} record claims "
-                                              f"{length} bytes, past the end of the data")
+                pos = yield from self._broken(
+                    pos,
+                    f"the {opcode_name(opcode)} record claims "
+                    f"{length} bytes, past the end of the data",
+                )
             elif opcode == Opcode.CHUNK:
                 start, pos = pos, (yield from self._chunk(pos, length))
                 self._after(start, self.chunk_ok)
             elif opcode == Opcode.DATA_END:
                 self._data_end(pos, length)
                 return
-            elif opcode == Opcode.FOOTER:          # a footer the file's end did not show
+            elif opcode == Opcode.FOOTER:  # a footer the file's end did not show
                 return
             else:
                 yield from self._top_level(pos, opcode, length)
@@ -171,12 +213,15 @@ class Walk:
         return Opcode.CHUNK if pos in self.o.index else Opcode.MESSAGE_INDEX
 
     def _wrong_opcode(self, pos: int, opcode: int, expected: int, end: int) -> Iterator:
-        why = (f"the chunk index has a {opcode_name(expected)} record here, the data opcode "
-               f"{opcode:#x}")
+        why = (
+            f"the chunk index has a {opcode_name(expected)} record here, the data opcode "
+            f"{opcode:#x}"
+        )
         if expected == Opcode.CHUNK or end > self.o.limit:
             return (yield from self._broken(pos, why))
-        self.report.losses.append(Loss(f"byte {pos}", f"{why}: taken as a damaged "
-                                       f"message index record"))
+        self.report.losses.append(
+            Loss(f"byte {pos}", f"{why}: taken as a damaged message index record")
+        )
         self._after(pos, False)
         return end
 
@@ -204,13 +249,13 @@ class Walk:
             self._attachment(pos, length)
             return
         if opcode not in (Opcode.SCHEMA, Opcode.CHANNEL, Opcode.MESSAGE, Opcode.MESSAGE_INDEX):
-            return                                 # header, metadata, private records
+            return  # header, metadata, private records
         content = self.f.read(length)
         try:
             if opcode == Opcode.MESSAGE_INDEX:
                 if self.lost is not None:
                     channel_id, n = parse_message_index(content)
-                    self.lost.from_index = (self.lost.from_index or Counter())
+                    self.lost.from_index = self.lost.from_index or Counter()
                     self.lost.from_index[channel_id] += n
                 return
             if opcode == Opcode.MESSAGE:
@@ -238,14 +283,18 @@ class Walk:
                 if opcode == Opcode.MESSAGE:
                     yield _message(content, checked)
                 elif opcode in (Opcode.SCHEMA, Opcode.CHANNEL):
-                    rec = parse_schema(content) if opcode == Opcode.SCHEMA else \
-                        parse_channel(content)
+                    rec = (
+                        parse_schema(content) if opcode == Opcode.SCHEMA else parse_channel(content)
+                    )
                     if isinstance(rec, Channel):
                         self.channels[rec.id] = rec
                     yield rec
             except Malformed as e:
-                loss = Loss(where, f"a {opcode_name(opcode)} record inside it is unparseable "
-                            f"({e})", uncounted=opcode == Opcode.MESSAGE)
+                loss = Loss(
+                    where,
+                    f"a {opcode_name(opcode)} record inside it is unparseable ({e})",
+                    uncounted=opcode == Opcode.MESSAGE,
+                )
                 self.report.losses.append(loss)
                 if loss.uncounted:
                     yield LostMessages(None, None, where)
@@ -283,13 +332,19 @@ class Walk:
                 continue
             self.f.seek(pos + RECORD_HEADER)
             try:
-                records, checked = checked_records(chunk_header(
-                    self.f.read(entry.chunk_length - RECORD_HEADER)))
+                records, checked = checked_records(
+                    chunk_header(self.f.read(entry.chunk_length - RECORD_HEADER))
+                )
             except _UNTRUSTED:
                 continue
-            self.report.losses.append(Loss(where, "its record header is damaged; the chunk "
-                                           "index gives its length, and it checks out at that "
-                                           "length"))
+            self.report.losses.append(
+                Loss(
+                    where,
+                    "its record header is damaged; the chunk "
+                    "index gives its length, and it checks out at that "
+                    "length",
+                )
+            )
             self.seen[pos] = entry.chunk_length
             self.no_crc += not checked
             yield from self._records_of_chunk(records, checked, where)
@@ -331,17 +386,31 @@ class Walk:
         if nxt is None:
             nxt = self._next_record(after)
         end = self.o.limit if nxt is None else nxt
-        if nxt is not None and nxt < pos:         # the record before claimed too many bytes
-            self.report.losses.append(Loss(f"byte {self.previous}", f"the record there claims "
-                                           f"{pos - nxt} byte(s) too many; reading went on at "
-                                           f"byte {nxt}, the next record that checks out"))
+        if nxt is not None and nxt < pos:  # the record before claimed too many bytes
+            self.report.losses.append(
+                Loss(
+                    f"byte {self.previous}",
+                    f"the record there claims "
+                    f"{pos - nxt} byte(s) too many; reading went on at "
+                    f"byte {nxt}, the next record that checks out",
+                )
+            )
             return nxt
-        loss = Loss(f"bytes {pos}-{end}", why + ("; nothing after it could be read" if nxt is None
-                                                 else f"; reading went on at byte {nxt}, the "
-                                                      f"next record that checks out"))
+        loss = Loss(
+            f"bytes {pos}-{end}",
+            why
+            + (
+                "; nothing after it could be read"
+                if nxt is None
+                else f"; reading went on at byte {nxt}, the next record that checks out"
+            ),
+        )
         self.report.losses.append(loss)
-        counts = (self.finder.indexed_counts(self.last_sure + 1, end, self.seen)
-                  if self.o.summary is not None else None)
+        counts = (
+            self.finder.indexed_counts(self.last_sure + 1, end, self.seen)
+            if self.o.summary is not None
+            else None
+        )
         if counts is None and nxt is not None and self._at(nxt, 1)[0] == Opcode.MESSAGE_INDEX:
             # the stretch ends where a chunk's message index records start: it was that chunk
             self.lost = _LostChunk(loss, None)
@@ -360,8 +429,11 @@ class Walk:
     def _cut_record(self, pos: int, opcode: int, length: int) -> Iterator:
         """The file ends inside a record: say so, and yield what a cut chunk still holds."""
         have = self.o.size - pos - RECORD_HEADER
-        loss = Loss(f"byte {pos}", f"the file ends inside a {opcode_name(opcode)} record "
-                    f"({have} of {length} bytes present): cut short; anything after it is lost")
+        loss = Loss(
+            f"byte {pos}",
+            f"the file ends inside a {opcode_name(opcode)} record "
+            f"({have} of {length} bytes present): cut short; anything after it is lost",
+        )
         self.report.losses.append(loss)
         if opcode != Opcode.CHUNK:
             return
@@ -376,12 +448,17 @@ class Walk:
 
     def _no_data_end(self, pos: int) -> None:
         if self.o.footer is None:
-            self.report.losses.append(Loss(
-                f"end of file (byte {self.o.size})", "no data-end record or footer: the "
-                "recording was cut short at a record boundary; what followed is unknown"))
+            self.report.losses.append(
+                Loss(
+                    f"end of file (byte {self.o.size})",
+                    "no data-end record or footer: the "
+                    "recording was cut short at a record boundary; what followed is unknown",
+                )
+            )
         else:
-            self.report.losses.append(Loss(f"byte {pos}", "the data section ends without a "
-                                           "data-end record"))
+            self.report.losses.append(
+                Loss(f"byte {pos}", "the data section ends without a data-end record")
+            )
 
     def _data_end(self, pos: int, length: int) -> None:
         """The data section's CRC is checked once the walk is over (`McapRecords`), from
@@ -389,16 +466,22 @@ class Walk:
         self.reached = self.o.limit
         if self.o.footer is None and self.o.data_crc is None:
             crc = struct.unpack("<I", self.f.read(4))[0] if length >= 4 else 0
-            self.o.data_crc = ("absent" if crc == 0 else
-                               "match" if crc_of_range(self.f, 0, pos) == crc else "mismatch")
+            self.o.data_crc = (
+                "absent"
+                if crc == 0
+                else "match"
+                if crc_of_range(self.f, 0, pos) == crc
+                else "mismatch"
+            )
 
     def data_crc_mismatch(self) -> str:
         """What a data-section CRC that does not match means for this file's messages."""
-        return ("its CRC (in the data-end record) does not match: some bytes are corrupted"
-                + ("; every message lies in a chunk whose own CRC matched, so none is affected"
-                   if self.outside == 0 and self.no_crc == 0 else
-                   "; messages without a CRC of their own cannot be told apart from damaged "
-                   "ones (their scans are marked suspect)"))
+        return "its CRC (in the data-end record) does not match: some bytes are corrupted" + (
+            "; every message lies in a chunk whose own CRC matched, so none is affected"
+            if self.outside == 0 and self.no_crc == 0
+            else "; messages without a CRC of their own cannot be told apart from damaged "
+            "ones (their scans are marked suspect)"
+        )
 
     def _attachment(self, pos: int, length: int) -> None:
         problem = attachment_problem(self.f, pos, length)
@@ -408,15 +491,23 @@ class Walk:
     def finish(self) -> None:
         """After the walk: what the CRCs could not cover, and the index against the data."""
         if self.no_crc:
-            self.report.notes.append(f"{self.no_crc} chunk(s) carry no CRC (rosbag2's default): "
-                                     f"corrupted bytes inside them cannot be detected")
+            self.report.notes.append(
+                f"{self.no_crc} chunk(s) carry no CRC (rosbag2's default): "
+                f"corrupted bytes inside them cannot be detected"
+            )
         if self.outside and self.o.data_crc == "absent":
-            self.report.notes.append(f"{self.outside} message(s) lie outside chunks and the "
-                                     f"data section carries no CRC: corrupted bytes in them "
-                                     f"cannot be detected")
+            self.report.notes.append(
+                f"{self.outside} message(s) lie outside chunks and the "
+                f"data section carries no CRC: corrupted bytes in them "
+                f"cannot be detected"
+            )
         if self.o.summary is not None and self.o.summary.chunk_indexes:
             problems = index_disagreements(self.o.index, self.seen, self.reached)
             if problems:
-                self.report.losses.append(Loss(
-                    "chunk index (summary section)", f"disagrees with the data "
-                    f"({'; '.join(problems)}): the file was read from its data"))
+                self.report.losses.append(
+                    Loss(
+                        "chunk index (summary section)",
+                        f"disagrees with the data "
+                        f"({'; '.join(problems)}): the file was read from its data",
+                    )
+                )

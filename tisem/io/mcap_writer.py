@@ -11,17 +11,20 @@ dependencies `MSG: std_msgs/Header`; Rerun resolves only that spelling) and expo
 rosbag2 presets make: compression, chunk CRCs, chunking, indexes/summary. Tests use the last
 ones to produce the unindexed and CRC-less files found in the wild.
 """
+
 from __future__ import annotations
 
 import itertools
 import json
+from collections.abc import Iterable
 from pathlib import Path
-from typing import BinaryIO, Iterable
+from typing import BinaryIO
 
 import numpy as np
 from mcap.well_known import SchemaEncoding
 from mcap.writer import CompressionType, IndexType
 from mcap.writer import Writer as McapWriter
+
 # The encoder generator of mcap-ros2-support; its own Writer hard-codes the MCAP options
 # (always indexed, always chunked), which rosbag2 presets and our damage tests need to vary.
 from mcap_ros2._dynamic import serialize_dynamic
@@ -33,8 +36,11 @@ from tisem.labels import CLASS_COLORS_RGB, class_table
 from tisem.scan import Scan
 from tisem.snapshot import MapSnapshot
 
-COMPRESSION = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4,
-               "none": CompressionType.NONE}
+COMPRESSION = {
+    "zstd": CompressionType.ZSTD,
+    "lz4": CompressionType.LZ4,
+    "none": CompressionType.NONE,
+}
 
 MAP_TOPIC = "/semantic_map"
 SCANS_TOPIC = "/semantic_scans"
@@ -48,9 +54,11 @@ _DEPENDENCIES = {
     "sensor_msgs/PointField": (
         "uint8 INT8    = 1\nuint8 UINT8   = 2\nuint8 INT16   = 3\nuint8 UINT16  = 4\n"
         "uint8 INT32   = 5\nuint8 UINT32  = 6\nuint8 FLOAT32 = 7\nuint8 FLOAT64 = 8\n"
-        "string name\nuint32 offset\nuint8  datatype\nuint32 count\n"),
+        "string name\nuint32 offset\nuint8  datatype\nuint32 count\n"
+    ),
     "geometry_msgs/TransformStamped": (
-        "std_msgs/Header header\nstring child_frame_id\nTransform transform\n"),
+        "std_msgs/Header header\nstring child_frame_id\nTransform transform\n"
+    ),
     "geometry_msgs/Transform": "Vector3 translation\nQuaternion rotation\n",
     "geometry_msgs/Vector3": "float64 x\nfloat64 y\nfloat64 z\n",
     "geometry_msgs/Point": "float64 x\nfloat64 y\nfloat64 z\n",
@@ -64,21 +72,44 @@ _MESSAGES = {
     "sensor_msgs/msg/PointCloud2": (
         "std_msgs/Header header\nuint32 height\nuint32 width\nPointField[] fields\n"
         "bool    is_bigendian\nuint32  point_step\nuint32  row_step\nuint8[] data\nbool is_dense\n",
-        ["std_msgs/Header", "builtin_interfaces/Time", "sensor_msgs/PointField"]),
+        ["std_msgs/Header", "builtin_interfaces/Time", "sensor_msgs/PointField"],
+    ),
     "tf2_msgs/msg/TFMessage": (
         "geometry_msgs/TransformStamped[] transforms\n",
-        ["geometry_msgs/TransformStamped", "std_msgs/Header", "builtin_interfaces/Time",
-         "geometry_msgs/Transform", "geometry_msgs/Vector3", "geometry_msgs/Quaternion"]),
+        [
+            "geometry_msgs/TransformStamped",
+            "std_msgs/Header",
+            "builtin_interfaces/Time",
+            "geometry_msgs/Transform",
+            "geometry_msgs/Vector3",
+            "geometry_msgs/Quaternion",
+        ],
+    ),
     "nav_msgs/msg/Odometry": (
         "std_msgs/Header header\nstring child_frame_id\n"
         "geometry_msgs/PoseWithCovariance pose\ngeometry_msgs/TwistWithCovariance twist\n",
-        ["std_msgs/Header", "builtin_interfaces/Time", "geometry_msgs/PoseWithCovariance",
-         "geometry_msgs/Pose", "geometry_msgs/Point", "geometry_msgs/Quaternion",
-         "geometry_msgs/TwistWithCovariance", "geometry_msgs/Twist", "geometry_msgs/Vector3"]),
+        [
+            "std_msgs/Header",
+            "builtin_interfaces/Time",
+            "geometry_msgs/PoseWithCovariance",
+            "geometry_msgs/Pose",
+            "geometry_msgs/Point",
+            "geometry_msgs/Quaternion",
+            "geometry_msgs/TwistWithCovariance",
+            "geometry_msgs/Twist",
+            "geometry_msgs/Vector3",
+        ],
+    ),
     "geometry_msgs/msg/PoseStamped": (
         "std_msgs/Header header\nPose pose\n",
-        ["std_msgs/Header", "builtin_interfaces/Time", "geometry_msgs/Pose",
-         "geometry_msgs/Point", "geometry_msgs/Quaternion"]),
+        [
+            "std_msgs/Header",
+            "builtin_interfaces/Time",
+            "geometry_msgs/Pose",
+            "geometry_msgs/Point",
+            "geometry_msgs/Quaternion",
+        ],
+    ),
 }
 
 
@@ -91,16 +122,22 @@ def ros2_msgdef(type_name: str) -> str:
 def transform_stamped(parent: str, child: str, stamp_ns: int, T_parent_child: np.ndarray) -> dict:
     T = np.asarray(T_parent_child, dtype=np.float64)
     q = matrix_to_quat(T[:3, :3])
-    return {"header": {"stamp": ros_time(stamp_ns), "frame_id": parent},
-            "child_frame_id": child,
-            "transform": {"translation": dict(zip("xyz", map(float, T[:3, 3]))),
-                          "rotation": dict(zip("xyzw", map(float, q)))}}
+    return {
+        "header": {"stamp": ros_time(stamp_ns), "frame_id": parent},
+        "child_frame_id": child,
+        "transform": {
+            "translation": dict(zip("xyz", map(float, T[:3, 3]))),
+            "rotation": dict(zip("xyzw", map(float, q))),
+        },
+    }
 
 
 def pose_msg(T: np.ndarray) -> dict:
     q = matrix_to_quat(np.asarray(T)[:3, :3])
-    return {"position": dict(zip("xyz", map(float, np.asarray(T)[:3, 3]))),
-            "orientation": dict(zip("xyzw", map(float, q)))}
+    return {
+        "position": dict(zip("xyz", map(float, np.asarray(T)[:3, 3]))),
+        "orientation": dict(zip("xyzw", map(float, q))),
+    }
 
 
 class Ros2McapWriter:
@@ -110,27 +147,48 @@ class Ros2McapWriter:
     rosbag2's presets (no chunk CRC; `fastwrite`: no chunks; no summary at all).
     """
 
-    def __init__(self, output: str | Path | BinaryIO, *, compression: str = "zstd",
-                 chunk_size: int = 1 << 20, crcs: bool = True, chunked: bool = True,
-                 indexed: bool = True) -> None:
+    def __init__(
+        self,
+        output: str | Path | BinaryIO,
+        *,
+        compression: str = "zstd",
+        chunk_size: int = 1 << 20,
+        crcs: bool = True,
+        chunked: bool = True,
+        indexed: bool = True,
+    ) -> None:
         if compression not in COMPRESSION:
-            raise ValueError(f"compression must be one of {sorted(COMPRESSION)}, "
-                             f"got {compression!r}")
+            raise ValueError(
+                f"compression must be one of {sorted(COMPRESSION)}, got {compression!r}"
+            )
         self._file = open(output, "wb") if isinstance(output, (str, Path)) else None
         self._writer = McapWriter(
-            self._file or output, chunk_size=chunk_size, compression=COMPRESSION[compression],
-            enable_crcs=crcs, use_chunking=chunked,
+            self._file or output,
+            chunk_size=chunk_size,
+            compression=COMPRESSION[compression],
+            enable_crcs=crcs,
+            use_chunking=chunked,
             index_types=IndexType.ALL if indexed else IndexType.NONE,
-            repeat_channels=indexed, repeat_schemas=indexed, use_statistics=indexed,
-            use_summary_offsets=indexed)
+            repeat_channels=indexed,
+            repeat_schemas=indexed,
+            use_statistics=indexed,
+            use_summary_offsets=indexed,
+        )
         self._writer.start(profile="ros2", library="tisem")
-        self._schemas: dict[str, tuple[int, object]] = {}    # type -> (schema id, encoder)
+        self._schemas: dict[str, tuple[int, object]] = {}  # type -> (schema id, encoder)
         self._channels: dict[str, int] = {}
         # topic -> the metadata of its Channel record (rosbag2: `offered_qos_profiles`)
         self.channel_metadata: dict[str, dict[str, str]] = {}
 
-    def write(self, topic: str, type_name: str, message: dict, log_time_ns: int,
-              publish_time_ns: int | None = None, sequence: int = 0) -> None:
+    def write(
+        self,
+        topic: str,
+        type_name: str,
+        message: dict,
+        log_time_ns: int,
+        publish_time_ns: int | None = None,
+        sequence: int = 0,
+    ) -> None:
         if type_name not in self._schemas:
             text = ros2_msgdef(type_name)
             schema_id = self._writer.register_schema(type_name, SchemaEncoding.ROS2, text.encode())
@@ -138,23 +196,47 @@ class Ros2McapWriter:
         schema_id, encode = self._schemas[type_name]
         if topic not in self._channels:
             self._channels[topic] = self._writer.register_channel(
-                topic, "cdr", schema_id, self.channel_metadata.get(topic, {}))
-        self._writer.add_message(self._channels[topic], log_time=int(log_time_ns),
-                                 publish_time=int(log_time_ns if publish_time_ns is None
-                                                  else publish_time_ns),
-                                 sequence=sequence, data=encode(message))
+                topic, "cdr", schema_id, self.channel_metadata.get(topic, {})
+            )
+        self._writer.add_message(
+            self._channels[topic],
+            log_time=int(log_time_ns),
+            publish_time=int(log_time_ns if publish_time_ns is None else publish_time_ns),
+            sequence=sequence,
+            data=encode(message),
+        )
 
-    def write_cloud(self, topic: str, points: np.ndarray, frame_id: str, stamp_ns: int,
-                    log_time_ns: int, sequence: int = 0) -> None:
+    def write_cloud(
+        self,
+        topic: str,
+        points: np.ndarray,
+        frame_id: str,
+        stamp_ns: int,
+        log_time_ns: int,
+        sequence: int = 0,
+    ) -> None:
         """`points`: a 1-D structured array (its dtype fixes fields, padding and byte order)."""
-        self.write(topic, "sensor_msgs/msg/PointCloud2",
-                   array_to_ros_cloud(points, frame_id, stamp_ns), log_time_ns, sequence=sequence)
+        self.write(
+            topic,
+            "sensor_msgs/msg/PointCloud2",
+            array_to_ros_cloud(points, frame_id, stamp_ns),
+            log_time_ns,
+            sequence=sequence,
+        )
 
-    def write_transforms(self, transforms: list[tuple[str, str, int, np.ndarray]],
-                         log_time_ns: int, static: bool = False) -> None:
+    def write_transforms(
+        self,
+        transforms: list[tuple[str, str, int, np.ndarray]],
+        log_time_ns: int,
+        static: bool = False,
+    ) -> None:
         """(parent, child, stamp_ns, T_parent_child) tuples as one TFMessage on /tf(_static)."""
-        self.write("/tf_static" if static else "/tf", "tf2_msgs/msg/TFMessage",
-                   {"transforms": [transform_stamped(*t) for t in transforms]}, log_time_ns)
+        self.write(
+            "/tf_static" if static else "/tf",
+            "tf2_msgs/msg/TFMessage",
+            {"transforms": [transform_stamped(*t) for t in transforms]},
+            log_time_ns,
+        )
 
     def add_metadata(self, name: str, data: dict[str, str]) -> None:
         self._writer.add_metadata(name, data)
@@ -174,6 +256,7 @@ class Ros2McapWriter:
 
 # ---- the map ---------------------------------------------------------------------------------
 
+
 def _rgba(labels: np.ndarray) -> np.ndarray:
     rgba = np.full((len(labels), 4), 255, dtype=np.uint8)
     rgba[:, :3] = CLASS_COLORS_RGB[labels]
@@ -182,8 +265,19 @@ def _rgba(labels: np.ndarray) -> np.ndarray:
 
 def map_points(snapshot: MapSnapshot) -> np.ndarray:
     """The map as a structured array: voxel centres, colour, label (train id), probability."""
-    dtype = np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("red", "u1"), ("green", "u1"),
-                      ("blue", "u1"), ("alpha", "u1"), ("label", "<u2"), ("probability", "<f4")])
+    dtype = np.dtype(
+        [
+            ("x", "<f4"),
+            ("y", "<f4"),
+            ("z", "<f4"),
+            ("red", "u1"),
+            ("green", "u1"),
+            ("blue", "u1"),
+            ("alpha", "u1"),
+            ("label", "<u2"),
+            ("probability", "<f4"),
+        ]
+    )
     labels = snapshot.labels()
     out = np.empty(len(snapshot), dtype)
     centres = snapshot.centers()
@@ -200,10 +294,20 @@ def scan_points(scan: Scan, mapped_labels: np.ndarray) -> np.ndarray:
     """One scan in its sensor frame with its mapped labels (colour), input and GT labels."""
     mapped_labels = np.asarray(mapped_labels)
     if mapped_labels.shape != (scan.num_points,):
-        raise ValueError(f"scan {scan.index}: {mapped_labels.shape} mapped labels for "
-                         f"{scan.num_points} points")
-    fields = [("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("red", "u1"), ("green", "u1"),
-              ("blue", "u1"), ("alpha", "u1"), ("label", "<u2"), ("input_label", "<u2")]
+        raise ValueError(
+            f"scan {scan.index}: {mapped_labels.shape} mapped labels for {scan.num_points} points"
+        )
+    fields = [
+        ("x", "<f4"),
+        ("y", "<f4"),
+        ("z", "<f4"),
+        ("red", "u1"),
+        ("green", "u1"),
+        ("blue", "u1"),
+        ("alpha", "u1"),
+        ("label", "<u2"),
+        ("input_label", "<u2"),
+    ]
     if scan.gt_labels is not None:
         fields.append(("gt_label", "<u2"))
     out = np.empty(scan.num_points, np.dtype(fields))
@@ -219,9 +323,15 @@ def scan_points(scan: Scan, mapped_labels: np.ndarray) -> np.ndarray:
     return out
 
 
-def write_map_mcap(path: str | Path, snapshot: MapSnapshot, frame_id: str = "map",
-                   scans: Iterable[tuple[Scan, np.ndarray]] | None = None, *,
-                   compression: str = "zstd", stamp_ns: int | None = None) -> dict:
+def write_map_mcap(
+    path: str | Path,
+    snapshot: MapSnapshot,
+    frame_id: str = "map",
+    scans: Iterable[tuple[Scan, np.ndarray]] | None = None,
+    *,
+    compression: str = "zstd",
+    stamp_ns: int | None = None,
+) -> dict:
     """Write the map (and optionally the scans with their mapped labels) as an MCAP file.
 
     scans: (Scan, mapped train ids) pairs, e.g. re-read and queried after mapping; they may
@@ -240,23 +350,40 @@ def write_map_mcap(path: str | Path, snapshot: MapSnapshot, frame_id: str = "map
     n_scans = 0
     with open(path, "wb") as f:
         writer = Writer(f, compression=COMPRESSION[compression])
-        writer.add_metadata("semantic_classes",
-                            {str(r["train_id"]): json.dumps(r) for r in class_table()})
-        writer.add_metadata("tisem_map", {
-            "frame_id": frame_id, "resolution_m": repr(float(snapshot.resolution_m)),
-            "voxels": str(len(snapshot)), "map_topic": MAP_TOPIC,
-            "label": "train id (see semantic_classes)",
-            "probability": "normalised semantic counter of the label"})
-        writer.write_message(MAP_TOPIC, array_to_foxglove_cloud(map_points(snapshot), frame_id,
-                                                                stamp_ns),
-                             log_time=stamp_ns, publish_time=stamp_ns)
+        writer.add_metadata(
+            "semantic_classes", {str(r["train_id"]): json.dumps(r) for r in class_table()}
+        )
+        writer.add_metadata(
+            "tisem_map",
+            {
+                "frame_id": frame_id,
+                "resolution_m": repr(float(snapshot.resolution_m)),
+                "voxels": str(len(snapshot)),
+                "map_topic": MAP_TOPIC,
+                "label": "train id (see semantic_classes)",
+                "probability": "normalised semantic counter of the label",
+            },
+        )
+        writer.write_message(
+            MAP_TOPIC,
+            array_to_foxglove_cloud(map_points(snapshot), frame_id, stamp_ns),
+            log_time=stamp_ns,
+            publish_time=stamp_ns,
+        )
         for scan, mapped in itertools.chain([first] if first is not None else [], scans):
             t = max(scan_stamp_ns(scan), 0)
-            cloud = array_to_foxglove_cloud(scan_points(scan, mapped), frame_id, t,
-                                            T_frame_cloud=scan.T_world_sensor)
-            writer.write_message(SCANS_TOPIC, cloud, log_time=t, publish_time=t,
-                                 sequence=scan.index)
+            cloud = array_to_foxglove_cloud(
+                scan_points(scan, mapped), frame_id, t, T_frame_cloud=scan.T_world_sensor
+            )
+            writer.write_message(
+                SCANS_TOPIC, cloud, log_time=t, publish_time=t, sequence=scan.index
+            )
             n_scans += 1
         writer.finish()
-    return {"path": str(path), "voxels": len(snapshot), "scans": n_scans,
-            "map_topic": MAP_TOPIC, "scans_topic": SCANS_TOPIC}
+    return {
+        "path": str(path),
+        "voxels": len(snapshot),
+        "scans": n_scans,
+        "map_topic": MAP_TOPIC,
+        "scans_topic": SCANS_TOPIC,
+    }

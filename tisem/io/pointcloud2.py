@@ -10,9 +10,11 @@ Facts this relies on, all seen in real recordings: the two datatype enums differ
 unsigned are swapped); `count` may be 0 (means 1); names may repeat or be empty (padding);
 organised clouds may pad rows (`row_step > width * point_step`).
 """
+
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any, Iterable
+from collections.abc import Iterable
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -27,35 +29,43 @@ ROS_DATATYPES = {1: "i1", 2: "u1", 3: "i2", 4: "u2", 5: "i4", 6: "u4", 7: "f4", 
 FOXGLOVE_DATATYPES = {1: "u1", 2: "i1", 3: "u2", 4: "i2", 5: "u4", 6: "i4", 7: "f4", 8: "f8"}
 
 
-MAX_POINT_STEP = 1 << 16       # bytes per point: far more than any sensor's fields need
+MAX_POINT_STEP = 1 << 16  # bytes per point: far more than any sensor's fields need
 
 
 class CloudFormatError(ValueError):
     """A cloud's layout is inconsistent (the message says what); the cloud cannot be used."""
 
 
-def fields_dtype(fields: Iterable[tuple[str, int, int, int]], point_step: int, *,
-                 big_endian: bool = False, datatypes: dict = ROS_DATATYPES) -> np.dtype:
+def fields_dtype(
+    fields: Iterable[tuple[str, int, int, int]],
+    point_step: int,
+    *,
+    big_endian: bool = False,
+    datatypes: dict = ROS_DATATYPES,
+) -> np.dtype:
     """A structured dtype for one point. `fields`: (name, offset, datatype, count) tuples."""
     order = ">" if big_endian else "<"
     names, formats, offsets = [], [], []
     for name, offset, datatype, count in fields:
-        if not name or name in names:        # padding, or a duplicate: the first one wins
+        if not name or name in names:  # padding, or a duplicate: the first one wins
             continue
         if datatype not in datatypes:
             raise CloudFormatError(f"field {name!r} has unknown datatype {datatype}")
         base = np.dtype(order + datatypes[datatype])
         count = max(int(count), 1)
         if offset + base.itemsize * count > point_step:
-            raise CloudFormatError(f"field {name!r} (offset {offset}, {count} x {base}) does not "
-                                   f"fit in a point of {point_step} bytes")
+            raise CloudFormatError(
+                f"field {name!r} (offset {offset}, {count} x {base}) does not "
+                f"fit in a point of {point_step} bytes"
+            )
         names.append(name)
         offsets.append(int(offset))
         formats.append(base if count == 1 else (base, (count,)))
     if not names:
         raise CloudFormatError("the cloud declares no fields")
-    return np.dtype({"names": names, "formats": formats, "offsets": offsets,
-                     "itemsize": int(point_step)})
+    return np.dtype(
+        {"names": names, "formats": formats, "offsets": offsets, "itemsize": int(point_step)}
+    )
 
 
 def _view(data, dtype: np.dtype, height: int, width: int, row_step: int) -> np.ndarray:
@@ -69,21 +79,25 @@ def _view(data, dtype: np.dtype, height: int, width: int, row_step: int) -> np.n
     step = dtype.itemsize
     if n == 0:
         if len(data):
-            raise CloudFormatError(f"height {height} x width {width} declares no points, but "
-                                   f"the cloud carries {len(data)} bytes of data")
+            raise CloudFormatError(
+                f"height {height} x width {width} declares no points, but "
+                f"the cloud carries {len(data)} bytes of data"
+            )
         return np.empty(0, dtype)
     row_step = row_step or width * step
     if row_step < width * step:
         raise CloudFormatError(f"row_step {row_step} < width {width} x point_step {step}")
     need = (height - 1) * row_step + width * step
     if len(data) not in (need, height * row_step):
-        raise CloudFormatError(f"data has {len(data)} bytes; height {height} x row_step "
-                               f"{row_step} (width {width} x point_step {step}) needs "
-                               f"{height * row_step}")
+        raise CloudFormatError(
+            f"data has {len(data)} bytes; height {height} x row_step "
+            f"{row_step} (width {width} x point_step {step}) needs "
+            f"{height * row_step}"
+        )
     if height == 1 or row_step == width * step:
         return np.frombuffer(data, dtype=dtype, count=n)
     rows = np.ndarray((height, width), dtype, buffer=data, strides=(row_step, step))
-    return rows.reshape(-1)                  # copies: padded rows cannot be one flat view
+    return rows.reshape(-1)  # copies: padded rows cannot be one flat view
 
 
 def ros_cloud_to_array(msg: Any) -> np.ndarray:
@@ -102,8 +116,9 @@ def foxglove_cloud_to_array(msg: Any) -> np.ndarray:
     fields = [(f.name, f.offset, f.type, 1) for f in msg.fields]
     dtype = fields_dtype(fields, msg.point_stride, datatypes=FOXGLOVE_DATATYPES)
     if len(msg.data) % msg.point_stride:
-        raise CloudFormatError(f"data length {len(msg.data)} is not a multiple of the point "
-                               f"stride {msg.point_stride}")
+        raise CloudFormatError(
+            f"data length {len(msg.data)} is not a multiple of the point stride {msg.point_stride}"
+        )
     return np.frombuffer(msg.data, dtype=dtype)
 
 
@@ -137,14 +152,20 @@ def xyz(arr: np.ndarray) -> np.ndarray:
     """
     for name in ("x", "y", "z"):
         if not has_field(arr, name):
-            raise CloudFormatError(f"the cloud has no {name!r} field; it has: "
-                                   f"{describe_fields(arr)}")
+            raise CloudFormatError(
+                f"the cloud has no {name!r} field; it has: {describe_fields(arr)}"
+            )
     fx, ox = arr.dtype.fields["x"][:2]
     fy, oy = arr.dtype.fields["y"][:2]
     fz, oz = arr.dtype.fields["z"][:2]
     if fx == fy == fz and fx.kind == "f" and fx.itemsize == 4 and oy == ox + 4 and oz == ox + 8:
-        view = np.ndarray((arr.shape[0], 3), fx, buffer=arr, offset=ox,
-                          strides=(arr.dtype.itemsize, 4)) if arr.shape[0] else np.empty((0, 3), fx)
+        view = (
+            np.ndarray(
+                (arr.shape[0], 3), fx, buffer=arr, offset=ox, strides=(arr.dtype.itemsize, 4)
+            )
+            if arr.shape[0]
+            else np.empty((0, 3), fx)
+        )
         return np.ascontiguousarray(view, dtype=np.float32)
     return np.stack([arr["x"], arr["y"], arr["z"]], axis=1).astype(np.float32)
 
@@ -158,17 +179,19 @@ def check_used_fields(arr: np.ndarray, names: Iterable[str]) -> None:
             continue
         sub, offset = arr.dtype.fields[name][:2]
         if name in ("x", "y", "z") and sub.shape:
-            raise CloudFormatError(f"field {name!r} has {sub.shape[0]} values per point; a "
-                                   f"coordinate has one")
+            raise CloudFormatError(
+                f"field {name!r} has {sub.shape[0]} values per point; a coordinate has one"
+            )
         spans[name] = (offset, offset + sub.itemsize)
     for a_name, (a0, a1) in spans.items():
         for b_name, (b0, b1) in spans.items():
             if a_name < b_name and a0 < b1 and b0 < a1:
-                raise CloudFormatError(f"fields {a_name!r} (bytes {a0}-{a1}) and {b_name!r} "
-                                       f"(bytes {b0}-{b1}) overlap")
+                raise CloudFormatError(
+                    f"fields {a_name!r} (bytes {a0}-{a1}) and {b_name!r} (bytes {b0}-{b1}) overlap"
+                )
 
 
-LABEL_LIMIT = 2 ** 32           # labels are uint32 (SemanticKITTI: semantic id + instance)
+LABEL_LIMIT = 2**32  # labels are uint32 (SemanticKITTI: semantic id + instance)
 
 
 def integer_labels(values: np.ndarray, name: str) -> tuple[np.ndarray, np.ndarray]:
@@ -176,8 +199,10 @@ def integer_labels(values: np.ndarray, name: str) -> tuple[np.ndarray, np.ndarra
     number in [0, 2^32) (NaN, inf, 1e300, 0.5, -1) is invalid: 0 there, for the caller to count
     as unknown."""
     if values.ndim != 1:
-        raise CloudFormatError(f"label field {name!r} has {values.shape[1]} values per point; "
-                               f"a label field has one (use a probability field for several)")
+        raise CloudFormatError(
+            f"label field {name!r} has {values.shape[1]} values per point; "
+            f"a label field has one (use a probability field for several)"
+        )
     if values.dtype.kind in "iu":
         return values.astype(np.int64), np.zeros(len(values), bool)
     if values.dtype.kind == "f":
@@ -203,6 +228,7 @@ def unpack_rgb(values: np.ndarray) -> np.ndarray:
 
 # ---- writing -------------------------------------------------------------------------------
 
+
 def _fields_of(dtype: np.dtype, datatypes: dict):
     """(name, offset, datatype code, count) per field of a structured dtype, and its byte order."""
     codes = {v: k for k, v in datatypes.items()}
@@ -215,8 +241,9 @@ def _fields_of(dtype: np.dtype, datatypes: dict):
         if key not in codes:
             raise CloudFormatError(f"field {name!r}: {base} has no point-field datatype")
         if base.itemsize > 1:
-            orders.add(base.byteorder if base.byteorder in "<>" else
-                       ("<" if np.little_endian else ">"))
+            orders.add(
+                base.byteorder if base.byteorder in "<>" else ("<" if np.little_endian else ">")
+            )
         out.append((name, int(offset), codes[key], count))
     if len(orders) > 1:
         raise CloudFormatError("fields mix byte orders")
@@ -233,18 +260,22 @@ def array_to_ros_cloud(arr: np.ndarray, frame_id: str, stamp_ns: int) -> dict:
     fields, order = _fields_of(arr.dtype, ROS_DATATYPES)
     return {
         "header": {"stamp": ros_time(stamp_ns), "frame_id": frame_id},
-        "height": 1, "width": int(arr.shape[0]),
+        "height": 1,
+        "width": int(arr.shape[0]),
         "fields": [{"name": n, "offset": o, "datatype": d, "count": c} for n, o, d, c in fields],
         "is_bigendian": order == ">",
-        "point_step": arr.dtype.itemsize, "row_step": arr.dtype.itemsize * arr.shape[0],
+        "point_step": arr.dtype.itemsize,
+        "row_step": arr.dtype.itemsize * arr.shape[0],
         "data": arr.tobytes(),
-        "is_dense": bool(all(np.all(np.isfinite(arr[n])) for n in ("x", "y", "z")
-                             if has_field(arr, n))),
+        "is_dense": bool(
+            all(np.all(np.isfinite(arr[n])) for n in ("x", "y", "z") if has_field(arr, n))
+        ),
     }
 
 
-def array_to_foxglove_cloud(arr: np.ndarray, frame_id: str, stamp_ns: int,
-                            T_frame_cloud: np.ndarray | None = None) -> PointCloud:
+def array_to_foxglove_cloud(
+    arr: np.ndarray, frame_id: str, stamp_ns: int, T_frame_cloud: np.ndarray | None = None
+) -> PointCloud:
     """A 1-D structured array -> foxglove.PointCloud (protobuf). Little-endian only (Foxglove
     reads nothing else); `T_frame_cloud` is the cloud origin in `frame_id` (the `pose` field)."""
     from foxglove_schemas_protobuf.PackedElementField_pb2 import PackedElementField
@@ -264,9 +295,13 @@ def array_to_foxglove_cloud(arr: np.ndarray, frame_id: str, stamp_ns: int,
     q = matrix_to_quat(T[:3, :3])
     sec, nanos = split_ns(stamp_ns)
     return PointCloud(
-        timestamp=Timestamp(seconds=sec, nanos=nanos), frame_id=frame_id,
-        pose=Pose(position=Vector3(x=T[0, 3], y=T[1, 3], z=T[2, 3]),
-                  orientation=Quaternion(x=q[0], y=q[1], z=q[2], w=q[3])),
+        timestamp=Timestamp(seconds=sec, nanos=nanos),
+        frame_id=frame_id,
+        pose=Pose(
+            position=Vector3(x=T[0, 3], y=T[1, 3], z=T[2, 3]),
+            orientation=Quaternion(x=q[0], y=q[1], z=q[2], w=q[3]),
+        ),
         point_stride=arr.dtype.itemsize,
         fields=[PackedElementField(name=n, offset=o, type=d) for n, o, d, _ in fields],
-        data=arr.tobytes())
+        data=arr.tobytes(),
+    )

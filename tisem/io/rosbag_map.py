@@ -11,11 +11,12 @@
 Every field sits at a 4-byte aligned offset. Clouds are encoded by
 `tisem.io.pointcloud2.array_to_ros_cloud`, as everywhere else.
 """
+
 from __future__ import annotations
 
 import itertools
+from collections.abc import Iterable
 from pathlib import Path
-from typing import Iterable
 
 import numpy as np
 
@@ -27,9 +28,14 @@ from tisem.labels import CLASS_COLORS_RGB
 from tisem.scan import Scan
 from tisem.snapshot import MapSnapshot
 
-MAP_DTYPE = np.dtype({"names": ["x", "y", "z", "rgb", "label", "probability"],
-                      "formats": ["<f4", "<f4", "<f4", "<f4", "<u2", "<f4"],
-                      "offsets": [0, 4, 8, 12, 16, 20], "itemsize": 24})
+MAP_DTYPE = np.dtype(
+    {
+        "names": ["x", "y", "z", "rgb", "label", "probability"],
+        "formats": ["<f4", "<f4", "<f4", "<f4", "<u2", "<f4"],
+        "offsets": [0, 4, 8, 12, 16, 20],
+        "itemsize": 24,
+    }
+)
 
 
 def ros_map_points(snapshot: MapSnapshot) -> np.ndarray:
@@ -49,15 +55,22 @@ def ros_scan_points(scan: Scan, mapped_labels: np.ndarray) -> np.ndarray:
     """One scan in the map frame with its mapped labels (and colour), input and GT labels."""
     mapped_labels = np.asarray(mapped_labels)
     if mapped_labels.shape != (scan.num_points,):
-        raise ValueError(f"scan {scan.index}: {mapped_labels.shape} mapped labels for "
-                         f"{scan.num_points} points")
+        raise ValueError(
+            f"scan {scan.index}: {mapped_labels.shape} mapped labels for {scan.num_points} points"
+        )
     names = ["x", "y", "z", "rgb", "label", "input_label"]
     if scan.gt_labels is not None:
         names.append("gt_label")
     formats = ["<f4"] * 4 + ["<u2"] * (len(names) - 4)
-    offsets = [0, 4, 8, 12, 16, 18, 20][:len(names)]
-    dtype = np.dtype({"names": names, "formats": formats, "offsets": offsets,
-                      "itemsize": 24 if scan.gt_labels is not None else 20})
+    offsets = [0, 4, 8, 12, 16, 18, 20][: len(names)]
+    dtype = np.dtype(
+        {
+            "names": names,
+            "formats": formats,
+            "offsets": offsets,
+            "itemsize": 24 if scan.gt_labels is not None else 20,
+        }
+    )
     out = np.empty(scan.num_points, dtype)
     world = scan.points_world()
     for i, name in enumerate("xyz"):
@@ -73,22 +86,31 @@ def ros_scan_points(scan: Scan, mapped_labels: np.ndarray) -> np.ndarray:
 class MapBag:
     """A rosbag2 folder being filled with the map and scans (module docstring)."""
 
-    def __init__(self, folder: str | Path, frame_id: str = "map", *,
-                 ros_distro: str = "humble") -> None:
+    def __init__(
+        self, folder: str | Path, frame_id: str = "map", *, ros_distro: str = "humble"
+    ) -> None:
         self.frame_id = frame_id
         self.scans = 0
         # a map is rewritten like map.npz: the bag of an earlier run in that folder goes
-        self._bag = Rosbag2Writer(folder, ros_distro=ros_distro, latched=(MAP_TOPIC,),
-                                  overwrite=True)
+        self._bag = Rosbag2Writer(
+            folder, ros_distro=ros_distro, latched=(MAP_TOPIC,), overwrite=True
+        )
 
     def write_map(self, snapshot: MapSnapshot, stamp_ns: int) -> None:
-        self._bag.write_cloud(MAP_TOPIC, ros_map_points(snapshot), self.frame_id, stamp_ns,
-                              stamp_ns)
+        self._bag.write_cloud(
+            MAP_TOPIC, ros_map_points(snapshot), self.frame_id, stamp_ns, stamp_ns
+        )
 
     def write_scan(self, scan: Scan, mapped_labels: np.ndarray) -> None:
         t = max(scan_stamp_ns(scan), 0)
-        self._bag.write_cloud(SCANS_TOPIC, ros_scan_points(scan, mapped_labels), self.frame_id,
-                              t, t, sequence=self.scans)
+        self._bag.write_cloud(
+            SCANS_TOPIC,
+            ros_scan_points(scan, mapped_labels),
+            self.frame_id,
+            t,
+            t,
+            sequence=self.scans,
+        )
         self.scans += 1
 
     def finish(self) -> None:
@@ -101,9 +123,14 @@ class MapBag:
         self.finish()
 
 
-def write_map_bag(folder: str | Path, snapshot: MapSnapshot, frame_id: str = "map",
-                  scans: Iterable[tuple[Scan, np.ndarray]] | None = None, *,
-                  ros_distro: str = "humble") -> dict:
+def write_map_bag(
+    folder: str | Path,
+    snapshot: MapSnapshot,
+    frame_id: str = "map",
+    scans: Iterable[tuple[Scan, np.ndarray]] | None = None,
+    *,
+    ros_distro: str = "humble",
+) -> dict:
     """Write the map (and optionally the scans with their mapped labels, written as they
     come) as a rosbag2 folder; the map is stamped by `map_stamp_ns`.
     Returns {"path", "voxels", "scans", "map_topic", "scans_topic"}."""
@@ -113,5 +140,10 @@ def write_map_bag(folder: str | Path, snapshot: MapSnapshot, frame_id: str = "ma
         bag.write_map(snapshot, map_stamp_ns(snapshot, first[0] if first else None))
         for scan, mapped in itertools.chain([first] if first is not None else [], scans):
             bag.write_scan(scan, mapped)
-    return {"path": str(folder), "voxels": len(snapshot), "scans": bag.scans,
-            "map_topic": MAP_TOPIC, "scans_topic": SCANS_TOPIC}
+    return {
+        "path": str(folder),
+        "voxels": len(snapshot),
+        "scans": bag.scans,
+        "map_topic": MAP_TOPIC,
+        "scans_topic": SCANS_TOPIC,
+    }

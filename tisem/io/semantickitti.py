@@ -30,25 +30,42 @@ are kept, each scan whose time breaks it (one wild value, or a time earlier than
 around it) is refused. So one bad time costs its own scan, never the ones after it. The
 file helpers (calib.txt, poses.txt, times.txt) are tisem/io/kitti_files.py.
 """
+
 from __future__ import annotations
 
 import os
 import re
+from collections.abc import Iterator
 from pathlib import Path
-from typing import Iterator
 
 import numpy as np
 
 from tisem.errors import DatasetError, ScanError, SkippedScan
-from tisem.io.kitti_files import (MAX_TIME_S, camera_poses_to_lidar, out_of_order,
-                                  read_calib_tr, read_pose_lines, read_poses, read_time_lines,
-                                  read_times, read_trajectory)
+from tisem.io.kitti_files import (
+    MAX_TIME_S,
+    camera_poses_to_lidar,
+    out_of_order,
+    read_calib_tr,
+    read_pose_lines,
+    read_poses,
+    read_time_lines,
+    read_times,
+    read_trajectory,
+)
 from tisem.labels import moving_raw, raw_to_train, train_to_raw
 from tisem.scan import KittiSource, Scan, finite_rows
 
-__all__ = ["SemanticKittiSequence", "write_predictions", "read_calib_tr", "read_poses",
-           "read_pose_lines", "read_times", "camera_poses_to_lidar", "DEFAULT_SCAN_PERIOD_S",
-           "MAX_TIME_S"]
+__all__ = [
+    "SemanticKittiSequence",
+    "write_predictions",
+    "read_calib_tr",
+    "read_poses",
+    "read_pose_lines",
+    "read_times",
+    "camera_poses_to_lidar",
+    "DEFAULT_SCAN_PERIOD_S",
+    "MAX_TIME_S",
+]
 
 DEFAULT_SCAN_PERIOD_S = 0.1  # 10 Hz, used when there is no times.txt
 INPUTS = ("predictions", "labels")
@@ -57,8 +74,10 @@ _BIN_RE = re.compile(r"^(\d+)\.bin$")
 
 # --------------------------------------------------------------------------- writer
 
-def write_predictions(out_root: str | os.PathLike, sequence_name: str | int, scan_id: int,
-                      train_labels: np.ndarray) -> Path:
+
+def write_predictions(
+    out_root: str | os.PathLike, sequence_name: str | int, scan_id: int, train_labels: np.ndarray
+) -> Path:
     """Write `out_root/sequences/NN/predictions/NNNNNN.label` (uint32 raw ids) and return its path.
 
     `train_labels` are train ids 0..19; they are stored as raw ids (`train_to_raw`) so that the
@@ -75,8 +94,9 @@ def write_predictions(out_root: str | os.PathLike, sequence_name: str | int, sca
     return path
 
 
-def write_dynamic_flags(out_root: str | os.PathLike, sequence_name: str | int, scan_id: int,
-                        dynamic: np.ndarray) -> Path:
+def write_dynamic_flags(
+    out_root: str | os.PathLike, sequence_name: str | int, scan_id: int, dynamic: np.ndarray
+) -> Path:
     """Write `out_root/sequences/NN/predictions/NNNNNN.dynamic`: one uint8 per point of the
     scan, 1 where free space found it dynamic (its own file beside the .label, so the
     SemanticKITTI layout stays valid); written like `write_predictions`."""
@@ -91,6 +111,7 @@ def write_dynamic_flags(out_root: str | os.PathLike, sequence_name: str | int, s
 
 
 # --------------------------------------------------------------------------- reader
+
 
 def _normalise_sequence(sequence: str | int) -> str:
     s = str(sequence).strip()
@@ -129,9 +150,15 @@ class SemanticKittiSequence:
     for a bad scan; iteration yields `Scan` or `SkippedScan` and never stops on a bad scan.
     """
 
-    def __init__(self, path: str | os.PathLike, sequence: str | int | None = None,
-                 input: str = "predictions", first: int = 0, last: int | None = None,
-                 poses: str | os.PathLike | None = None):
+    def __init__(
+        self,
+        path: str | os.PathLike,
+        sequence: str | int | None = None,
+        input: str = "predictions",
+        first: int = 0,
+        last: int | None = None,
+        poses: str | os.PathLike | None = None,
+    ):
         if input not in INPUTS:
             raise ValueError(f"input must be one of {INPUTS}, got {input!r}")
         self.input = input
@@ -139,8 +166,10 @@ class SemanticKittiSequence:
         if not root.exists():
             raise DatasetError(f"{root}: folder does not exist")
         if not root.is_dir():
-            raise DatasetError(f"{root}: not a folder (expected a SemanticKITTI sequence folder "
-                               f"with velodyne/, or a dataset root with sequences/NN/)")
+            raise DatasetError(
+                f"{root}: not a folder (expected a SemanticKITTI sequence folder "
+                f"with velodyne/, or a dataset root with sequences/NN/)"
+            )
 
         if (root / "velodyne").is_dir():
             self.sequence_dir = root
@@ -152,18 +181,24 @@ class SemanticKittiSequence:
         elif (root / "sequences").is_dir():
             found = _list_sequences(root)
             if sequence is None:
-                raise DatasetError(f"{root}: is a dataset root; choose a sequence "
-                                   f"(sequence= / --sequence), found: {', '.join(found) or 'none'}")
+                raise DatasetError(
+                    f"{root}: is a dataset root; choose a sequence "
+                    f"(sequence= / --sequence), found: {', '.join(found) or 'none'}"
+                )
             name = _normalise_sequence(sequence)
             seq_dir = root / "sequences" / name
             if not (seq_dir / "velodyne").is_dir():
-                raise DatasetError(f"{seq_dir}: no such sequence with a velodyne/ folder; "
-                                   f"sequences found: {', '.join(found) or 'none'}")
+                raise DatasetError(
+                    f"{seq_dir}: no such sequence with a velodyne/ folder; "
+                    f"sequences found: {', '.join(found) or 'none'}"
+                )
             self.sequence_dir = seq_dir
             self.sequence_name = name
         else:
-            raise DatasetError(f"{root}: no velodyne/ folder (not a SemanticKITTI sequence) and "
-                               f"no sequences/ folder (not a dataset root)")
+            raise DatasetError(
+                f"{root}: no velodyne/ folder (not a SemanticKITTI sequence) and "
+                f"no sequences/ folder (not a dataset root)"
+            )
 
         d = self.sequence_dir
         self.velodyne_dir = d / "velodyne"
@@ -172,12 +207,17 @@ class SemanticKittiSequence:
         self.has_ground_truth = self.labels_dir.is_dir()
         self.input_dir = d / input
         if not self.input_dir.is_dir():
-            hint = ("; to map the ground truth instead give --input labels (input='labels')"
-                    if input == "predictions" and self.has_ground_truth else "")
-            raise DatasetError(f"{self.input_dir}: input label folder missing (input={input!r}); "
-                               f"folders present: "
-                               f"{', '.join(sorted(p.name for p in d.iterdir() if p.is_dir()))}"
-                               f"{hint}")
+            hint = (
+                "; to map the ground truth instead give --input labels (input='labels')"
+                if input == "predictions" and self.has_ground_truth
+                else ""
+            )
+            raise DatasetError(
+                f"{self.input_dir}: input label folder missing (input={input!r}); "
+                f"folders present: "
+                f"{', '.join(sorted(p.name for p in d.iterdir() if p.is_dir()))}"
+                f"{hint}"
+            )
 
         bin_names: dict[int, str] = {}
         for p in sorted(self.velodyne_dir.iterdir()):
@@ -186,16 +226,20 @@ class SemanticKittiSequence:
                 continue
             sid = int(m.group(1))
             if sid in bin_names:
-                raise DatasetError(f"{self.velodyne_dir}: {bin_names[sid]} and {p.name} are both "
-                                   f"scan {sid}; each scan number must have one file")
+                raise DatasetError(
+                    f"{self.velodyne_dir}: {bin_names[sid]} and {p.name} are both "
+                    f"scan {sid}; each scan number must have one file"
+                )
             bin_names[sid] = p.name
         if not bin_names:
             raise DatasetError(f"{self.velodyne_dir}: no NNNNNN.bin scans")
         all_ids = sorted(bin_names)
         self.scan_ids = [i for i in all_ids if i >= first and (last is None or i <= last)]
         if not self.scan_ids:
-            raise DatasetError(f"{self.velodyne_dir}: empty frame range first={first} last={last}; "
-                               f"scans present: {all_ids[0]}..{all_ids[-1]} ({len(all_ids)} files)")
+            raise DatasetError(
+                f"{self.velodyne_dir}: empty frame range first={first} last={last}; "
+                f"scans present: {all_ids[0]}..{all_ids[-1]} ({len(all_ids)} files)"
+            )
         self._bin_names = {i: bin_names[i] for i in self.scan_ids}
 
         lidar_all, pose_problems, stamps = self._read_poses(poses)
@@ -205,8 +249,9 @@ class SemanticKittiSequence:
         self.poses_lidar = np.full((len(ids), 4, 4), np.nan)
         self.poses_lidar[self.has_pose] = lidar_all[ids[self.has_pose]]
         # why a scan cannot be used although its files can: {scan id: the ScanError message}
-        self.problems: dict[int, str] = {int(sid): pose_problems[int(sid)] for sid in ids
-                                         if int(sid) in pose_problems}
+        self.problems: dict[int, str] = {
+            int(sid): pose_problems[int(sid)] for sid in ids if int(sid) in pose_problems
+        }
 
         self.times_file = d / "times.txt"
         if self.times_file.is_file():
@@ -220,7 +265,7 @@ class SemanticKittiSequence:
                     self.problems.setdefault(sid, time_problems[sid])
             for k, why in out_of_order(self.times, self.scan_ids, self.times_file).items():
                 self.problems.setdefault(self.scan_ids[k], why)
-        elif stamps is not None:                      # a TUM trajectory's stamps
+        elif stamps is not None:  # a TUM trajectory's stamps
             self.times_file = self.poses_file
             self.times = np.full(len(ids), np.nan)
             self.times[self.has_pose] = stamps[ids[self.has_pose]]
@@ -231,28 +276,29 @@ class SemanticKittiSequence:
             self.times = ids.astype(np.float64) * DEFAULT_SCAN_PERIOD_S
             self._num_times = None
 
-    def _read_poses(self, trajectory: str | os.PathLike | None
-                    ) -> tuple[np.ndarray, dict[int, str], np.ndarray | None]:
+    def _read_poses(
+        self, trajectory: str | os.PathLike | None
+    ) -> tuple[np.ndarray, dict[int, str], np.ndarray | None]:
         """Every pose of the sequence in the LiDAR frame (M, 4, 4), {pose index: why a line is
         not a pose}, and the trajectory's stamps (TUM) or None; sets `Tr` and `poses_file`."""
         d = self.sequence_dir
         if trajectory is not None:
             self.poses_file = Path(trajectory)
             # the trajectory is the LiDAR's already; Tr only places the camera (MCAP /tf)
-            self.Tr = read_calib_tr(d / "calib.txt") if (d / "calib.txt").is_file() \
-                else np.eye(4)
+            self.Tr = read_calib_tr(d / "calib.txt") if (d / "calib.txt").is_file() else np.eye(4)
             poses, stamps, problems = read_trajectory(self.poses_file)
             return poses, problems, stamps
         self.Tr = read_calib_tr(d / "calib.txt")
         self.poses_file = d / "poses.txt"
-        odometry = d.parent.parent / "poses" / f"{d.name}.txt"   # dataset/poses/NN.txt
-        if not self.poses_file.is_file() and d.parent.name == "sequences" \
-                and odometry.is_file():
+        odometry = d.parent.parent / "poses" / f"{d.name}.txt"  # dataset/poses/NN.txt
+        if not self.poses_file.is_file() and d.parent.name == "sequences" and odometry.is_file():
             self.poses_file = odometry
         if not self.poses_file.is_file():
-            raise DatasetError(f"{self.poses_file}: poses file not found (nor {odometry}, the "
-                               f"KITTI odometry layout); give a LiDAR trajectory with --poses "
-                               f"FILE (KITTI or TUM format)")
+            raise DatasetError(
+                f"{self.poses_file}: poses file not found (nor {odometry}, the "
+                f"KITTI odometry layout); give a LiDAR trajectory with --poses "
+                f"FILE (KITTI or TUM format)"
+            )
         poses_cam, problems = read_pose_lines(self.poses_file)
         return camera_poses_to_lidar(poses_cam, self.Tr), problems, None
 
@@ -262,7 +308,7 @@ class SemanticKittiSequence:
         return self.velodyne_dir / self._bin_names[sid]
 
     def _label_path(self, folder: Path, sid: int) -> Path:
-        stem = self._bin_names[sid][:-len(".bin")]
+        stem = self._bin_names[sid][: -len(".bin")]
         return folder / f"{stem}.label"
 
     # ------------------------------------------------------------------ access
@@ -270,10 +316,12 @@ class SemanticKittiSequence:
         return len(self.scan_ids)
 
     def __repr__(self) -> str:
-        return (f"SemanticKittiSequence({str(self.sequence_dir)!r}, "
-                f"sequence={self.sequence_name!r}, input={self.input!r}, "
-                f"scans {self.scan_ids[0]}..{self.scan_ids[-1]} ({len(self)}), "
-                f"ground truth: {self.has_ground_truth})")
+        return (
+            f"SemanticKittiSequence({str(self.sequence_dir)!r}, "
+            f"sequence={self.sequence_name!r}, input={self.input!r}, "
+            f"scans {self.scan_ids[0]}..{self.scan_ids[-1]} ({len(self)}), "
+            f"ground truth: {self.has_ground_truth})"
+        )
 
     def __getitem__(self, k: int) -> Scan:
         if not isinstance(k, (int, np.integer)):
@@ -290,16 +338,18 @@ class SemanticKittiSequence:
             try:
                 yield self._load(k)
             except ScanError as exc:
-                yield SkippedScan(index=self.scan_ids[k], name=str(self.scan_path(k)),
-                                  reason=str(exc))
+                yield SkippedScan(
+                    index=self.scan_ids[k], name=str(self.scan_path(k)), reason=str(exc)
+                )
 
     def _read_labels(self, path: Path, sid: int, what: str) -> np.ndarray:
         if not path.is_file():
             raise ScanError(f"{path}: {what} label file missing for scan {sid}", sid, str(path))
         size = path.stat().st_size
         if size % 4:
-            raise ScanError(f"{path}: truncated label file ({size} bytes, not a multiple of 4)",
-                            sid, str(path))
+            raise ScanError(
+                f"{path}: truncated label file ({size} bytes, not a multiple of 4)", sid, str(path)
+            )
         return np.fromfile(path, dtype="<u4")
 
     def _load(self, k: int) -> Scan:
@@ -309,26 +359,42 @@ class SemanticKittiSequence:
         try:
             size = bin_path.stat().st_size
             if size % 16:
-                raise ScanError(f"{bin_path}: truncated scan file ({size} bytes is not a multiple "
-                                f"of 16 = 4 float32 x y z remission)", sid, name)
+                raise ScanError(
+                    f"{bin_path}: truncated scan file ({size} bytes is not a multiple "
+                    f"of 16 = 4 float32 x y z remission)",
+                    sid,
+                    name,
+                )
             if size == 0:
                 raise ScanError(f"{bin_path}: empty scan (0 points)", sid, name)
             if not self.has_pose[k]:
-                raise ScanError(f"{self.poses_file}: no pose for scan {sid} ({bin_path.name}); "
-                                f"{self.poses_file.name} has {self.num_poses} poses (scans 0.."
-                                f"{self.num_poses - 1})", sid, name)
+                raise ScanError(
+                    f"{self.poses_file}: no pose for scan {sid} ({bin_path.name}); "
+                    f"{self.poses_file.name} has {self.num_poses} poses (scans 0.."
+                    f"{self.num_poses - 1})",
+                    sid,
+                    name,
+                )
             if sid in self.problems:
                 raise ScanError(self.problems[sid], sid, name)
             if not np.isfinite(self.times[k]):
-                raise ScanError(f"{self.times_file}: no time for scan {sid}; times.txt has "
-                                f"{self._num_times} entries", sid, name)
+                raise ScanError(
+                    f"{self.times_file}: no time for scan {sid}; times.txt has "
+                    f"{self._num_times} entries",
+                    sid,
+                    name,
+                )
             data = np.fromfile(bin_path, dtype="<f4").reshape(-1, 4)
             n = data.shape[0]
             in_path = self._label_path(self.input_dir, sid)
             raw_in = self._read_labels(in_path, sid, self.input)
             if raw_in.size != n:
-                raise ScanError(f"{in_path}: label count differs from point count: {raw_in.size} "
-                                f"labels for {n} points in {bin_path.name}", sid, name)
+                raise ScanError(
+                    f"{in_path}: label count differs from point count: {raw_in.size} "
+                    f"labels for {n} points in {bin_path.name}",
+                    sid,
+                    name,
+                )
             raw_gt = None
             if self.has_ground_truth:
                 gt_path = self._label_path(self.labels_dir, sid)
@@ -337,9 +403,13 @@ class SemanticKittiSequence:
                 else:
                     raw_gt = self._read_labels(gt_path, sid, "ground-truth")
                     if raw_gt.size != n:
-                        raise ScanError(f"{gt_path}: label count differs from point count: "
-                                        f"{raw_gt.size} labels for {n} points in "
-                                        f"{bin_path.name}", sid, name)
+                        raise ScanError(
+                            f"{gt_path}: label count differs from point count: "
+                            f"{raw_gt.size} labels for {n} points in "
+                            f"{bin_path.name}",
+                            sid,
+                            name,
+                        )
             # non-finite points stay: the mapper drops them (tisem.scan.finite_rows, the one
             # rule) and the predictions file keeps one label per point of the .bin
             if not finite_rows(data[:, :3]).any():
@@ -360,8 +430,12 @@ class SemanticKittiSequence:
                 gt_labels=gt,
                 index=sid,
                 name=name,
-                source=KittiSource(unknown_raw_ids=unknown, unknown_gt_ids=unknown_gt,
-                                   sequence=self.sequence_name, input=self.input),
+                source=KittiSource(
+                    unknown_raw_ids=unknown,
+                    unknown_gt_ids=unknown_gt,
+                    sequence=self.sequence_name,
+                    input=self.input,
+                ),
                 # the moving ids (252-259) map to their static class's train id, and the
                 # motion they say travels beside it
                 moving=moving_raw(raw_in),

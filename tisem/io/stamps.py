@@ -5,6 +5,7 @@ and a transform sampled at a cloud's stamp is found at that very stamp. The two 
 ROS 2 `builtin_interfaces/Time` (`sec`, `nanosec`) and protobuf `google.protobuf.Timestamp`
 (`seconds`, `nanos`, what Foxglove schemas use).
 """
+
 from __future__ import annotations
 
 from decimal import Decimal, InvalidOperation
@@ -13,7 +14,7 @@ from typing import Any
 NS_PER_S = 1_000_000_000
 # a whole number at least this big given as a start time is nanoseconds, not seconds: as
 # seconds it would lie beyond the year 33000
-NS_THRESHOLD = 10 ** 12
+NS_THRESHOLD = 10**12
 
 
 def stamp_to_ns(stamp: Any) -> int:
@@ -25,7 +26,7 @@ def stamp_to_ns(stamp: Any) -> int:
         ns = int(stamp.sec) * NS_PER_S + int(stamp.nanosec)
     else:
         ns = int(stamp.seconds) * NS_PER_S + int(stamp.nanos)
-    if not -2 ** 63 <= ns < 2 ** 63:
+    if not -(2**63) <= ns < 2**63:
         raise ValueError(f"the stamp ({ns / NS_PER_S:.6g} s) does not fit in 64-bit nanoseconds")
     return ns
 
@@ -65,7 +66,7 @@ def parse_start_time_ns(text: str) -> int:
         ns = int(text)
     else:
         ns = decimal_seconds_to_ns(text)
-    if not 0 <= ns < 2 ** 63:
+    if not 0 <= ns < 2**63:
         raise ValueError(f"start time {text[:40]!r} is not between the epoch and 2262")
     return ns
 

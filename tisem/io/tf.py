@@ -13,18 +13,18 @@ Stamps are integer nanoseconds (ROS `sec`/`nanosec`), so equal stamps compare ex
 What pose messages (TFMessage, Odometry, PoseStamped, foxglove.FrameTransform(s)) carry is
 turned into edges by `tisem.io.mcap_messages.pose_edges`.
 """
+
 from __future__ import annotations
 
 from collections import Counter
+from collections.abc import Collection
 from dataclasses import dataclass, field
-from typing import Collection
 
 import numpy as np
 from numpy.typing import ArrayLike
 
-
-_INT64_MIN, _INT64_MAX = -2 ** 63, 2 ** 63 - 1
-GAP_FACTOR = 1.5        # samples this many median spacings apart leave a gap between them
+_INT64_MIN, _INT64_MAX = -(2**63), 2**63 - 1
+GAP_FACTOR = 1.5  # samples this many median spacings apart leave a gap between them
 
 
 class TfError(LookupError):
@@ -41,16 +41,26 @@ class ExtrapolationError(TfError):
 
 # ---- rotations -------------------------------------------------------------------------------
 
+
 def quat_to_matrix(q_xyzw: np.ndarray) -> np.ndarray:
     """(..., 4) quaternions x, y, z, w (normalised here) -> (..., 3, 3) rotation matrices."""
     q = np.asarray(q_xyzw, dtype=np.float64)
     q = q / np.linalg.norm(q, axis=-1, keepdims=True)
     x, y, z, w = np.moveaxis(q, -1, 0)
-    return np.stack([
-        1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w),
-        2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w),
-        2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y),
-    ], axis=-1).reshape(q.shape[:-1] + (3, 3))
+    return np.stack(
+        [
+            1 - 2 * (y * y + z * z),
+            2 * (x * y - z * w),
+            2 * (x * z + y * w),
+            2 * (x * y + z * w),
+            1 - 2 * (x * x + z * z),
+            2 * (y * z - x * w),
+            2 * (x * z - y * w),
+            2 * (y * z + x * w),
+            1 - 2 * (x * x + y * y),
+        ],
+        axis=-1,
+    ).reshape(q.shape[:-1] + (3, 3))
 
 
 def matrix_to_quat(R: np.ndarray) -> np.ndarray:
@@ -92,7 +102,7 @@ def slerp(q0: np.ndarray, q1: np.ndarray, w: np.ndarray) -> np.ndarray:
     dot = np.clip(np.abs(dot), -1.0, 1.0)
     theta = np.arccos(dot)
     sin = np.sin(theta)
-    near = sin < 1e-12                        # (almost) equal rotations: lerp is exact enough
+    near = sin < 1e-12  # (almost) equal rotations: lerp is exact enough
     safe = np.where(near, 1.0, sin)
     a = np.where(near, 1.0 - w, np.sin((1.0 - w) * theta) / safe)
     b = np.where(near, w, np.sin(w * theta) / safe)
@@ -118,17 +128,18 @@ def invert(T: np.ndarray) -> np.ndarray:
 
 
 def _frame(name: str) -> str:
-    return name.lstrip("/")                   # ROS 1 frames may carry a leading '/'
+    return name.lstrip("/")  # ROS 1 frames may carry a leading '/'
 
 
 # ---- the buffer ------------------------------------------------------------------------------
+
 
 @dataclass
 class _Edge:
     parent: str
     static: bool
-    samples: list = field(default_factory=list)   # (stamp_ns, xyz, quat) as added
-    stamps: np.ndarray | None = None              # sorted, unique; built lazily
+    samples: list = field(default_factory=list)  # (stamp_ns, xyz, quat) as added
+    stamps: np.ndarray | None = None  # sorted, unique; built lazily
     trans: np.ndarray | None = None
     quats: np.ndarray | None = None
 
@@ -156,11 +167,15 @@ class _Edge:
         bad = (stamps_ns < lo - max_extrapolation_ns) | (stamps_ns > hi + max_extrapolation_ns)
         if np.any(bad):
             t = int(stamps_ns[np.argmax(bad)])
-            side = (f"{(lo - t) / 1e6:.3f} ms before its first" if t < lo
-                    else f"{(t - hi) / 1e6:.3f} ms after its last")
+            side = (
+                f"{(lo - t) / 1e6:.3f} ms before its first"
+                if t < lo
+                else f"{(t - hi) / 1e6:.3f} ms after its last"
+            )
             raise ExtrapolationError(
                 f"edge {self.parent} -> {child} has {len(self.stamps)} sample(s) from "
-                f"{lo / 1e9:.6f} s to {hi / 1e9:.6f} s; the stamp {t / 1e9:.6f} s is {side} sample")
+                f"{lo / 1e9:.6f} s to {hi / 1e9:.6f} s; the stamp {t / 1e9:.6f} s is {side} sample"
+            )
         t = np.clip(stamps_ns, lo, hi)
         if len(self.stamps) == 1:
             return np.broadcast_to(make_transform(self.trans[0], self.quats[0]), (len(t), 4, 4))
@@ -180,12 +195,19 @@ class TfBuffer:
 
     def __init__(self, max_extrapolation_s: float = 0.0) -> None:
         self.max_extrapolation_ns = int(round(max_extrapolation_s * 1e9))
-        self._edges: dict[str, _Edge] = {}            # child -> edge to its parent
-        self._ignored: Counter = Counter()            # why transforms were ignored -> how many
+        self._edges: dict[str, _Edge] = {}  # child -> edge to its parent
+        self._ignored: Counter = Counter()  # why transforms were ignored -> how many
 
     # -- filling
-    def add(self, parent: str, child: str, stamp_ns: int, translation: ArrayLike,
-            rotation_xyzw: ArrayLike, static: bool = False) -> None:
+    def add(
+        self,
+        parent: str,
+        child: str,
+        stamp_ns: int,
+        translation: ArrayLike,
+        rotation_xyzw: ArrayLike,
+        static: bool = False,
+    ) -> None:
         parent, child = _frame(parent), _frame(child)
         if not parent or not child or parent == child:
             self._ignore(f"with frames {parent!r} -> {child!r}")
@@ -206,9 +228,11 @@ class TfBuffer:
             edge = self._edges[child] = _Edge(parent, static)
         elif edge.parent != parent or edge.static != static:
             # tf2 would re-parent; a log that does so is ambiguous, so keep the first and say so
-            self._ignore(f"giving frame {child!r} the parent {parent!r} "
-                         f"({'static' if static else 'dynamic'}); its parent is "
-                         f"{edge.parent!r} ({'static' if edge.static else 'dynamic'})")
+            self._ignore(
+                f"giving frame {child!r} the parent {parent!r} "
+                f"({'static' if static else 'dynamic'}); its parent is "
+                f"{edge.parent!r} ({'static' if edge.static else 'dynamic'})"
+            )
             return
         if static:
             edge.samples = [(int(stamp_ns), xyz, q)]  # /tf_static: the latest wins
@@ -275,17 +299,20 @@ class TfBuffer:
         known = self.frames
         for name in (target, source):
             if name not in known:
-                raise ConnectivityError(f"frame {name!r} does not appear in any transform; "
-                                        f"known frames: {', '.join(sorted(known)) or 'none'}"
-                                        f"{self._ignored_line()}")
+                raise ConnectivityError(
+                    f"frame {name!r} does not appear in any transform; "
+                    f"known frames: {', '.join(sorted(known)) or 'none'}"
+                    f"{self._ignored_line()}"
+                )
         up_s, up_t = self._ancestors(source), self._ancestors(target)
         common = next((f for f in up_s if f in set(up_t)), None)
         if common is None:
             raise ConnectivityError(
                 f"frames {target!r} and {source!r} are not connected: {source!r} leads up to "
                 f"{up_s[-1]!r}, {target!r} up to {up_t[-1]!r}; tree: {self.describe()}"
-                f"{self._ignored_line()}")
-        return up_s[:up_s.index(common)], up_t[:up_t.index(common)]
+                f"{self._ignored_line()}"
+            )
+        return up_s[: up_s.index(common)], up_t[: up_t.index(common)]
 
     def lookup_many(self, target: str, source: str, stamps_ns: ArrayLike) -> np.ndarray:
         """(K, 4, 4) T_target_source at each stamp (a point in `source` -> `target`)."""
@@ -295,7 +322,7 @@ class TfBuffer:
 
         def to_common(children: list[str]) -> np.ndarray:
             T = np.broadcast_to(np.eye(4), (len(stamps), 4, 4))
-            for child in children:                    # child -> ... -> common, innermost first
+            for child in children:  # child -> ... -> common, innermost first
                 try:
                     T = self._edges[child].at(child, stamps, self.max_extrapolation_ns) @ T
                 except ExtrapolationError as e:
@@ -308,8 +335,9 @@ class TfBuffer:
         """(4, 4) T_target_source at one stamp."""
         return self.lookup_many(target, source, [stamp_ns])[0]
 
-    def interpolation_gap(self, target: str, source: str, stamp_ns: int,
-                          factor: float = GAP_FACTOR) -> str | None:
+    def interpolation_gap(
+        self, target: str, source: str, stamp_ns: int, factor: float = GAP_FACTOR
+    ) -> str | None:
         """Where a lookup at `stamp_ns` interpolates over a gap in a dynamic edge's samples
         (two samples more than `factor` times the edge's median spacing apart, or the stamp
         outside the samples): what a lost /tf message looks like from here. None otherwise."""
@@ -325,16 +353,21 @@ class TfBuffer:
             lo = edge.stamps[max(i - 1, 0)]
             hi = edge.stamps[min(i, len(edge.stamps) - 1)]
             if i in (0, len(edge.stamps)) or hi - lo > factor * spacing:
-                return (f"edge {edge.parent} -> {child} has no samples from {lo / 1e9:.6f} s to "
-                        f"{hi / 1e9:.6f} s around the stamp (its median spacing is "
-                        f"{spacing / 1e6:.1f} ms)")
+                return (
+                    f"edge {edge.parent} -> {child} has no samples from {lo / 1e9:.6f} s to "
+                    f"{hi / 1e9:.6f} s around the stamp (its median spacing is "
+                    f"{spacing / 1e6:.1f} ms)"
+                )
         return None
 
     def describe(self) -> str:
         parts = []
         for child, e in sorted(self._edges.items(), key=lambda kv: (kv[1].parent, kv[0])):
             e.finalize()
-            kind = ("static" if e.static else
-                    f"{len(e.stamps)} samples {e.stamps[0] / 1e9:.3f}-{e.stamps[-1] / 1e9:.3f} s")
+            kind = (
+                "static"
+                if e.static
+                else f"{len(e.stamps)} samples {e.stamps[0] / 1e9:.3f}-{e.stamps[-1] / 1e9:.3f} s"
+            )
             parts.append(f"{e.parent} -> {child} ({kind})")
         return "; ".join(parts) or "empty"

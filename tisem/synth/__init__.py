@@ -8,7 +8,13 @@
 - `sequence`: frames, `Scan`s and SemanticKITTI folders
 - `mcap_log`: a small analytic ROS 2 recording for the MCAP reader's tests and benchmark
 """
-from tisem.synth.sequence import (SynthFrame, SyntheticSequence, iter_synthetic, to_scan,
-                                  write_semantickitti)
+
+from tisem.synth.sequence import (
+    SyntheticSequence,
+    SynthFrame,
+    iter_synthetic,
+    to_scan,
+    write_semantickitti,
+)
 
 __all__ = ["SynthFrame", "SyntheticSequence", "iter_synthetic", "to_scan", "write_semantickitti"]

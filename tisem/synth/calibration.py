@@ -20,12 +20,13 @@ rates. What is measured, over the evaluated points (ground-truth train id != 0, 
   a radius in its scan and the MAX_LAG scans before it (world frame), right how often;
 - what the network says for chosen raw ids, the moving objects (raw 252-259) among them.
 """
+
 from __future__ import annotations
 
 from collections import deque
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Iterable, Iterator
 
 import numpy as np
 from scipy.sparse import coo_matrix
@@ -38,11 +39,11 @@ from tisem.synth.noise import class_boundary
 
 RANGE_EDGES_M = (0.0, 5.0, 10.0, 15.0, 20.0, 30.0, 40.0, 50.0)
 DISTANCE_EDGES_M = (0.0, 0.25, 0.5, 1.0, 2.0, 4.0)
-CLUSTER_SIZE_EDGES = (1, 2, 10, 100, 1000)          # points; the last bin is open
+CLUSTER_SIZE_EDGES = (1, 2, 10, 100, 1000)  # points; the last bin is open
 CLUSTER_EXTENT_EDGES_M = (0.0, 0.5, 1.0, 2.0, 4.0, 8.0)
 MAX_LAG = 4
 VOTE_RADII_M = (0.2, 0.4, 0.8)
-VOTE_SAMPLES = 1000          # points per scan whose neighbourhood vote is taken
+VOTE_SAMPLES = 1000  # points per scan whose neighbourhood vote is taken
 # raw ids whose predictions are kept: the movers (252-259) and their static counterparts
 MOVING_RAW_IDS = tuple(range(252, 260))
 TRACKED_RAW_IDS = (10, 30) + MOVING_RAW_IDS
@@ -59,15 +60,16 @@ COHERENCE_OTHERS = 20000
 class LabelledScan:
     """What the measurement needs of one scan: geometry, raw ground truth, predicted train ids."""
 
-    points: np.ndarray          # (N, 3) float64, sensor frame
+    points: np.ndarray  # (N, 3) float64, sensor frame
     T_world_sensor: np.ndarray  # (4, 4)
-    gt_raw: np.ndarray          # (N,) uint32 raw ids (instance bits stripped)
-    pred_train: np.ndarray      # (N,) int64
+    gt_raw: np.ndarray  # (N,) uint32 raw ids (instance bits stripped)
+    pred_train: np.ndarray  # (N,) int64
 
 
 def read_folder(path, first: int = 0, last: int | None = None) -> Iterator[LabelledScan]:
     """The scans of a SemanticKITTI sequence folder with labels/ and predictions/."""
     from tisem.io.semantickitti import SemanticKittiSequence
+
     seq = SemanticKittiSequence(path, input="predictions", first=first, last=last)
     if not seq.has_ground_truth:
         raise ValueError(f"{seq.sequence_dir}: no labels/ folder (ground truth) to compare with")
@@ -76,15 +78,23 @@ def read_folder(path, first: int = 0, last: int | None = None) -> Iterator[Label
         label_file = seq.labels_dir / (Path(seq.scan_path(k)).stem + ".label")
         gt_raw = np.fromfile(label_file, dtype="<u4") & np.uint32(0xFFFF)
         keep = np.isfinite(scan.points_sensor).all(axis=1)
-        yield LabelledScan(scan.points_sensor[keep].astype(np.float64), scan.T_world_sensor,
-                           gt_raw[keep], scan.labels[keep].astype(np.int64))
+        yield LabelledScan(
+            scan.points_sensor[keep].astype(np.float64),
+            scan.T_world_sensor,
+            gt_raw[keep],
+            scan.labels[keep].astype(np.int64),
+        )
 
 
 def from_synth_frames(frames: Iterable) -> Iterator[LabelledScan]:
     """LabelledScans of synthetic frames (`tisem.synth.SynthFrame`), without writing files."""
     for f in frames:
-        yield LabelledScan(f.points.astype(np.float64), f.T_world_lidar, f.gt_raw,
-                           raw_to_train(f.pred_raw)[0].astype(np.int64))
+        yield LabelledScan(
+            f.points.astype(np.float64),
+            f.T_world_lidar,
+            f.gt_raw,
+            raw_to_train(f.pred_raw)[0].astype(np.int64),
+        )
 
 
 def _zeros(*shape) -> np.ndarray:
@@ -99,27 +109,32 @@ class ErrorStatistics:
     scans: int = 0
     confusion: np.ndarray = field(default_factory=lambda: _zeros(NUM_CLASSES, NUM_CLASSES))
     # (class, range bin, at boundary 0/1): evaluated points and wrong ones
-    cell_points: np.ndarray = field(default_factory=lambda: _zeros(
-        NUM_CLASSES, len(RANGE_EDGES_M) - 1, 2))
-    cell_errors: np.ndarray = field(default_factory=lambda: _zeros(
-        NUM_CLASSES, len(RANGE_EDGES_M) - 1, 2))
-    bleed_errors: int = 0          # boundary errors that took a neighbour's true class
+    cell_points: np.ndarray = field(
+        default_factory=lambda: _zeros(NUM_CLASSES, len(RANGE_EDGES_M) - 1, 2)
+    )
+    cell_errors: np.ndarray = field(
+        default_factory=lambda: _zeros(NUM_CLASSES, len(RANGE_EDGES_M) - 1, 2)
+    )
+    bleed_errors: int = 0  # boundary errors that took a neighbour's true class
     # neighbour pairs per distance bin, from wrong centres: all, wrong, wrong the same way;
     # from right centres: all, wrong
     pairs: np.ndarray = field(default_factory=lambda: _zeros(5, len(DISTANCE_EDGES_M) - 1))
-    cluster_points_by_size: np.ndarray = field(default_factory=lambda: _zeros(
-        len(CLUSTER_SIZE_EDGES)))
-    cluster_points_by_extent: np.ndarray = field(default_factory=lambda: _zeros(
-        len(CLUSTER_EXTENT_EDGES_M)))
+    cluster_points_by_size: np.ndarray = field(
+        default_factory=lambda: _zeros(len(CLUSTER_SIZE_EDGES))
+    )
+    cluster_points_by_extent: np.ndarray = field(
+        default_factory=lambda: _zeros(len(CLUSTER_EXTENT_EDGES_M))
+    )
     # per lag 1..MAX_LAG: matched points wrong before, of them wrong now, of those with the
     # same label; matched points right before, of them wrong now
     persistence: np.ndarray = field(default_factory=lambda: _zeros(MAX_LAG, 5))
-    raw_predictions: dict = field(default_factory=lambda: {r: _zeros(NUM_CLASSES)
-                                                            for r in TRACKED_RAW_IDS})
+    raw_predictions: dict = field(
+        default_factory=lambda: {r: _zeros(NUM_CLASSES) for r in TRACKED_RAW_IDS}
+    )
     # sampled points: how many, right as labelled, right after the vote at each radius
     vote: np.ndarray = field(default_factory=lambda: _zeros(2 + len(VOTE_RADII_M)))
 
-    def merge(self, other: "ErrorStatistics") -> "ErrorStatistics":
+    def merge(self, other: ErrorStatistics) -> ErrorStatistics:
         """Add another measurement's counts (of other scans) into these. Returns self."""
         for name, value in vars(other).items():
             if name == "raw_predictions":
@@ -137,7 +152,7 @@ class ErrorStatistics:
     def metrics(self) -> dict:
         """`tisem.evaluate.Confusion.metrics()` of the predictions (accuracy, mIoU, IoUs)."""
         c = Confusion()
-        flat = np.repeat(np.arange(NUM_CLASSES ** 2), self.confusion.ravel())
+        flat = np.repeat(np.arange(NUM_CLASSES**2), self.confusion.ravel())
         return c.add(flat // NUM_CLASSES, flat % NUM_CLASSES).metrics()
 
     def row_normalised(self) -> np.ndarray:
@@ -156,27 +171,39 @@ class ErrorStatistics:
         """Share of points at a class boundary, error rates there and inside, and how many
         boundary errors take a neighbour's class."""
         n, w = self.cell_points.sum(axis=(0, 1)), self.cell_errors.sum(axis=(0, 1))
-        return {"share": _ratio(n[1], n.sum()), "error_at_boundary": _ratio(w[1], n[1]),
-                "error_inside": _ratio(w[0], n[0]), "bleed": _ratio(self.bleed_errors, w[1])}
+        return {
+            "share": _ratio(n[1], n.sum()),
+            "error_at_boundary": _ratio(w[1], n[1]),
+            "error_inside": _ratio(w[0], n[0]),
+            "bleed": _ratio(self.bleed_errors, w[1]),
+        }
 
     def coherence(self) -> dict:
         """Per distance bin: P(other point wrong | point wrong), P(... wrong the same way |
         point wrong), P(other point wrong | point right)."""
         p = self.pairs
-        return {"wrong_given_wrong": _ratio(p[1], p[0]), "same_given_wrong": _ratio(p[2], p[0]),
-                "wrong_given_right": _ratio(p[4], p[3])}
+        return {
+            "wrong_given_wrong": _ratio(p[1], p[0]),
+            "same_given_wrong": _ratio(p[2], p[0]),
+            "wrong_given_right": _ratio(p[4], p[3]),
+        }
 
     def cluster_shares(self) -> tuple[np.ndarray, np.ndarray]:
         """Shares of wrong points in clusters by size bin and by extent bin."""
-        return (_ratio(self.cluster_points_by_size, self.cluster_points_by_size.sum()),
-                _ratio(self.cluster_points_by_extent, self.cluster_points_by_extent.sum()))
+        return (
+            _ratio(self.cluster_points_by_size, self.cluster_points_by_size.sum()),
+            _ratio(self.cluster_points_by_extent, self.cluster_points_by_extent.sum()),
+        )
 
     def persistence_rates(self) -> dict:
         """Per lag: P(wrong | wrong before), P(same label | wrong both times),
         P(wrong | right before)."""
         q = self.persistence.T
-        return {"wrong_given_wrong": _ratio(q[1], q[0]), "same_label": _ratio(q[2], q[1]),
-                "wrong_given_right": _ratio(q[4], q[3])}
+        return {
+            "wrong_given_wrong": _ratio(q[1], q[0]),
+            "same_label": _ratio(q[2], q[1]),
+            "wrong_given_right": _ratio(q[4], q[3]),
+        }
 
     def vote_accuracy(self) -> tuple[float, np.ndarray]:
         """Accuracy of the sampled points as labelled, and after the vote at each radius."""
@@ -194,6 +221,7 @@ def _ratio(a, b):
 
 # ---------------------------------------------------------------------------- measurement
 
+
 @dataclass
 class _Evaluated:
     """The evaluated points of one scan, with a tree over them."""
@@ -209,8 +237,9 @@ class _Evaluated:
         return self.pred != self.gt
 
 
-def measure(scans: Iterable[LabelledScan], max_range_m: float = RANGE_EDGES_M[-1],
-            seed: int = 0) -> ErrorStatistics:
+def measure(
+    scans: Iterable[LabelledScan], max_range_m: float = RANGE_EDGES_M[-1], seed: int = 0
+) -> ErrorStatistics:
     """Error statistics of the scans, in order (consecutive scans give the persistence)."""
     stats = ErrorStatistics(max_range_m=max_range_m)
     rng = np.random.default_rng(seed)
@@ -220,15 +249,18 @@ def measure(scans: Iterable[LabelledScan], max_range_m: float = RANGE_EDGES_M[-1
         range_m = np.linalg.norm(scan.points, axis=1)
         keep = (gt > 0) & (range_m <= max_range_m)
         for raw in TRACKED_RAW_IDS:
-            stats.raw_predictions[raw] += np.bincount(scan.pred_train[keep & (scan.gt_raw == raw)],
-                                                      minlength=NUM_CLASSES)
+            stats.raw_predictions[raw] += np.bincount(
+                scan.pred_train[keep & (scan.gt_raw == raw)], minlength=NUM_CLASSES
+            )
         T = scan.T_world_sensor
         points = scan.points[keep]
         world = points @ T[:3, :3].T + T[:3, 3]
-        now = _Evaluated(points, world, gt[keep].astype(np.int64), scan.pred_train[keep],
-                         cKDTree(world))
-        stats.confusion += np.bincount(now.gt * NUM_CLASSES + now.pred,
-                                       minlength=NUM_CLASSES ** 2).reshape(NUM_CLASSES, -1)
+        now = _Evaluated(
+            points, world, gt[keep].astype(np.int64), scan.pred_train[keep], cKDTree(world)
+        )
+        stats.confusion += np.bincount(
+            now.gt * NUM_CLASSES + now.pred, minlength=NUM_CLASSES**2
+        ).reshape(NUM_CLASSES, -1)
         _count_cells(stats, now, range_m[keep])
         _count_pairs(stats, now, rng)
         _count_clusters(stats, now)
@@ -244,8 +276,9 @@ def _count_cells(stats: ErrorStatistics, s: _Evaluated, range_m: np.ndarray) -> 
     """Errors per (class, range bin, boundary), and boundary errors that bleed."""
     neighbour = class_boundary(s.world, s.gt, s.tree_world)
     at_boundary = neighbour >= 0
-    bins = np.clip(np.searchsorted(RANGE_EDGES_M, range_m, side="right") - 1, 0,
-                   len(RANGE_EDGES_M) - 2)
+    bins = np.clip(
+        np.searchsorted(RANGE_EDGES_M, range_m, side="right") - 1, 0, len(RANGE_EDGES_M) - 2
+    )
     shape = stats.cell_points.shape
     cell = np.ravel_multi_index((s.gt, bins, at_boundary.astype(np.int64)), shape)
     size = int(np.prod(shape))
@@ -271,11 +304,22 @@ def _count_pairs(stats: ErrorStatistics, s: _Evaluated, rng: np.random.Generator
         counts = cKDTree(s.points[centres]).count_neighbors(cKDTree(s.points[targets]), radii)
         return np.diff(counts)
 
-    same = sum((pairs(centre_wrong[s.pred[centre_wrong] == c],
-                      others_wrong[s.pred[others_wrong] == c])
-                for c in np.unique(s.pred[centre_wrong])), np.zeros(len(radii) - 1, np.int64))
-    stats.pairs += np.stack([pairs(centre_wrong, others), pairs(centre_wrong, others_wrong), same,
-                             pairs(centre_right, others), pairs(centre_right, others_wrong)])
+    same = sum(
+        (
+            pairs(centre_wrong[s.pred[centre_wrong] == c], others_wrong[s.pred[others_wrong] == c])
+            for c in np.unique(s.pred[centre_wrong])
+        ),
+        np.zeros(len(radii) - 1, np.int64),
+    )
+    stats.pairs += np.stack(
+        [
+            pairs(centre_wrong, others),
+            pairs(centre_wrong, others_wrong),
+            same,
+            pairs(centre_right, others),
+            pairs(centre_right, others_wrong),
+        ]
+    )
 
 
 def _sample(idx: np.ndarray, at_most: int, rng: np.random.Generator) -> np.ndarray:
@@ -301,14 +345,17 @@ def _count_clusters(stats: ErrorStatistics, s: _Evaluated) -> None:
     extent = np.linalg.norm(hi - lo, axis=1)[cluster]
     stats.cluster_points_by_size += np.bincount(
         np.searchsorted(CLUSTER_SIZE_EDGES, size, side="right") - 1,
-        minlength=len(CLUSTER_SIZE_EDGES))
+        minlength=len(CLUSTER_SIZE_EDGES),
+    )
     stats.cluster_points_by_extent += np.bincount(
         np.searchsorted(CLUSTER_EXTENT_EDGES_M, extent, side="right") - 1,
-        minlength=len(CLUSTER_EXTENT_EDGES_M))
+        minlength=len(CLUSTER_EXTENT_EDGES_M),
+    )
 
 
-def _count_persistence(stats: ErrorStatistics, before: _Evaluated, now: _Evaluated,
-                       lag: int) -> None:
+def _count_persistence(
+    stats: ErrorStatistics, before: _Evaluated, now: _Evaluated, lag: int
+) -> None:
     """Locations seen in both scans (nearest point within MATCH_RADIUS_M, same true class)."""
     dist, idx = before.tree_world.query(now.world, distance_upper_bound=MATCH_RADIUS_M)
     found = np.isfinite(dist)
@@ -318,12 +365,18 @@ def _count_persistence(stats: ErrorStatistics, before: _Evaluated, now: _Evaluat
     wrong_now = now.wrong
     same = before.pred[idx] == now.pred
     a, b = matched & was_wrong, matched & ~was_wrong
-    stats.persistence[lag - 1] += [a.sum(), (a & wrong_now).sum(), (a & wrong_now & same).sum(),
-                                   b.sum(), (b & wrong_now).sum()]
+    stats.persistence[lag - 1] += [
+        a.sum(),
+        (a & wrong_now).sum(),
+        (a & wrong_now & same).sum(),
+        b.sum(),
+        (b & wrong_now).sum(),
+    ]
 
 
-def _count_votes(stats: ErrorStatistics, now: _Evaluated, before: list[_Evaluated],
-                 rng: np.random.Generator) -> None:
+def _count_votes(
+    stats: ErrorStatistics, now: _Evaluated, before: list[_Evaluated], rng: np.random.Generator
+) -> None:
     """Majority vote of the labels around sampled points of `now`, over it and `before`."""
     window = [now, *before]
     world = np.concatenate([s.world for s in window])
@@ -337,7 +390,8 @@ def _count_votes(stats: ErrorStatistics, now: _Evaluated, before: list[_Evaluate
     right = [len(sample), int(np.count_nonzero(~now.wrong[sample]))]
     for radius in VOTE_RADII_M:
         near = dist <= radius
-        votes = np.bincount(owner[near] * NUM_CLASSES + labels[neighbour[near]],
-                            minlength=len(sample) * NUM_CLASSES).reshape(len(sample), -1)
+        votes = np.bincount(
+            owner[near] * NUM_CLASSES + labels[neighbour[near]], minlength=len(sample) * NUM_CLASSES
+        ).reshape(len(sample), -1)
         right.append(int(np.count_nonzero(votes.argmax(axis=1) == now.gt[sample])))
     stats.vote += right

@@ -10,6 +10,7 @@ are disjoint in time, as a fleet's logs of one day are. Each robot's label noise
 streams. The sequences are written in SemanticKITTI layout with a `world_frame.txt` naming the
 shared frame, so that fleet mapping merges them into one map (`tisem.logs`).
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -22,7 +23,7 @@ from numpy.typing import ArrayLike
 
 from tisem.logs import WORLD_FRAME_FILE
 from tisem.synth.scene import EGO_LANE_U, OTHER_LANE_U, SPEED_MPS, World, street_route
-from tisem.synth.sequence import SCAN_PERIOD_S, SynthFrame, SyntheticSequence, write_frames
+from tisem.synth.sequence import SCAN_PERIOD_S, SyntheticSequence, SynthFrame, write_frames
 
 log = logging.getLogger(__name__)
 
@@ -43,17 +44,24 @@ class RobotDrive:
         return self.scans * SPEED_MPS * SCAN_PERIOD_S
 
 
-def fleet_drives(robots: int, scans: int, overlap: float = 0.5,
-                 gap_s: float = 60.0) -> list[RobotDrive]:
+def fleet_drives(
+    robots: int, scans: int, overlap: float = 0.5, gap_s: float = 60.0
+) -> list[RobotDrive]:
     """`robots` drives of `scans` scans each, neighbours sharing `overlap` of their street."""
     if robots < 1 or scans < 1 or not 0 <= overlap < 1:
         raise ValueError("need robots >= 1, scans >= 1 and 0 <= overlap < 1")
     length = scans * SPEED_MPS * SCAN_PERIOD_S
     stride = length * (1 - overlap)
     duration = scans * SCAN_PERIOD_S
-    return [RobotDrive(start_s_m=k * stride + (0.0 if k % 2 == 0 else length),
-                       forward=k % 2 == 0, start_time_s=k * (duration + gap_s), scans=scans)
-            for k in range(robots)]
+    return [
+        RobotDrive(
+            start_s_m=k * stride + (0.0 if k % 2 == 0 else length),
+            forward=k % 2 == 0,
+            start_time_s=k * (duration + gap_s),
+            scans=scans,
+        )
+        for k in range(robots)
+    ]
 
 
 class RobotWorld(World):
@@ -84,8 +92,14 @@ class RobotWorld(World):
 class RobotSequence(SyntheticSequence):
     """One robot's scans: `SyntheticSequence` on its drive, stamps from its start time."""
 
-    def __init__(self, drive: RobotDrive, robot: int, seed: int = 0, street_m: float = 0.0,
-                 points_per_ring: int = 1024):
+    def __init__(
+        self,
+        drive: RobotDrive,
+        robot: int,
+        seed: int = 0,
+        street_m: float = 0.0,
+        points_per_ring: int = 1024,
+    ):
         super().__init__(drive.scans, seed, "street", points_per_ring)
         self.world = RobotWorld(seed, max(street_m, drive.start_s_m + drive.length_m), drive)
         self.noise_seed = seed * 1000 + robot + 1
@@ -96,20 +110,33 @@ class RobotSequence(SyntheticSequence):
         return dataclasses.replace(f, stamp_s=f.stamp_s + self.drive.start_time_s)
 
 
-def write_fleet(out_root: str | Path, robots: int, scans: int, seed: int = 0,
-                points_per_ring: int = 1024, overlap: float = 0.5,
-                progress: bool = True) -> list[Path]:
+def write_fleet(
+    out_root: str | Path,
+    robots: int,
+    scans: int,
+    seed: int = 0,
+    points_per_ring: int = 1024,
+    overlap: float = 0.5,
+    progress: bool = True,
+) -> list[Path]:
     """Write every robot's drive as `out_root/sequences/NN/`; returns the sequence folders."""
     drives = fleet_drives(robots, scans, overlap)
     street_m = max(d.start_s_m + d.length_m for d in drives)
     folders = []
     for k, drive in enumerate(drives):
         seq = RobotSequence(drive, k, seed, street_m, points_per_ring)
-        folder = write_frames(Path(out_root) / "sequences" / f"{k:02d}", iter(seq), len(seq),
-                              progress)
+        folder = write_frames(
+            Path(out_root) / "sequences" / f"{k:02d}", iter(seq), len(seq), progress
+        )
         (folder / WORLD_FRAME_FILE).write_text(f"synthetic-street-seed{seed}\n")
         folders.append(folder)
-        log.info("robot %d: %d scans from %.0f m %s, t0 %.0f s -> %s", k, scans,
-                 drive.start_s_m, "forward" if drive.forward else "backward",
-                 drive.start_time_s, folder)
+        log.info(
+            "robot %d: %d scans from %.0f m %s, t0 %.0f s -> %s",
+            k,
+            scans,
+            drive.start_s_m,
+            "forward" if drive.forward else "backward",
+            drive.start_time_s,
+            folder,
+        )
     return folders

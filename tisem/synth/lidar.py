@@ -7,11 +7,12 @@ elevation extent. Only the rays in those rectangles are intersected with the pri
 which keeps a scan to a few hundred thousand ray/primitive pairs instead of 65k x hundreds.
 The ground is the plane z = 0; its class comes from the world (a region mask on the plane).
 """
+
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from functools import cached_property
-from typing import Callable
 
 import numpy as np
 
@@ -24,8 +25,21 @@ HDL64_ELEVATIONS_DEG = np.concatenate([np.linspace(2.0, -8.33, 32), np.linspace(
 # Rough remission of each raw class (signs are retro-reflective, asphalt is dark); the
 # sensor adds range fall-off and noise.
 _REMISSION = np.zeros(260, dtype=np.float32)
-for _raw, _value in {10: 0.25, 252: 0.25, 30: 0.3, 40: 0.18, 44: 0.22, 48: 0.3, 50: 0.32,
-                     51: 0.28, 70: 0.42, 71: 0.3, 72: 0.38, 80: 0.35, 81: 0.85}.items():
+for _raw, _value in {
+    10: 0.25,
+    252: 0.25,
+    30: 0.3,
+    40: 0.18,
+    44: 0.22,
+    48: 0.3,
+    50: 0.32,
+    51: 0.28,
+    70: 0.42,
+    71: 0.3,
+    72: 0.38,
+    80: 0.35,
+    81: 0.85,
+}.items():
     _REMISSION[_raw] = _value
 
 
@@ -39,13 +53,13 @@ def rotate(v: np.ndarray, R: np.ndarray) -> np.ndarray:
 class Returns:
     """The hits of one scan, in ray order (ring-major)."""
 
-    ring: np.ndarray        # (N,) int64, 0 = top beam
-    col: np.ndarray         # (N,) int64 azimuth column
-    range_m: np.ndarray     # (N,) float64, with range noise
-    points: np.ndarray      # (N, 3) float32, LiDAR frame
-    remission: np.ndarray   # (N,) float32
-    label: np.ndarray       # (N,) uint32 raw ground-truth id
-    instance: np.ndarray    # (N,) uint32
+    ring: np.ndarray  # (N,) int64, 0 = top beam
+    col: np.ndarray  # (N,) int64 azimuth column
+    range_m: np.ndarray  # (N,) float64, with range noise
+    points: np.ndarray  # (N, 3) float32, LiDAR frame
+    remission: np.ndarray  # (N,) float32
+    label: np.ndarray  # (N,) uint32 raw ground-truth id
+    instance: np.ndarray  # (N,) uint32
 
 
 @dataclass(frozen=True)
@@ -53,8 +67,8 @@ class Lidar:
     points_per_ring: int = 1024
     max_range_m: float = 80.0
     min_range_m: float = 1.0
-    range_noise_m: float = 0.02       # 1-sigma, Gaussian
-    mount_height_m: float = 1.73      # KITTI's Velodyne above the ground
+    range_noise_m: float = 0.02  # 1-sigma, Gaussian
+    mount_height_m: float = 1.73  # KITTI's Velodyne above the ground
 
     @property
     def num_rings(self) -> int:
@@ -70,11 +84,18 @@ class Lidar:
         2 pi c / cols."""
         az = 2 * np.pi * np.arange(self.points_per_ring) / self.points_per_ring
         el = self.elevations[:, None]
-        return np.stack(np.broadcast_arrays(np.cos(el) * np.cos(az), np.cos(el) * np.sin(az),
-                                            np.sin(el)), axis=-1).reshape(-1, 3)
+        return np.stack(
+            np.broadcast_arrays(np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)),
+            axis=-1,
+        ).reshape(-1, 3)
 
-    def cast(self, shapes: ShapeSet, ground_label: Callable[[np.ndarray], np.ndarray],
-             T_world_lidar: np.ndarray, rng: np.random.Generator) -> Returns:
+    def cast(
+        self,
+        shapes: ShapeSet,
+        ground_label: Callable[[np.ndarray], np.ndarray],
+        T_world_lidar: np.ndarray,
+        rng: np.random.Generator,
+    ) -> Returns:
         """Ray-cast one scan. ground_label(xy (n,2)) -> raw ids of ground hits."""
         origin = T_world_lidar[:3, 3]
         R = T_world_lidar[:3, :3]
@@ -87,7 +108,7 @@ class Lidar:
         # nearest primitive per ray: intersect the culled pairs, keep each ray's minimum
         rays, ts, labels, insts = [], [], [], []
         yaw = np.arctan2(R[1, 0], R[0, 0])
-        for kind, part in shapes.parts.items():
+        for part in shapes.parts.values():
             if not len(part):
                 continue
             idx, ray = self._candidate_pairs(part.footprint(), origin, yaw)
@@ -113,14 +134,26 @@ class Lidar:
 
         hit = np.flatnonzero(best_t <= self.max_range_m)
         # noise moves a return along its ray; clipping keeps every point inside the range band
-        r = np.clip(best_t[hit] + rng.normal(0.0, self.range_noise_m, hit.size),
-                    self.min_range_m, self.max_range_m)
+        r = np.clip(
+            best_t[hit] + rng.normal(0.0, self.range_noise_m, hit.size),
+            self.min_range_m,
+            self.max_range_m,
+        )
         lab = label[hit]
-        remission = np.clip(_REMISSION[lab] * (1.0 - 0.35 * r / self.max_range_m)
-                            + rng.normal(0.0, 0.04, hit.size), 0.0, 1.0).astype(np.float32)
-        return Returns(ring=hit // self.points_per_ring, col=hit % self.points_per_ring,
-                       range_m=r, points=(self.directions[hit] * r[:, None]).astype(np.float32),
-                       remission=remission, label=lab, instance=instance[hit])
+        remission = np.clip(
+            _REMISSION[lab] * (1.0 - 0.35 * r / self.max_range_m) + rng.normal(0.0, 0.04, hit.size),
+            0.0,
+            1.0,
+        ).astype(np.float32)
+        return Returns(
+            ring=hit // self.points_per_ring,
+            col=hit % self.points_per_ring,
+            range_m=r,
+            points=(self.directions[hit] * r[:, None]).astype(np.float32),
+            remission=remission,
+            label=lab,
+            instance=instance[hit],
+        )
 
     def _candidate_pairs(self, footprint, origin, yaw):
         """(primitive index, ray index) of every ray inside each primitive's grid rectangle."""
@@ -130,7 +163,7 @@ class Lidar:
         d = np.hypot(dx, dy)
         near = np.flatnonzero(d - radius < self.max_range_m)
         cxy, radius, z0, z1, dx, dy, d = (a[near] for a in (cxy, radius, z0, z1, dx, dy, d))
-        inside = d <= radius          # the sensor inside a footprint: every azimuth
+        inside = d <= radius  # the sensor inside a footprint: every azimuth
         half = np.arcsin(np.clip(radius / np.maximum(d, 1e-9), 0.0, 1.0))
         az = np.arctan2(dy, dx) - yaw
         step = 2 * np.pi / cols
@@ -159,6 +192,7 @@ class Lidar:
 # Each takes the primitives, a primitive index and a world direction per pair, and the shared
 # ray origin; it returns the entry distance per pair (inf for a miss).
 
+
 def _t_boxes(b: Boxes, idx, origin, d):
     c, s = np.cos(b.yaw[idx]), np.sin(b.yaw[idx])
     q = origin - b.center[idx]
@@ -181,9 +215,9 @@ def _t_cylinders(cy: Cylinders, idx, origin, d):
     q = origin[:2] - cy.center[idx]
     r = cy.radius[idx]
     a = d[:, 0] ** 2 + d[:, 1] ** 2
-    bh = q[:, 0] * d[:, 0] + q[:, 1] * d[:, 1]            # half of the usual b
-    c = q[:, 0] ** 2 + q[:, 1] ** 2 - r ** 2
-    disc = bh ** 2 - a * c
+    bh = q[:, 0] * d[:, 0] + q[:, 1] * d[:, 1]  # half of the usual b
+    c = q[:, 0] ** 2 + q[:, 1] ** 2 - r**2
+    disc = bh**2 - a * c
     with np.errstate(invalid="ignore", divide="ignore"):
         t = (-bh - np.sqrt(disc)) / a
         z = origin[2] + t * d[:, 2]
@@ -191,7 +225,7 @@ def _t_cylinders(cy: Cylinders, idx, origin, d):
         # the top cap, seen from above (short cylinders below the sensor)
         t_top = (cy.z1[idx] - origin[2]) / d[:, 2]
         xy = q + t_top[:, None] * d[:, :2]
-        top = (d[:, 2] < 0) & (t_top > 0) & (xy[:, 0] ** 2 + xy[:, 1] ** 2 <= r ** 2)
+        top = (d[:, 2] < 0) & (t_top > 0) & (xy[:, 0] ** 2 + xy[:, 1] ** 2 <= r**2)
     return np.minimum(np.where(side, t, np.inf), np.where(top, t_top, np.inf))
 
 
@@ -203,7 +237,7 @@ def _t_ellipsoids(e: Ellipsoids, idx, origin, d):
     a = np.einsum("ij,ij->i", ds, ds)
     bh = np.einsum("ij,ij->i", q, ds)
     c = np.einsum("ij,ij->i", q, q) - 1.0
-    disc = bh ** 2 - a * c
+    disc = bh**2 - a * c
     with np.errstate(invalid="ignore"):
         t = (-bh - np.sqrt(disc)) / a
     return np.where((disc >= 0) & (t > 0), t, np.inf)
@@ -212,8 +246,9 @@ def _t_ellipsoids(e: Ellipsoids, idx, origin, d):
 _INTERSECT = {Boxes: _t_boxes, Cylinders: _t_cylinders, Ellipsoids: _t_ellipsoids}
 
 
-def ray_distances(part: Boxes | Cylinders | Ellipsoids, idx: np.ndarray,
-                   origin: np.ndarray, dirs: np.ndarray) -> np.ndarray:
+def ray_distances(
+    part: Boxes | Cylinders | Ellipsoids, idx: np.ndarray, origin: np.ndarray, dirs: np.ndarray
+) -> np.ndarray:
     """Distance along each unit direction dirs[k] from origin to primitive idx[k] of `part`
     (Boxes, Cylinders or Ellipsoids), inf where the ray misses it."""
     return _INTERSECT[type(part)](part, idx, origin, dirs)

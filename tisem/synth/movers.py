@@ -11,6 +11,7 @@ it has stopped are static, the leaving car's points dynamic from the first scan.
     shapes = movers.shapes(t)                     # ShapeSet of the movers at time t
     dynamic = movers.dynamic(instance, t, t_end)  # (N,) bool per point, from its instance id
 """
+
 from __future__ import annotations
 
 import math
@@ -18,12 +19,19 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from tisem.synth.scene import (EGO_LANE_U, OTHER_LANE_U, PARKING_W_M, ROAD_HALF_M, SPEED_MPS,
-                               World, add_car)
+from tisem.synth.scene import (
+    EGO_LANE_U,
+    OTHER_LANE_U,
+    PARKING_W_M,
+    ROAD_HALF_M,
+    SPEED_MPS,
+    World,
+    add_car,
+)
 from tisem.synth.shapes import ShapeBuilder, ShapeSet
 
-CAR, BICYCLIST, PERSON = 10, 31, 30    # raw ids (their static classes: motion is the flag)
-FIRST_INSTANCE = 1000                  # instance ids of the movers (the street's are below)
+CAR, BICYCLIST, PERSON = 10, 31, 30  # raw ids (their static classes: motion is the flag)
+FIRST_INSTANCE = 1000  # instance ids of the movers (the street's are below)
 STILL_M = 0.5
 PARKING_U = -(ROAD_HALF_M + PARKING_W_M / 2)
 
@@ -52,12 +60,14 @@ class Mover:
 def street_movers() -> tuple[Mover, ...]:
     """The movers of the street (route positions in metres from its start)."""
     return (
-        Mover("car", OTHER_LANE_U + 0.3, 70.0, -9.0, period_s=7.0),     # oncoming, respawned
-        Mover("cyclist", EGO_LANE_U - 1.6, 12.0, 6.0),                  # ahead, slower
-        *(Mover("person", ROAD_HALF_M + 1.2 + 0.7 * (i % 2), 35.0 + 0.8 * i, -1.2)
-          for i in range(3)),                                           # a group on the walk
-        Mover("car", PARKING_U, 5.0, 7.0, t_start=0.0, t_stop=5.0),     # arrives and parks
-        Mover("car", PARKING_U, 28.0, 6.0, t_start=3.0),                # leaves its spot
+        Mover("car", OTHER_LANE_U + 0.3, 70.0, -9.0, period_s=7.0),  # oncoming, respawned
+        Mover("cyclist", EGO_LANE_U - 1.6, 12.0, 6.0),  # ahead, slower
+        *(
+            Mover("person", ROAD_HALF_M + 1.2 + 0.7 * (i % 2), 35.0 + 0.8 * i, -1.2)
+            for i in range(3)
+        ),  # a group on the walk
+        Mover("car", PARKING_U, 5.0, 7.0, t_start=0.0, t_stop=5.0),  # arrives and parks
+        Mover("car", PARKING_U, 28.0, 6.0, t_start=3.0),  # leaves its spot
     )
 
 

@@ -1,4 +1,4 @@
-""""Network" predictions: ground truth corrupted the way a real LiDAR segmentation network errs.
+""" "Network" predictions: ground truth corrupted the way a real LiDAR segmentation network errs.
 
 What goes wrong comes from a `NetworkProfile` (by default the real network's on SemanticKITTI
 08 frames 0-4, `tisem.synth.profile`): P(wrong) per true class and range, raised or lowered at
@@ -20,25 +20,27 @@ the two):
 Every field is a function of (seed, world position, scan index, class), so a scan
 regenerates alone. A prediction is 0 only where the ground truth is.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.special import ndtr, ndtri
 from scipy.spatial import cKDTree
+from scipy.special import ndtr, ndtri
 
 from tisem.synth.profile import NetworkProfile, kitti08_profile
 from tisem.synth.scene import PERSON, PERSON_INSTANCE
 
-MOVING_PERSON = 254              # SemanticKITTI's raw id of a moving person
+MOVING_PERSON = 254  # SemanticKITTI's raw id of a moving person
 
 BOUNDARY_NEIGHBOURS = 8
 BOUNDARY_RADIUS_M = 0.5
 
 
-def class_boundary(points: np.ndarray, gt_train: np.ndarray,
-                   tree: cKDTree | None = None) -> np.ndarray:
+def class_boundary(
+    points: np.ndarray, gt_train: np.ndarray, tree: cKDTree | None = None
+) -> np.ndarray:
     """(N,) class of another-class neighbour per point, -1 inside a class: among the point's
     BOUNDARY_NEIGHBOURS nearest points within BOUNDARY_RADIUS_M, the nearest with another
     class. The one definition of "at a class boundary" for the noise and its measurement.
@@ -51,9 +53,10 @@ def class_boundary(points: np.ndarray, gt_train: np.ndarray,
     if not len(candidates):
         return neighbour
     tree = cKDTree(points) if tree is None else tree
-    dist, idx = tree.query(points[candidates], k=BOUNDARY_NEIGHBOURS + 1,
-                           distance_upper_bound=BOUNDARY_RADIUS_M)
-    dist, idx = dist[:, 1:], idx[:, 1:]                      # the point itself comes first
+    dist, idx = tree.query(
+        points[candidates], k=BOUNDARY_NEIGHBOURS + 1, distance_upper_bound=BOUNDARY_RADIUS_M
+    )
+    dist, idx = dist[:, 1:], idx[:, 1:]  # the point itself comes first
     valid = np.isfinite(dist)
     other = np.where(valid, gt_train[np.where(valid, idx, 0)], -1)
     other[other == gt_train[candidates, None]] = -1
@@ -66,7 +69,7 @@ def _other_class_nearby(points: np.ndarray, gt_train: np.ndarray) -> np.ndarray:
     another class: true for every point with another class within the radius."""
     cell = np.floor(np.asarray(points) / BOUNDARY_RADIUS_M).astype(np.int64)
     keys, which = np.unique(_pack(cell), return_inverse=True)
-    classes = np.zeros(len(keys), dtype=np.int64)           # bit c: class c in the voxel
+    classes = np.zeros(len(keys), dtype=np.int64)  # bit c: class c in the voxel
     np.bitwise_or.at(classes, which.ravel(), np.left_shift(1, gt_train))
     cells, _ = _unpack(keys)
     around = classes.copy()
@@ -109,6 +112,7 @@ def mover_raw_ids(gt_raw: np.ndarray, instance: np.ndarray) -> np.ndarray:
 
 # ----------------------------------------------------------------------------- fields
 
+
 def _mix(x: np.ndarray) -> np.ndarray:
     """splitmix64's finaliser: a uint64 hash with every input bit reaching every output bit."""
     x = (x ^ (x >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
@@ -121,7 +125,7 @@ def _lattice_normal(cells: np.ndarray, layer: np.ndarray, key: int) -> np.ndarra
     (cells, layer, key): the packed cell (distinct for distinct cells) hashed with the key."""
     with np.errstate(over="ignore"):
         h = _mix(_mix(_pack(cells, layer).view(np.uint64) + np.uint64(key)))
-    return ndtri(((h >> np.uint64(11)).astype(np.float64) + 0.5) / 2.0 ** 53)
+    return ndtri(((h >> np.uint64(11)).astype(np.float64) + 0.5) / 2.0**53)
 
 
 # corner k of a lattice cell: offsets (k >> 2, k >> 1, k) & 1 along x, y, z — the order of
@@ -129,8 +133,9 @@ def _lattice_normal(cells: np.ndarray, layer: np.ndarray, key: int) -> np.ndarra
 _CORNERS = np.array([[(k >> 2) & 1, (k >> 1) & 1, k & 1] for k in range(8)])
 
 
-def gaussian_fields(points: np.ndarray, spacing_m: float, keys,
-                    layer: np.ndarray | None = None) -> np.ndarray:
+def gaussian_fields(
+    points: np.ndarray, spacing_m: float, keys, layer: np.ndarray | None = None
+) -> np.ndarray:
     """(len(keys), n) independent smooth random fields at the points, one per key, each with
     an exact N(0, 1) marginal everywhere; points of different `layer` (n,) ints in [0, 32)
     see independent fields (a field per class: smooth within a class, cut at its edges).
@@ -143,11 +148,12 @@ def gaussian_fields(points: np.ndarray, spacing_m: float, keys,
     base = np.floor(x)
     upper = x - base
     upper = upper * upper * (3.0 - 2.0 * upper)
-    axis = np.stack([1.0 - upper, upper], axis=-1)                              # (n, 3, 2)
+    axis = np.stack([1.0 - upper, upper], axis=-1)  # (n, 3, 2)
     # the weights are a product over the axes, and so is sum w^2
     axis /= np.sqrt((axis * axis).sum(axis=2, keepdims=True))
-    w = (axis[:, 0, :, None, None] * axis[:, 1, None, :, None]
-         * axis[:, 2, None, None, :]).reshape(len(x), 8)
+    w = (axis[:, 0, :, None, None] * axis[:, 1, None, :, None] * axis[:, 2, None, None, :]).reshape(
+        len(x), 8
+    )
     packed, which = np.unique(_pack(base.astype(np.int64), layer), return_inverse=True)
     cells, layers = _unpack(packed)
     corners = (cells[:, None, :] + _CORNERS).reshape(-1, 3)
@@ -159,8 +165,14 @@ def gaussian_fields(points: np.ndarray, spacing_m: float, keys,
     return out
 
 
-def drifting_field(points: np.ndarray, spacing_m: float, key: int, scan_index: int,
-                   drift_scans: float, layer: np.ndarray | None = None) -> np.ndarray:
+def drifting_field(
+    points: np.ndarray,
+    spacing_m: float,
+    key: int,
+    scan_index: int,
+    drift_scans: float,
+    layer: np.ndarray | None = None,
+) -> np.ndarray:
     """A smooth N(0, 1) field that changes over time: epoch k = scan_index // drift_scans has
     its own field F_k, and between epochs the field turns from F_k to F_k+1 as
     cos(a) F_k + sin(a) F_k+1 (still N(0, 1)); scans a lag L apart correlate by about
@@ -168,8 +180,7 @@ def drifting_field(points: np.ndarray, spacing_m: float, key: int, scan_index: i
     phase = scan_index / drift_scans
     epoch = int(np.floor(phase))
     angle = 0.5 * np.pi * (phase - epoch)
-    now, then = gaussian_fields(points, spacing_m, (_key(key, epoch), _key(key, epoch + 1)),
-                                layer)
+    now, then = gaussian_fields(points, spacing_m, (_key(key, epoch), _key(key, epoch + 1)), layer)
     return np.cos(angle) * now + np.sin(angle) * then
 
 
@@ -184,6 +195,7 @@ def _key(*parts: int) -> int:
 
 # ----------------------------------------------------------------------------- the model
 
+
 @dataclass(frozen=True)
 class NoiseModel:
     """Calibrated to the real network (see the module docstring and `tisem.synth.profile`).
@@ -192,17 +204,24 @@ class NoiseModel:
     statistics (`benchmarks/noise_calibration.py`) match the real frames'."""
 
     profile: NetworkProfile = field(default_factory=kitti08_profile)
-    patch_m: float = 0.7             # lattice spacing of the error field
-    region_patch_m: float = 6.0      # ... of its per-class part (whole regions wrong)
-    region_share: float = 0.5        # variance share of the per-class part
-    label_patch_m: float = 4.0       # lattice spacing of the field that picks wrong labels
-    drift_scans: float = 30.0        # the fields renew over this many scans
-    white_share: float = 0.1         # variance share of per-point noise in the error latent
-    bleed_prob: float = 0.7          # a wrong point at a boundary takes the neighbour's class
+    patch_m: float = 0.7  # lattice spacing of the error field
+    region_patch_m: float = 6.0  # ... of its per-class part (whole regions wrong)
+    region_share: float = 0.5  # variance share of the per-class part
+    label_patch_m: float = 4.0  # lattice spacing of the field that picks wrong labels
+    drift_scans: float = 30.0  # the fields renew over this many scans
+    white_share: float = 0.1  # variance share of per-point noise in the error latent
+    bleed_prob: float = 0.7  # a wrong point at a boundary takes the neighbour's class
 
-    def apply(self, gt_train: np.ndarray, range_m: np.ndarray, points_world: np.ndarray,
-              mover_raw: np.ndarray, seed: int, scan_index: int,
-              rng: np.random.Generator) -> np.ndarray:
+    def apply(
+        self,
+        gt_train: np.ndarray,
+        range_m: np.ndarray,
+        points_world: np.ndarray,
+        mover_raw: np.ndarray,
+        seed: int,
+        scan_index: int,
+        rng: np.random.Generator,
+    ) -> np.ndarray:
         """Predicted train ids (int64) for one scan's points: their true classes, the points'
         ranges and world positions, the moving raw id of each (`mover_raw_ids`), the
         sequence's seed, the scan's index and its random stream."""
@@ -213,22 +232,30 @@ class NoiseModel:
         p_wrong = self.profile.error_probability(rows, range_m, at_boundary)
 
         fine = self._latent(points_world, self.patch_m, _key(seed, 1), scan_index)
-        region = self._latent(points_world, self.region_patch_m, _key(seed, 3), scan_index,
-                              gt_train)
-        latent = (np.sqrt(1.0 - self.white_share - self.region_share) * fine
-                  + np.sqrt(self.region_share) * region
-                  + np.sqrt(self.white_share) * rng.standard_normal(len(gt_train)))
+        region = self._latent(
+            points_world, self.region_patch_m, _key(seed, 3), scan_index, gt_train
+        )
+        latent = (
+            np.sqrt(1.0 - self.white_share - self.region_share) * fine
+            + np.sqrt(self.region_share) * region
+            + np.sqrt(self.white_share) * rng.standard_normal(len(gt_train))
+        )
         wrong = (latent < ndtri(p_wrong)) & (gt_train > 0)
         pred = gt_train.copy()
         # the label field, at the wrong points only (a field's value does not depend on
         # which other points it is evaluated at)
-        u = ndtr(self._latent(points_world[wrong], self.label_patch_m, _key(seed, 2),
-                              scan_index))
+        u = ndtr(self._latent(points_world[wrong], self.label_patch_m, _key(seed, 2), scan_index))
         pred[wrong] = self.profile.wrong_label(rows[wrong], u)
         bleed = wrong & at_boundary & (mover_raw == 0) & (rng.random(len(pred)) < self.bleed_prob)
         pred[bleed] = neighbour[bleed]
         return pred
 
-    def _latent(self, points: np.ndarray, spacing_m: float, key: int, scan_index: int,
-                layer: np.ndarray | None = None) -> np.ndarray:
+    def _latent(
+        self,
+        points: np.ndarray,
+        spacing_m: float,
+        key: int,
+        scan_index: int,
+        layer: np.ndarray | None = None,
+    ) -> np.ndarray:
         return drifting_field(points, spacing_m, key, scan_index, self.drift_scans, layer)

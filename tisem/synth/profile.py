@@ -20,6 +20,7 @@ fitted from those of the real network on SemanticKITTI 08 frames 0-4, stored in
 - Moving objects (raw 252-259) get their own error rate and wrong-label row, shrunk towards
   their static class with MOVER_PRIOR_POINTS pseudo-points.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -68,10 +69,10 @@ class NetworkProfile:
     (`row_of`), which have one error rate for every range and no boundary offset.
     """
 
-    range_centres_m: np.ndarray   # (B,) where the logits of `error_logit` hold
-    error_logit: np.ndarray       # (C + 8, B) logit P(wrong) away from class boundaries
-    boundary_logit: np.ndarray    # (C + 8,) added at a class boundary (0 for the movers)
-    wrong_label_cdf: np.ndarray   # (C + 8, C) cumulative P(label | wrong), label ascending
+    range_centres_m: np.ndarray  # (B,) where the logits of `error_logit` hold
+    error_logit: np.ndarray  # (C + 8, B) logit P(wrong) away from class boundaries
+    boundary_logit: np.ndarray  # (C + 8,) added at a class boundary (0 for the movers)
+    wrong_label_cdf: np.ndarray  # (C + 8, C) cumulative P(label | wrong), label ascending
 
     @staticmethod
     def row_of(gt_train: np.ndarray, mover_raw: np.ndarray | None) -> np.ndarray:
@@ -82,8 +83,9 @@ class NetworkProfile:
         moving = mover_raw > 0
         return np.where(moving, NUM_CLASSES + mover_raw.astype(np.int64) - MOVING_RAW_IDS[0], rows)
 
-    def error_probability(self, rows: np.ndarray, range_m: np.ndarray,
-                          at_boundary: np.ndarray) -> np.ndarray:
+    def error_probability(
+        self, rows: np.ndarray, range_m: np.ndarray, at_boundary: np.ndarray
+    ) -> np.ndarray:
         """P(wrong) per point: the row's logit interpolated in range (held beyond the first
         and last centre), plus the boundary offset."""
         c = self.range_centres_m
@@ -99,8 +101,13 @@ class NetworkProfile:
         return np.minimum(k, NUM_CLASSES - 1)
 
 
-def fit_profile(confusion: np.ndarray, cell_points: np.ndarray, cell_errors: np.ndarray,
-                raw_predictions: dict, range_edges_m) -> NetworkProfile:
+def fit_profile(
+    confusion: np.ndarray,
+    cell_points: np.ndarray,
+    cell_errors: np.ndarray,
+    raw_predictions: dict,
+    range_edges_m,
+) -> NetworkProfile:
     """The profile of measured counts (`ErrorStatistics` fields of the same names)."""
     edges = np.asarray(range_edges_m, dtype=np.float64)
     table, boundary = fit_error_logits(cell_points, cell_errors)
@@ -118,15 +125,18 @@ def fit_profile(confusion: np.ndarray, cell_points: np.ndarray, cell_errors: np.
         off[0] = 0.0
         mover_q.append((off + MOVER_PRIOR_POINTS * q[static]) / (off.sum() + MOVER_PRIOR_POINTS))
     cdf = np.cumsum(np.vstack([q, np.array(mover_q)]), axis=1)
-    cdf[:, -1] = 1.0                      # no draw u < 1 falls past the last class
-    return NetworkProfile(range_centres_m=(edges[:-1] + edges[1:]) / 2,
-                          error_logit=np.vstack([table, np.array(mover_logit)]),
-                          boundary_logit=np.append(boundary, np.zeros(len(MOVING_RAW_IDS))),
-                          wrong_label_cdf=cdf)
+    cdf[:, -1] = 1.0  # no draw u < 1 falls past the last class
+    return NetworkProfile(
+        range_centres_m=(edges[:-1] + edges[1:]) / 2,
+        error_logit=np.vstack([table, np.array(mover_logit)]),
+        boundary_logit=np.append(boundary, np.zeros(len(MOVING_RAW_IDS))),
+        wrong_label_cdf=cdf,
+    )
 
 
-def fit_error_logits(cell_points: np.ndarray, cell_errors: np.ndarray, sweeps: int = 1000,
-                     tolerance: float = 1e-6) -> tuple[np.ndarray, np.ndarray]:
+def fit_error_logits(
+    cell_points: np.ndarray, cell_errors: np.ndarray, sweeps: int = 1000, tolerance: float = 1e-6
+) -> tuple[np.ndarray, np.ndarray]:
     """Ridge-penalised logistic fit of P(wrong) over (class, range bin, boundary) cells.
 
     logit = beta[bin] + alpha[class] + delta[class, bin] + (gamma + kappa[class]) * boundary.
@@ -143,14 +153,22 @@ def fit_error_logits(cell_points: np.ndarray, cell_errors: np.ndarray, sweeps: i
     gamma, kappa = np.zeros(1), np.zeros(C)
     # each group: its parameters, the cell weights it multiplies, the axes its sums run
     # over (all others are the parameter's own), its ridge
-    groups = ((beta, 1.0, (0, 2), 1e-6), (alpha, 1.0, (1, 2), CLASS_RIDGE),
-              (delta, 1.0, (2,), CELL_RIDGE), (gamma, d, (0, 1, 2), 1e-6),
-              (kappa, d, (1, 2), CLASS_RIDGE))
+    groups = (
+        (beta, 1.0, (0, 2), 1e-6),
+        (alpha, 1.0, (1, 2), CLASS_RIDGE),
+        (delta, 1.0, (2,), CELL_RIDGE),
+        (gamma, d, (0, 1, 2), 1e-6),
+        (kappa, d, (1, 2), CLASS_RIDGE),
+    )
     for _ in range(sweeps):
         largest = 0.0
         for theta, x, axes, ridge in groups:
-            eta = (beta[None, :, None] + alpha[:, None, None] + delta[:, :, None]
-                   + (gamma + kappa)[:, None, None] * d)
+            eta = (
+                beta[None, :, None]
+                + alpha[:, None, None]
+                + delta[:, :, None]
+                + (gamma + kappa)[:, None, None] * d
+            )
             p = 1.0 / (1.0 + np.exp(-eta))
             grad = (x * (w - n * p)).sum(axis=axes).reshape(theta.shape) - ridge * theta
             hess = (x * x * n * p * (1 - p)).sum(axis=axes).reshape(theta.shape) + ridge
@@ -166,8 +184,9 @@ def fit_error_logits(cell_points: np.ndarray, cell_errors: np.ndarray, sweeps: i
         shift = delta.mean(axis=0)
         delta -= shift
         beta += shift
-        shift = (CELL_RIDGE * delta.sum(axis=1) - CLASS_RIDGE * alpha) / (CLASS_RIDGE
-                                                                        + B * CELL_RIDGE)
+        shift = (CELL_RIDGE * delta.sum(axis=1) - CLASS_RIDGE * alpha) / (
+            CLASS_RIDGE + B * CELL_RIDGE
+        )
         alpha += shift
         delta -= shift[:, None]
         shift = kappa.mean()
@@ -211,10 +230,12 @@ def _class_error_rate(table: np.ndarray, cell_points: np.ndarray) -> np.ndarray:
 # The counts a profile is fitted from, as a small Python module of literals (class names,
 # not ids, so that it reads as a table): see tisem/synth/kitti08_counts.py.
 
+
 def write_counts_module(stats, path, title: str) -> None:
     """Write the counts of `stats` (a `tisem.synth.calibration.ErrorStatistics`) that a
     profile is fitted from as a Python module."""
     from tisem.synth.calibration import RANGE_EDGES_M
+
     names = CLASS_NAMES
 
     def sparse(head: str, counts) -> list[str]:
@@ -230,20 +251,35 @@ def write_counts_module(stats, path, title: str) -> None:
                 line += ("" if line.endswith("{") else " ") + piece
         return out + [line]
 
-    lines = [f'"""{title}', "",
-             "Written by benchmarks/noise_calibration.py --write-counts; read by",
-             'tisem.synth.profile. Counts only: no points, no labels of any scan."""', "",
-             f"RANGE_EDGES_M = {tuple(float(e) for e in RANGE_EDGES_M)}", "",
-             "# true class -> {predicted class: points}", "CONFUSION = {"]
+    lines = [
+        f'"""{title}',
+        "",
+        "Written by benchmarks/noise_calibration.py --write-counts; read by",
+        'tisem.synth.profile. Counts only: no points, no labels of any scan."""',
+        "",
+        f"RANGE_EDGES_M = {tuple(float(e) for e in RANGE_EDGES_M)}",
+        "",
+        "# true class -> {predicted class: points}",
+        "CONFUSION = {",
+    ]
     for c, row in enumerate(stats.confusion):
         if row.sum():
             lines += sparse(f'"{names[c]}": ', row)
-    lines += ["}", "", "# true class -> per range bin: points inside, points at a class boundary,",
-              "# errors inside, errors at a boundary", "CELLS = {"]
+    lines += [
+        "}",
+        "",
+        "# true class -> per range bin: points inside, points at a class boundary,",
+        "# errors inside, errors at a boundary",
+        "CELLS = {",
+    ]
     for c in range(NUM_CLASSES):
         if stats.cell_points[c].sum():
-            rows = [stats.cell_points[c, :, 0], stats.cell_points[c, :, 1],
-                    stats.cell_errors[c, :, 0], stats.cell_errors[c, :, 1]]
+            rows = [
+                stats.cell_points[c, :, 0],
+                stats.cell_points[c, :, 1],
+                stats.cell_errors[c, :, 0],
+                stats.cell_errors[c, :, 1],
+            ]
             lines.append(f'    "{names[c]}": (')
             lines += [f"        {tuple(int(v) for v in r)}," for r in rows]
             lines.append("    ),")
@@ -273,7 +309,11 @@ def counts_from_module(module) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict
     for name, (p_in, p_edge, e_in, e_edge) in module.CELLS.items():
         c = index[name]
         points[c, :, 0], points[c, :, 1], errors[c, :, 0], errors[c, :, 1] = (
-            p_in, p_edge, e_in, e_edge)
+            p_in,
+            p_edge,
+            e_in,
+            e_edge,
+        )
     raw = {int(r): dense(row) for r, row in module.RAW_PREDICTIONS.items()}
     return confusion, points, errors, raw
 
@@ -282,4 +322,5 @@ def counts_from_module(module) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict
 def kitti08_profile() -> NetworkProfile:
     """The profile of the real network on SemanticKITTI 08 frames 0-4 (the default)."""
     from tisem.synth import kitti08_counts
+
     return fit_profile(*counts_from_module(kitti08_counts), kitti08_counts.RANGE_EDGES_M)

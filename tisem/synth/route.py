@@ -4,11 +4,12 @@ Route coordinates are `s` metres along the centreline and `u` metres to its left
 every segment is a line or an arc, points are placed in the world and projected back onto the
 route analytically.
 """
+
 from __future__ import annotations
 
 import math
+from collections.abc import Iterable
 from dataclasses import dataclass
-from typing import Iterable
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -22,11 +23,11 @@ class Route:
     closed one (the loop) wraps s modulo its length.
     """
 
-    s0: np.ndarray         # (k,) arc length at each segment start
-    length: np.ndarray     # (k,)
-    start: np.ndarray      # (k, 2) xy at each segment start
-    heading0: np.ndarray   # (k,)
-    kappa: np.ndarray      # (k,) signed curvature, > 0 turns left
+    s0: np.ndarray  # (k,) arc length at each segment start
+    length: np.ndarray  # (k,)
+    start: np.ndarray  # (k, 2) xy at each segment start
+    heading0: np.ndarray  # (k,)
+    kappa: np.ndarray  # (k,) signed curvature, > 0 turns left
     closed: bool
 
     @classmethod
@@ -40,9 +41,14 @@ class Route:
             xy.append(end)
             h.append(hend)
             s += length
-        return cls(np.array(s0), np.array([m for m, _ in segments], dtype=np.float64),
-                   np.array(xy[:-1]), np.array(h[:-1]), np.array([k for _, k in segments],
-                                                                 dtype=np.float64), closed)
+        return cls(
+            np.array(s0),
+            np.array([m for m, _ in segments], dtype=np.float64),
+            np.array(xy[:-1]),
+            np.array(h[:-1]),
+            np.array([k for _, k in segments], dtype=np.float64),
+            closed,
+        )
 
     @property
     def total_m(self) -> float:
@@ -62,8 +68,9 @@ class Route:
         xy, h = self.frame(s)
         return xy + np.asarray(u)[:, None] * np.column_stack([-np.sin(h), np.cos(h)]), h
 
-    def project(self, xy: np.ndarray, s_hint: float,
-                reach_m: float = 250.0) -> tuple[np.ndarray, np.ndarray]:
+    def project(
+        self, xy: np.ndarray, s_hint: float, reach_m: float = 250.0
+    ) -> tuple[np.ndarray, np.ndarray]:
         """Route coordinates (s, u) of world points near arc length `s_hint`.
 
         Each candidate segment gives its own (s, u); the one whose foot point is closest wins.
@@ -73,8 +80,9 @@ class Route:
         if self.closed:
             cand = np.arange(len(self.s0))
         else:
-            cand = np.flatnonzero((self.s0 + self.length > s_hint - reach_m)
-                                  & (self.s0 < s_hint + reach_m))
+            cand = np.flatnonzero(
+                (self.s0 + self.length > s_hint - reach_m) & (self.s0 < s_hint + reach_m)
+            )
             if cand.size == 0:
                 cand = np.array([0 if s_hint < 0 else len(self.s0) - 1])
         best = np.full(len(xy), np.inf)
@@ -82,8 +90,9 @@ class Route:
         u_out = np.zeros(len(xy))
         last = len(self.s0) - 1
         for j in cand:
-            t, u = _segment_local(xy, self.start[j], self.heading0[j], self.kappa[j],
-                                  self.length[j])
+            t, u = _segment_local(
+                xy, self.start[j], self.heading0[j], self.kappa[j], self.length[j]
+            )
             lo = -np.inf if (j == 0 and not self.closed) else 0.0
             hi = np.inf if (j == last and not self.closed) else self.length[j]
             dist = np.hypot(t - np.clip(t, lo, hi), u)

@@ -10,6 +10,7 @@ A tile's content is seeded by (seed, tile id) only, so tiles are built lazily, k
 LRU cache (memory stays bounded however long the drive) and look exactly the same when the
 route comes back to them. Ground truth uses SemanticKITTI raw ids.
 """
+
 from __future__ import annotations
 
 import math
@@ -32,19 +33,20 @@ POLE, TRAFFIC_SIGN = 80, 81
 # instance ids (upper 16 bits of a .label); parked cars get 3.. per (tile, slot)
 MOVING_CAR_INSTANCE, PERSON_INSTANCE, FIRST_PARKED_INSTANCE = 1, 2, 3
 
-TILE_M = 50.0            # scene tiles along the route
-ROAD_HALF_M = 4.0        # two 3.5 m lanes plus a shoulder
-PARKING_W_M = 2.5        # a parking lane, present per tile and side
-EGO_LANE_U = -1.75       # right-hand traffic: the ego drives in the right lane
+TILE_M = 50.0  # scene tiles along the route
+ROAD_HALF_M = 4.0  # two 3.5 m lanes plus a shoulder
+PARKING_W_M = 2.5  # a parking lane, present per tile and side
+EGO_LANE_U = -1.75  # right-hand traffic: the ego drives in the right lane
 OTHER_LANE_U = 1.75
-SPEED_MPS = 10.0         # ~1 m per scan at 10 Hz
+SPEED_MPS = 10.0  # ~1 m per scan at 10 Hz
 LOOP_TURN_RADIUS_M = 150.0
 PERSON_RESPAWN_S = 8.0
-LOOP_PASS_M = 100.0      # how far the loop drive goes past its start at the end
+LOOP_PASS_M = 100.0  # how far the loop drive goes past its start at the end
 MIN_LOOP_M = 1000.0
 
 
 # ----------------------------------------------------------------------------- randomness
+
 
 def make_rng(seed: int, *keys: int | str) -> np.random.Generator:
     """A generator seeded by (seed, *keys): each tile, scan and purpose gets its own stream,
@@ -56,16 +58,26 @@ def _word(key: int | str) -> int:
     if isinstance(key, str):
         return zlib.crc32(key.encode())
     key = int(key)
-    return 2 * key if key >= 0 else -2 * key - 1      # negative tile ids (behind the start)
+    return 2 * key if key >= 0 else -2 * key - 1  # negative tile ids (behind the start)
 
 
 # ----------------------------------------------------------------------------- objects
 
+
 def add_car(b: ShapeBuilder, s: float, u: float, yaw: float, label: int, instance: int) -> None:
     """A car: a body box and a smaller cabin box set back a little (roughly car shaped)."""
-    b.box(s, u, 0.65, 2.25, 0.9, 0.5, label, instance, yaw)                          # z 0.15-1.15
-    b.box(s - 0.25 * math.cos(yaw), u - 0.25 * math.sin(yaw), 1.43, 1.2, 0.78, 0.28,
-          label, instance, yaw)                                                       # z 1.15-1.71
+    b.box(s, u, 0.65, 2.25, 0.9, 0.5, label, instance, yaw)  # z 0.15-1.15
+    b.box(
+        s - 0.25 * math.cos(yaw),
+        u - 0.25 * math.sin(yaw),
+        1.43,
+        1.2,
+        0.78,
+        0.28,
+        label,
+        instance,
+        yaw,
+    )  # z 1.15-1.71
 
 
 def add_tree(b: ShapeBuilder, s: float, u: float, rng: np.random.Generator) -> None:
@@ -77,6 +89,7 @@ def add_tree(b: ShapeBuilder, s: float, u: float, rng: np.random.Generator) -> N
 
 
 # ----------------------------------------------------------------------------- routes
+
 
 def street_route(seed: int, length_m: float) -> Route:
     """A straight-ish street: straights of 80-250 m joined by gentle 6-18 degree bends.
@@ -111,8 +124,9 @@ def loop_route(length_m: float) -> Route:
     if straight <= 0:
         raise ValueError(f"a loop of {length_m} m is shorter than its two turns")
     turn = (math.pi * r, 1.0 / r)
-    return Route.from_segments([(straight / 2, 0.0), turn, (straight, 0.0), turn,
-                                (straight / 2, 0.0)], closed=True)
+    return Route.from_segments(
+        [(straight / 2, 0.0), turn, (straight, 0.0), turn, (straight / 2, 0.0)], closed=True
+    )
 
 
 def make_route(kind: str, num_scans: int, seed: int) -> Route:
@@ -161,7 +175,7 @@ def build_tile(route: Route, seed: int, tile_id: int) -> Tile:
     sidewalk_out = curb + verge + rng.uniform(2.5, 4.0, 2)
     edges = np.column_stack([np.full(2, ROAD_HALF_M), curb, curb + verge, sidewalk_out])
     for side, sigma in enumerate((1.0, -1.0)):
-        setback = rng.uniform(3.0, 10.0)           # sidewalk -> building line
+        setback = rng.uniform(3.0, 10.0)  # sidewalk -> building line
         line = sidewalk_out[side] + setback
         park = rng.random() < 0.4
         if parking[side]:
@@ -182,15 +196,26 @@ def build_tile(route: Route, seed: int, tile_id: int) -> Tile:
                 add_tree(b, s, tree_u, rng)
             s += rng.uniform(8.0, 13.0)
         _fence(b, rng, s0, sigma * (sidewalk_out[side] + 0.2), force=side == fence_side)
-        if setback > 3.5 and rng.random() < 0.6:       # a hedge along the front of the yard
+        if setback > 3.5 and rng.random() < 0.6:  # a hedge along the front of the yard
             length, h = rng.uniform(8.0, 30.0), rng.uniform(0.9, 1.6)
-            b.box(s0 + rng.uniform(length / 2, TILE_M - length / 2),
-                  sigma * (sidewalk_out[side] + 1.2), h / 2, length / 2, 0.45, h / 2, VEGETATION)
-        for _ in range(rng.integers(1, 5)):            # bushes in the yard
-            b.ellipsoid(s0 + rng.uniform(0, TILE_M),
-                        sigma * (sidewalk_out[side] + rng.uniform(1.0, max(setback - 1.0, 1.5))),
-                        rng.uniform(0.3, 0.7), rng.uniform(0.6, 1.4), rng.uniform(0.5, 0.9),
-                        VEGETATION)
+            b.box(
+                s0 + rng.uniform(length / 2, TILE_M - length / 2),
+                sigma * (sidewalk_out[side] + 1.2),
+                h / 2,
+                length / 2,
+                0.45,
+                h / 2,
+                VEGETATION,
+            )
+        for _ in range(rng.integers(1, 5)):  # bushes in the yard
+            b.ellipsoid(
+                s0 + rng.uniform(0, TILE_M),
+                sigma * (sidewalk_out[side] + rng.uniform(1.0, max(setback - 1.0, 1.5))),
+                rng.uniform(0.3, 0.7),
+                rng.uniform(0.6, 1.4),
+                rng.uniform(0.5, 0.9),
+                VEGETATION,
+            )
         if park:
             for _ in range(rng.integers(4, 9)):
                 add_tree(b, s0 + rng.uniform(0, TILE_M), sigma * (line + rng.uniform(0, 25)), rng)
@@ -205,8 +230,14 @@ def _parked_cars(b, rng, tile_id, side, s0, u):
         length = rng.uniform(4.0, 4.8)
         if rng.random() < 0.55:
             instance = FIRST_PARKED_INSTANCE + (tile_id * 32 + side * 16 + slot) % 65000
-            add_car(b, s + length / 2, u + rng.uniform(-0.15, 0.15), rng.uniform(-0.05, 0.05),
-                    CAR, instance)
+            add_car(
+                b,
+                s + length / 2,
+                u + rng.uniform(-0.15, 0.15),
+                rng.uniform(-0.05, 0.05),
+                CAR,
+                instance,
+            )
         s += length + rng.uniform(0.8, 3.0)
         slot += 1
 
@@ -227,8 +258,15 @@ def _buildings(b, rng, s0, sigma, line):
     while s < s0 + TILE_M - 4.0:
         length = min(rng.uniform(10.0, 25.0), s0 + TILE_M - s)
         depth, height = rng.uniform(8.0, 16.0), rng.uniform(5.0, 18.0)
-        b.box(s + length / 2, sigma * (line + depth / 2), height / 2, length / 2, depth / 2,
-              height / 2, BUILDING)
+        b.box(
+            s + length / 2,
+            sigma * (line + depth / 2),
+            height / 2,
+            length / 2,
+            depth / 2,
+            height / 2,
+            BUILDING,
+        )
         gap = rng.uniform(2.0, 8.0)
         if gap > 5.0:
             add_tree(b, s + length + gap / 2, sigma * (line + 3.0), rng)
@@ -236,6 +274,7 @@ def _buildings(b, rng, s0, sigma, line):
 
 
 # ----------------------------------------------------------------------------- world
+
 
 class World:
     """The route, its lazily built tiles (LRU cache) and the two actors, at a given time."""
@@ -245,7 +284,7 @@ class World:
         self.route = route
         self.cache_tiles = cache_tiles
         self._tiles: OrderedDict[int, Tile] = OrderedDict()
-        self._window: tuple = ((), None)     # last (tile ids, concatenated shapes)
+        self._window: tuple = ((), None)  # last (tile ids, concatenated shapes)
 
     # --- tiles
     def tile_id(self, s: float) -> int:
@@ -278,7 +317,7 @@ class World:
         if self.route.closed:
             ids = dict.fromkeys(i % self.num_tiles for i in ids)
         ids = tuple(ids)
-        if self._window[0] != ids:        # consecutive scans mostly share their tiles
+        if self._window[0] != ids:  # consecutive scans mostly share their tiles
             self._window = (ids, ShapeSet.concat(self.tile(i).shapes for i in ids))
         return self._window[1]
 
@@ -293,7 +332,7 @@ class World:
         for t in np.unique(tid):
             m = tid == t
             edges[m] = self.tile(int(t)).edges[side[m]]
-        band = (np.abs(u)[:, None] >= edges).sum(axis=1)     # 0 road ... 4 beyond the sidewalk
+        band = (np.abs(u)[:, None] >= edges).sum(axis=1)  # 0 road ... 4 beyond the sidewalk
         return np.array(_GROUND_BANDS, dtype=np.uint32)[band]
 
     # --- motion
@@ -327,7 +366,7 @@ class World:
         s_spawn = self.ego_s(t0) + 25.0
         edges = self.tile(self.tile_id(s_spawn)).edges
         side = 0 if edges[1, 1] > ROAD_HALF_M and edges[0, 1] == ROAD_HALF_M else 1
-        u_person = (1.0, -1.0)[side] * (edges[side, 2] + 1.3)    # 1.3 m into the sidewalk
+        u_person = (1.0, -1.0)[side] * (edges[side, 2] + 1.3)  # 1.3 m into the sidewalk
         s_person = s_spawn - 1.3 * (t - t0)
         b.cylinder(s_person, u_person, 0.2, 0.0, 1.48, PERSON, PERSON_INSTANCE)
         b.ellipsoid(s_person, u_person, 1.62, 0.11, 0.13, PERSON, PERSON_INSTANCE)

@@ -7,6 +7,7 @@ memory (a length taken on trust that allocates gigabytes is a failure, not a swa
 machine) and each case's time; when the worker dies of a signal, that case is a failure and a
 new worker goes on with the next one. Each case is judged by `tisem.testing.oracle`.
 """
+
 from __future__ import annotations
 
 import json
@@ -38,12 +39,14 @@ class CaseResult:
     seed: int
     case: int
     what: str
-    outcome: str                  # one of tisem.testing.oracle.OUTCOMES
+    outcome: str  # one of tisem.testing.oracle.OUTCOMES
     detail: str = ""
 
     def line(self) -> str:
-        return (f"{self.target} seed {self.seed} case {self.case}: {self.what} -> "
-                f"{self.outcome}{': ' + self.detail if self.detail else ''}")
+        return (
+            f"{self.target} seed {self.seed} case {self.case}: {self.what} -> "
+            f"{self.outcome}{': ' + self.detail if self.detail else ''}"
+        )
 
 
 class _Target:
@@ -54,17 +57,18 @@ class _Target:
         from tisem.io.semantickitti import SemanticKittiSequence
         from tisem.testing import kitti_damage, mcap_damage
         from tisem.testing.oracle import reference
+
         self.name, self.folder = name, folder
         if name == "mcap":
             self.bases = mcap_damage.write_bases(folder)
-            self.refs = {b: reference(McapScanReader(base.path)) for b, base in
-                         self.bases.items()}
+            self.refs = {b: reference(McapScanReader(base.path)) for b, base in self.bases.items()}
         else:
             self.base = kitti_damage.write_base(folder / "intact")
             self.ref = reference(SemanticKittiSequence(self.base))
 
     def mutation(self, seed: int, case: int):
         from tisem.testing import kitti_damage, mcap_damage
+
         rng = np.random.default_rng([seed, case])
         if self.name == "mcap":
             return mcap_damage.mcap_mutation(self.bases, rng, case)
@@ -81,6 +85,7 @@ class _Target:
 
     def judge(self, mutation, path: Path) -> Outcome:
         from tisem.testing.oracle import judge_kitti, judge_mcap
+
         if self.name == "mcap":
             return judge_mcap(path, self.refs[mutation.base], mutation.detectable)
         return judge_kitti(path, self.ref, mutation.detectable)
@@ -89,6 +94,7 @@ class _Target:
 def _remove(path: Path) -> None:
     if path.is_dir():
         import shutil
+
         shutil.rmtree(path, ignore_errors=True)
     elif path.exists():
         path.unlink()
@@ -106,8 +112,16 @@ def _on_alarm(signum, frame):
     raise _Timeout()
 
 
-def _worker(target: str, seed: int, start: int, count: int, deadline: float,
-            memory_mb: int, case_timeout_s: int, crash_case: int) -> None:
+def _worker(
+    target: str,
+    seed: int,
+    start: int,
+    count: int,
+    deadline: float,
+    memory_mb: int,
+    case_timeout_s: int,
+    crash_case: int,
+) -> None:
     """Run cases start, start+1, ... and print one JSON line before and after each.
     `crash_case` (>= 0) makes the worker die of SIGSEGV in that case: how the harness itself
     is tested."""
@@ -148,10 +162,15 @@ def _worker(target: str, seed: int, start: int, count: int, deadline: float,
             case += 1
 
 
-def run_campaign(target: str, seed: int, count: int | None = None,
-                 minutes: float | None = None, memory_mb: int = MEMORY_LIMIT_MB,
-                 case_timeout_s: int = CASE_TIMEOUT_S,
-                 crash_case: int | None = None) -> list[CaseResult]:
+def run_campaign(
+    target: str,
+    seed: int,
+    count: int | None = None,
+    minutes: float | None = None,
+    memory_mb: int = MEMORY_LIMIT_MB,
+    case_timeout_s: int = CASE_TIMEOUT_S,
+    crash_case: int | None = None,
+) -> list[CaseResult]:
     """`count` cases (or as many as `minutes` allow) of `target`, each in a worker process
     (`crash_case`: see `_worker`)."""
     if target not in TARGETS:
@@ -160,35 +179,57 @@ def run_campaign(target: str, seed: int, count: int | None = None,
     results: list[CaseResult] = []
     case, end = 0, count
     root = str(Path(__file__).resolve().parents[2])
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join(
-        [root, *filter(None, [os.environ.get("PYTHONPATH")])]), "OPENBLAS_NUM_THREADS": "1"}
+    env = {
+        **os.environ,
+        "PYTHONPATH": os.pathsep.join([root, *filter(None, [os.environ.get("PYTHONPATH")])]),
+        "OPENBLAS_NUM_THREADS": "1",
+    }
     while end is None or case < end:
         if deadline and time.time() >= deadline:
             break
         todo = -1 if end is None else end - case
         with tempfile.TemporaryFile("w+") as err:
             proc = subprocess.Popen(
-                [sys.executable, "-m", "tisem.testing.fuzz", target, str(seed), str(case),
-                 str(todo), str(deadline), str(memory_mb), str(case_timeout_s),
-                 str(-1 if crash_case is None else crash_case)],
-                stdout=subprocess.PIPE, stderr=err, text=True, env=env)
+                [
+                    sys.executable,
+                    "-m",
+                    "tisem.testing.fuzz",
+                    target,
+                    str(seed),
+                    str(case),
+                    str(todo),
+                    str(deadline),
+                    str(memory_mb),
+                    str(case_timeout_s),
+                    str(-1 if crash_case is None else crash_case),
+                ],
+                stdout=subprocess.PIPE,
+                stderr=err,
+                text=True,
+                env=env,
+            )
             current, what = _collect(proc, seed, target, results, 4 * case_timeout_s + 60)
             rc = proc.wait()
             if current is None and rc == 0:
                 break
             if current is None:
                 err.seek(0)
-                raise RuntimeError(f"the fuzz worker failed outside a case (exit {rc}): "
-                                   f"{err.read()[-2000:]}")
-            why = (f"the reader process died of {signal.Signals(-rc).name}" if rc < 0
-                   else f"the reader process exited with {rc}")
+                raise RuntimeError(
+                    f"the fuzz worker failed outside a case (exit {rc}): {err.read()[-2000:]}"
+                )
+            why = (
+                f"the reader process died of {signal.Signals(-rc).name}"
+                if rc < 0
+                else f"the reader process exited with {rc}"
+            )
             results.append(CaseResult(target, seed, current, what or "?", "failure", why))
             case = current + 1
     return results
 
 
-def _collect(proc: subprocess.Popen, seed: int, target: str, results: list,
-             silence_s: float) -> tuple[int | None, str | None]:
+def _collect(
+    proc: subprocess.Popen, seed: int, target: str, results: list, silence_s: float
+) -> tuple[int | None, str | None]:
     """Read the worker's lines into `results`; returns the case it was in when it stopped
     (None when it finished its cases). A worker silent for `silence_s` is killed."""
     current, what = None, None
@@ -201,8 +242,9 @@ def _collect(proc: subprocess.Popen, seed: int, target: str, results: list,
             watchdog.start()
             msg = json.loads(line)
             if "outcome" in msg:
-                results.append(CaseResult(target, seed, msg["case"], what, msg["outcome"],
-                                          msg["detail"]))
+                results.append(
+                    CaseResult(target, seed, msg["case"], what, msg["outcome"], msg["detail"])
+                )
                 current, what = None, None
             elif "what" in msg:
                 what = msg["what"]
@@ -224,15 +266,15 @@ def replay(target: str, seed: int, case: int, folder: Path) -> tuple[str, Path, 
 def summary_table(results: list[CaseResult]) -> str:
     """Cases and outcomes per target as a Markdown table, then the failures: grouped by the
     kind of mutation (numbers left out), each with how many and its first seed and case."""
-    head = "| target | cases | " + " | ".join(OUTCOMES) + " |\n|---|---:|" + "---:|" * len(
-        OUTCOMES)
+    head = "| target | cases | " + " | ".join(OUTCOMES) + " |\n|---|---:|" + "---:|" * len(OUTCOMES)
     rows = []
     for target in TARGETS:
         mine = [r for r in results if r.target == target]
         if mine:
             counts = Counter(r.outcome for r in mine)
-            rows.append(f"| {target} | {len(mine)} | " +
-                        " | ".join(str(counts[o]) for o in OUTCOMES) + " |")
+            rows.append(
+                f"| {target} | {len(mine)} | " + " | ".join(str(counts[o]) for o in OUTCOMES) + " |"
+            )
     kinds: dict[str, list[CaseResult]] = {}
     for r in results:
         if r.outcome == "failure":
@@ -243,5 +285,13 @@ def summary_table(results: list[CaseResult]) -> str:
 
 if __name__ == "__main__":
     name, seed_, start_, count_, deadline_, memory_, timeout_, crash_ = sys.argv[1:9]
-    _worker(name, int(seed_), int(start_), int(count_), float(deadline_), int(memory_),
-            int(timeout_), int(crash_))
+    _worker(
+        name,
+        int(seed_),
+        int(start_),
+        int(count_),
+        float(deadline_),
+        int(memory_),
+        int(timeout_),
+        int(crash_),
+    )

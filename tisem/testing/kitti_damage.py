@@ -7,12 +7,13 @@ extended, emptied, removed or flipped; junk in `poses.txt`, `calib.txt` and `tim
 point, or a pose line lost in the middle of `poses.txt` (every later scan takes the next
 pose), leave files that are still well-formed.
 """
+
 from __future__ import annotations
 
 import shutil
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 
@@ -37,14 +38,16 @@ def write_base(folder: Path) -> Path:
         points.astype("<f4").tofile(folder / "velodyne" / f"{k:06d}.bin")
         gt = rng.choice(_RAW_IDS, N_POINTS)
         (gt | (np.uint32(k) << np.uint32(16))).astype("<u4").tofile(
-            folder / "labels" / f"{k:06d}.label")
+            folder / "labels" / f"{k:06d}.label"
+        )
         pred = np.where(rng.random(N_POINTS) < 0.2, rng.choice(_RAW_IDS, N_POINTS), gt)
         pred.astype("<u4").tofile(folder / "predictions" / f"{k:06d}.label")
         c, s = np.cos(0.1 * k), np.sin(0.1 * k)
         poses.append(np.array([[c, 0, s, 0.5 * k], [0, 1, 0, 0.0], [-s, 0, c, 1.5 * k]]))
     (folder / "poses.txt").write_text("".join(_row(P) + "\n" for P in poses))
-    (folder / "calib.txt").write_text("".join(f"P{i}: {_row(np.eye(4))}\n" for i in range(4))
-                                      + f"Tr: {_row(TR)}\n")
+    (folder / "calib.txt").write_text(
+        "".join(f"P{i}: {_row(np.eye(4))}\n" for i in range(4)) + f"Tr: {_row(TR)}\n"
+    )
     (folder / "times.txt").write_text("".join(f"{0.1 * k:.6e}\n" for k in range(N_SCANS)))
     return folder
 
@@ -68,7 +71,7 @@ def _pick(rng: np.random.Generator, items):
 
 def _resize(path: Path, delta: int) -> None:
     data = path.read_bytes()
-    path.write_bytes(data[:len(data) + delta] if delta < 0 else data + bytes(delta))
+    path.write_bytes(data[: len(data) + delta] if delta < 0 else data + bytes(delta))
 
 
 def _scan_file(rng, folder: str, suffix: str) -> str:
@@ -78,11 +81,20 @@ def _scan_file(rng, folder: str, suffix: str) -> str:
 def _binary_file(rng) -> Mutation:
     name = _pick(rng, ["velodyne", "predictions", "labels"])
     rel = _scan_file(rng, name, "bin" if name == "velodyne" else "label")
-    point = 16 if name == "velodyne" else 4                   # bytes per point
-    what, delta = _pick(rng, [("cut by 1 byte", -1), ("cut by one value", -4),
-                              ("cut by one point", -point), ("extended by 1 byte", 1),
-                              ("extended by one point", point), ("emptied", "empty"),
-                              ("removed", "remove"), ("a bit flipped", "flip")])
+    point = 16 if name == "velodyne" else 4  # bytes per point
+    what, delta = _pick(
+        rng,
+        [
+            ("cut by 1 byte", -1),
+            ("cut by one value", -4),
+            ("cut by one point", -point),
+            ("extended by 1 byte", 1),
+            ("extended by one point", point),
+            ("emptied", "empty"),
+            ("removed", "remove"),
+            ("a bit flipped", "flip"),
+        ],
+    )
 
     def apply(folder: Path) -> None:
         path = folder / rel
@@ -96,6 +108,7 @@ def _binary_file(rng) -> Mutation:
             path.write_bytes(b"")
         else:
             _resize(path, delta)
+
     # a flipped bit in a point or a label is another valid value; a removed scan file takes
     # its scan out of the sequence, which no reader can tell from a shorter drive
     detectable = delta != "flip" and not (delta == "remove" and name == "velodyne")
@@ -106,7 +119,7 @@ def _edit_line(path: Path, index: int, change: Callable[[str], str | None]) -> N
     lines = path.read_text().splitlines(keepends=True)
     index %= len(lines)
     new = change(lines[index])
-    lines[index:index + 1] = [] if new is None else [new]
+    lines[index : index + 1] = [] if new is None else [new]
     path.write_text("".join(lines))
 
 
@@ -116,7 +129,7 @@ def _token(line: str, rng, value: str, places: tuple[int, ...] | None = None) ->
     return " ".join(tokens) + "\n"
 
 
-ROTATION_PLACES = (0, 1, 2, 4, 5, 6, 8, 9, 10)      # of the 12 numbers of a 3x4 pose row
+ROTATION_PLACES = (0, 1, 2, 4, 5, 6, 8, 9, 10)  # of the 12 numbers of a 3x4 pose row
 TRANSLATION_PLACES = (3, 7, 11)
 
 
@@ -136,13 +149,22 @@ def _pose_line(rng) -> Mutation:
     k = int(rng.integers(N_SCANS))
     value = _pick(rng, ["abc", "nan", "inf", "-", "0x10", "1,5"])
     edits = [
-        (f"a number of line {k + 1} replaced by {value!r}", True,
-         lambda line: _token(line, rng, value)),
-        (f"a rotation number of line {k + 1} replaced by 1e300", True,
-         lambda line: _token(line, rng, "1e300", ROTATION_PLACES)),
+        (
+            f"a number of line {k + 1} replaced by {value!r}",
+            True,
+            lambda line: _token(line, rng, value),
+        ),
+        (
+            f"a rotation number of line {k + 1} replaced by 1e300",
+            True,
+            lambda line: _token(line, rng, "1e300", ROTATION_PLACES),
+        ),
         # a pose 1e300 m away is a valid pose to a reader; the mapper refuses it (its range)
-        (f"a translation of line {k + 1} replaced by 1e300", False,
-         lambda line: _token(line, rng, "1e300", TRANSLATION_PLACES)),
+        (
+            f"a translation of line {k + 1} replaced by 1e300",
+            False,
+            lambda line: _token(line, rng, "1e300", TRANSLATION_PLACES),
+        ),
         (f"line {k + 1} removed", k == N_SCANS - 1, lambda line: None),
         (f"line {k + 1} doubled", False, lambda line: line + line),
         (f"line {k + 1} with a 13th number", True, lambda line: line.rstrip() + " 1.0\n"),
@@ -155,8 +177,9 @@ def _pose_line(rng) -> Mutation:
         (f"a blank line before line {k + 1}", True, lambda line: "\n" + line),
     ]
     what, detectable, change = _pick(rng, edits)
-    return Mutation(f"poses.txt: {what}", detectable,
-                    lambda folder: _edit_line(folder / "poses.txt", k, change))
+    return Mutation(
+        f"poses.txt: {what}", detectable, lambda folder: _edit_line(folder / "poses.txt", k, change)
+    )
 
 
 def _calib(rng) -> Mutation:
@@ -165,8 +188,11 @@ def _calib(rng) -> Mutation:
         ("the Tr: line removed", True, lambda line: None),
         ("a number of Tr: replaced by 'x'", True, lambda line: _token(line, rng, "x")),
         ("Tr: scaled by 0.5", True, lambda line: "Tr: " + _scaled_rotation(line[3:], 0.5)),
-        ("a second, different Tr: line", True,
-         lambda line: line + "Tr: " + _scaled_rotation(line[3:], -1.0)),
+        (
+            "a second, different Tr: line",
+            True,
+            lambda line: line + "Tr: " + _scaled_rotation(line[3:], -1.0),
+        ),
         ("a P0: number replaced by 'x'", True, None),
         ("Windows line ends", True, "crlf"),
     ]
@@ -180,6 +206,7 @@ def _calib(rng) -> Mutation:
             _edit_line(path, 0, lambda line: _token(line, rng, "x"))
         else:
             _edit_line(path, tr_line, change)
+
     return Mutation(f"calib.txt: {what}", detectable, apply)
 
 
@@ -194,13 +221,15 @@ def _times(rng) -> Mutation:
         (f"a line after line {k + 1}", False, lambda line: line + "9.9\n"),
     ]
     what, detectable, change = _pick(rng, edits)
-    return Mutation(f"times.txt: {what}", detectable,
-                    lambda folder: _edit_line(folder / "times.txt", k, change))
+    return Mutation(
+        f"times.txt: {what}", detectable, lambda folder: _edit_line(folder / "times.txt", k, change)
+    )
 
 
 def _files(rng) -> Mutation:
     def alias(folder: Path) -> None:
         shutil.copy(folder / "velodyne" / "000001.bin", folder / "velodyne" / "1.bin")
+
     edits = [
         ("poses.txt removed", True, lambda f: (f / "poses.txt").unlink()),
         ("calib.txt removed", True, lambda f: (f / "calib.txt").unlink()),
@@ -208,17 +237,34 @@ def _files(rng) -> Mutation:
         ("times.txt removed", False, lambda f: (f / "times.txt").unlink()),
         ("predictions/ removed", True, lambda f: shutil.rmtree(f / "predictions")),
         ("labels/ removed", False, lambda f: shutil.rmtree(f / "labels")),
-        ("velodyne/notes.txt added", True, lambda f: (f / "velodyne" / "notes.txt").write_text(
-            "not a scan")),
-        ("velodyne/000000.bin.bak added", True, lambda f: shutil.copy(
-            f / "velodyne" / "000000.bin", f / "velodyne" / "000000.bin.bak")),
-        ("velodyne/000009.bin added (no pose, no labels)", True, lambda f: shutil.copy(
-            f / "velodyne" / "000000.bin", f / "velodyne" / "000009.bin")),
+        (
+            "velodyne/notes.txt added",
+            True,
+            lambda f: (f / "velodyne" / "notes.txt").write_text("not a scan"),
+        ),
+        (
+            "velodyne/000000.bin.bak added",
+            True,
+            lambda f: shutil.copy(f / "velodyne" / "000000.bin", f / "velodyne" / "000000.bin.bak"),
+        ),
+        (
+            "velodyne/000009.bin added (no pose, no labels)",
+            True,
+            lambda f: shutil.copy(f / "velodyne" / "000000.bin", f / "velodyne" / "000009.bin"),
+        ),
         ("velodyne/1.bin added beside 000001.bin", True, alias),
-        ("poses.txt replaced by binary junk", True,
-         lambda f: (f / "poses.txt").write_bytes(bytes(range(256)))),
-        ("poses.txt in UTF-16", True, lambda f: (f / "poses.txt").write_text(
-            (f / "poses.txt").read_text(), encoding="utf-16")),
+        (
+            "poses.txt replaced by binary junk",
+            True,
+            lambda f: (f / "poses.txt").write_bytes(bytes(range(256))),
+        ),
+        (
+            "poses.txt in UTF-16",
+            True,
+            lambda f: (f / "poses.txt").write_text(
+                (f / "poses.txt").read_text(), encoding="utf-16"
+            ),
+        ),
     ]
     what, detectable, edit = _pick(rng, edits)
     return Mutation(what, detectable, edit)

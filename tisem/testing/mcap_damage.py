@@ -7,13 +7,14 @@ layout field that disagrees with the data, an empty cloud, labels that are no la
 says whether a reader can detect it at all: flipping a cloud's byte order or a field's type
 between two 4-byte types gives other values that are still a valid cloud.
 """
+
 from __future__ import annotations
 
 import struct
 import zlib
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 
@@ -31,11 +32,24 @@ BASES = {
     "foxglove": dict(foxglove=True),
 }
 _COMMON = dict(n_scans=5, n_points=40, chunk_size=1500, tf_rate_hz=20.0, seed=7)
-_NAMES = {0x01: "header", 0x02: "footer", 0x03: "schema", 0x04: "channel", 0x05: "message",
-          0x06: "chunk", 0x07: "message index", 0x08: "chunk index", 0x09: "attachment",
-          0x0A: "attachment index", 0x0B: "statistics", 0x0C: "metadata",
-          0x0D: "metadata index", 0x0E: "summary offset", 0x0F: "data end"}
-HUGE_VALUES = (2 ** 32, 2 ** 63, 2 ** 64 - 1, 2 ** 31, 0)
+_NAMES = {
+    0x01: "header",
+    0x02: "footer",
+    0x03: "schema",
+    0x04: "channel",
+    0x05: "message",
+    0x06: "chunk",
+    0x07: "message index",
+    0x08: "chunk index",
+    0x09: "attachment",
+    0x0A: "attachment index",
+    0x0B: "statistics",
+    0x0C: "metadata",
+    0x0D: "metadata index",
+    0x0E: "summary offset",
+    0x0F: "data end",
+}
+HUGE_VALUES = (2**32, 2**63, 2**64 - 1, 2**31, 0)
 
 
 @dataclass
@@ -45,7 +59,7 @@ class Region:
     kind: str
     start: int
     end: int
-    fields: dict[str, tuple[int, int]] = field(default_factory=dict)   # name -> (offset, size)
+    fields: dict[str, tuple[int, int]] = field(default_factory=dict)  # name -> (offset, size)
 
 
 def layout(data: bytes) -> list[Region]:
@@ -55,27 +69,42 @@ def layout(data: bytes) -> list[Region]:
     pos = 8
     while pos < len(data) - 8:
         opcode, length = struct.unpack_from("<BQ", data, pos)
-        kind = ("summary " if 0 < summary_start <= pos and opcode in (3, 4) else "") + \
-            _NAMES.get(opcode, f"opcode {opcode:#x}")
+        kind = ("summary " if 0 < summary_start <= pos and opcode in (3, 4) else "") + _NAMES.get(
+            opcode, f"opcode {opcode:#x}"
+        )
         c = pos + 9
         fields = {"record length": (pos + 1, 8)}
         if opcode == 0x06:
             clen = struct.unpack_from("<I", data, c + 28)[0]
-            fields.update({"uncompressed size": (c + 16, 8), "crc": (c + 24, 4),
-                           "compression length": (c + 28, 4), "compression": (c + 32, clen),
-                           "data length": (c + 32 + clen, 8)})
+            fields.update(
+                {
+                    "uncompressed size": (c + 16, 8),
+                    "crc": (c + 24, 4),
+                    "compression length": (c + 28, 4),
+                    "compression": (c + 32, clen),
+                    "data length": (c + 32 + clen, 8),
+                }
+            )
         elif opcode == 0x07:
             fields["entries length"] = (c + 2, 4)
         elif opcode in (0x03, 0x04):
             fields["string length"] = (c + 2 if opcode == 0x03 else c + 4, 4)
         elif opcode == 0x08:
-            fields.update({"chunk offset": (c + 16, 8), "chunk length": (c + 24, 8),
-                           "offsets length": (c + 32, 4)})
+            fields.update(
+                {
+                    "chunk offset": (c + 16, 8),
+                    "chunk length": (c + 24, 8),
+                    "offsets length": (c + 32, 4),
+                }
+            )
         elif opcode == 0x0B:
             fields["counts length"] = (c + 42, 4)
         elif opcode == 0x02:
-            fields = {"summary start": (c, 8), "summary offset start": (c + 8, 8),
-                      "summary crc": (c + 16, 4)}
+            fields = {
+                "summary start": (c, 8),
+                "summary offset start": (c + 8, 8),
+                "summary crc": (c + 16, 4),
+            }
         elif opcode == 0x0F:
             fields = {"data crc": (c, 4)}
         regions.append(Region(kind, pos, c + length, fields))
@@ -95,8 +124,10 @@ class Base:
 
 def _write(path: Path, options: dict, hook=None) -> None:
     if options.get("foxglove"):
-        write_foxglove_log(path, **{k: options[k] for k in ("n_scans", "n_points", "seed",
-                                                           "chunk_size", "tf_rate_hz")})
+        write_foxglove_log(
+            path,
+            **{k: options[k] for k in ("n_scans", "n_points", "seed", "chunk_size", "tf_rate_hz")},
+        )
     else:
         write_synthetic_log(path, **options, cloud_hook=hook)
 
@@ -119,8 +150,8 @@ class Mutation:
     base: str
     what: str
     detectable: bool
-    data: bytes | None = None                     # a byte edit of the base ...
-    hook: Callable[[int, dict], dict] | None = None   # ... or the base written again with this
+    data: bytes | None = None  # a byte edit of the base ...
+    hook: Callable[[int, dict], dict] | None = None  # ... or the base written again with this
 
     def write(self, bases: dict[str, Base], path: Path) -> None:
         if self.data is not None:
@@ -131,15 +162,17 @@ class Mutation:
 
 # ---- byte edits ------------------------------------------------------------------------------
 
+
 def _pick(rng: np.random.Generator, items):
     return items[int(rng.integers(len(items)))]
 
 
 def _cut(base: Base, rng) -> tuple[str, bytes]:
     r = _pick(rng, base.regions)
-    at = _pick(rng, [r.start, r.start + 1, min(r.start + 9, r.end - 1), (r.start + r.end) // 2,
-                     r.end - 1])
-    return f"cut at byte {at} (in the {r.kind} at {r.start})", base.data[:max(at, 1)]
+    at = _pick(
+        rng, [r.start, r.start + 1, min(r.start + 9, r.end - 1), (r.start + r.end) // 2, r.end - 1]
+    )
+    return f"cut at byte {at} (in the {r.kind} at {r.start})", base.data[: max(at, 1)]
 
 
 def _cut_anywhere(base: Base, rng) -> tuple[str, bytes]:
@@ -160,12 +193,14 @@ def _overwrite(base: Base, rng) -> tuple[str, bytes]:
     n = int(rng.integers(1, 17))
     at = int(rng.integers(r.start, r.end))
     kind = _pick(rng, ["zeros", "0xff", "random"])
-    run = {"zeros": bytes(n), "0xff": b"\xff" * n,
-           "random": rng.integers(0, 256, n).astype(np.uint8).tobytes()}[kind]
+    run = {
+        "zeros": bytes(n),
+        "0xff": b"\xff" * n,
+        "random": rng.integers(0, 256, n).astype(np.uint8).tobytes(),
+    }[kind]
     data = bytearray(base.data)
-    data[at:at + n] = run[:len(data) - at]
-    return f"{n} byte(s) of {kind} written at byte {at} (in the {r.kind} at {r.start})", \
-        bytes(data)
+    data[at : at + n] = run[: len(data) - at]
+    return f"{n} byte(s) of {kind} written at byte {at} (in the {r.kind} at {r.start})", bytes(data)
 
 
 def _length_field(base: Base, rng) -> tuple[str, bytes]:
@@ -174,10 +209,10 @@ def _length_field(base: Base, rng) -> tuple[str, bytes]:
     at, size = r.fields[name]
     if size not in (4, 8):
         return _overwrite(base, rng)
-    old = int.from_bytes(base.data[at:at + size], "little")
+    old = int.from_bytes(base.data[at : at + size], "little")
     value = _pick(rng, [*HUGE_VALUES, old + 1, max(old - 1, 0)]) % (1 << (8 * size))
     data = bytearray(base.data)
-    data[at:at + size] = value.to_bytes(size, "little")
+    data[at : at + size] = value.to_bytes(size, "little")
     return f"{name} of the {r.kind} at {r.start} set to {value} (was {old})", bytes(data)
 
 
@@ -190,7 +225,7 @@ def _compression(base: Base, rng) -> tuple[str, bytes]:
     name = _pick(rng, [b"zstx", b"ZSTD", b"gzip", b"lz4\0", b"bz2 ", b"lz5", b"LZ4", b"zst"])
     name = (name + b"    ")[:size]
     data = bytearray(base.data)
-    data[at:at + size] = name
+    data[at : at + size] = name
     return f"compression of the chunk at {r.start} renamed {name!r}", bytes(data)
 
 
@@ -206,13 +241,15 @@ def _index_entries(base: Base, rng) -> tuple[str, bytes]:
     edit = _pick(rng, ["duplicate", "delete", "swap offsets"])
     data = bytearray(base.data)
     if edit == "duplicate":
-        data[ra.end:ra.end] = base.data[ra.start:ra.end]
+        data[ra.end : ra.end] = base.data[ra.start : ra.end]
     elif edit == "delete":
-        del data[ra.start:ra.end]
+        del data[ra.start : ra.end]
     else:
         off_a, off_b = ra.fields["chunk offset"][0], rb.fields["chunk offset"][0]
-        data[off_a:off_a + 8], data[off_b:off_b + 8] = (base.data[off_b:off_b + 8],
-                                                       base.data[off_a:off_a + 8])
+        data[off_a : off_a + 8], data[off_b : off_b + 8] = (
+            base.data[off_b : off_b + 8],
+            base.data[off_a : off_a + 8],
+        )
     shift = len(data) - len(base.data)
     footer_at = footer.start + shift
     offset_start = struct.unpack_from("<Q", data, footer_at + 17)[0]
@@ -220,17 +257,30 @@ def _index_entries(base: Base, rng) -> tuple[str, bytes]:
         struct.pack_into("<Q", data, footer_at + 17, offset_start + shift)
     crc_mode = _pick(rng, ["recomputed", "zeroed", "stale"])
     summary_start = struct.unpack_from("<Q", data, footer_at + 9)[0]
-    crc = {"recomputed": zlib.crc32(data[summary_start:footer_at + 25]), "zeroed": 0,
-           "stale": struct.unpack_from("<I", data, footer_at + 25)[0]}[crc_mode]
+    crc = {
+        "recomputed": zlib.crc32(data[summary_start : footer_at + 25]),
+        "zeroed": 0,
+        "stale": struct.unpack_from("<I", data, footer_at + 25)[0],
+    }[crc_mode]
     struct.pack_into("<I", data, footer_at + 25, crc)
     return f"chunk index entry {a} ({edit} with entry {b}), summary CRC {crc_mode}", bytes(data)
 
 
-BYTE_EDITS = (_cut, _cut_anywhere, _flip, _flip, _overwrite, _length_field, _length_field,
-              _compression, _index_entries)
+BYTE_EDITS = (
+    _cut,
+    _cut_anywhere,
+    _flip,
+    _flip,
+    _overwrite,
+    _length_field,
+    _length_field,
+    _compression,
+    _index_entries,
+)
 
 
 # ---- clouds written again with one message changed ------------------------------------------
+
 
 def _replace_fields(msg: dict, field_name: str, **changes) -> dict:
     fields = [dict(f, **changes) if f["name"] == field_name else f for f in msg["fields"]]
@@ -240,9 +290,14 @@ def _replace_fields(msg: dict, field_name: str, **changes) -> dict:
 def _with_points(msg: dict, change: Callable[[np.ndarray], None]) -> dict:
     names = [f["name"] for f in msg["fields"]]
     codes = {7: "<f4", 8: "<f8", 4: "<u2", 6: "<u4"}
-    dtype = np.dtype({"names": names, "offsets": [f["offset"] for f in msg["fields"]],
-                      "formats": [codes[f["datatype"]] for f in msg["fields"]],
-                      "itemsize": msg["point_step"]})
+    dtype = np.dtype(
+        {
+            "names": names,
+            "offsets": [f["offset"] for f in msg["fields"]],
+            "formats": [codes[f["datatype"]] for f in msg["fields"]],
+            "itemsize": msg["point_step"],
+        }
+    )
     arr = np.frombuffer(msg["data"], dtype).copy()
     change(arr)
     return dict(msg, data=arr.tobytes())
@@ -260,29 +315,30 @@ def _stamp_later(msg: dict, seconds: int) -> dict:
 # (what, detectable, change of a PointCloud2 message dict)
 LAYOUT_CHANGES: list[tuple[str, bool, Callable[[dict], dict]]] = [
     ("height 0", True, lambda m: dict(m, height=0)),
-    ("width one smaller than the data", True, lambda m: _sized(m, m["width"] - 1,
-                                                              m["point_step"])),
-    ("width one larger than the data", True, lambda m: _sized(m, m["width"] + 1,
-                                                             m["point_step"])),
+    ("width one smaller than the data", True, lambda m: _sized(m, m["width"] - 1, m["point_step"])),
+    ("width one larger than the data", True, lambda m: _sized(m, m["width"] + 1, m["point_step"])),
     ("width 0 with data", True, lambda m: _sized(m, 0, m["point_step"])),
     ("point_step + 1", True, lambda m: _sized(m, m["width"], m["point_step"] + 1)),
     ("point_step - 1", True, lambda m: _sized(m, m["width"], m["point_step"] - 1)),
     ("point_step 0", True, lambda m: _sized(m, m["width"], 0)),
-    ("point_step 2^31", True, lambda m: dict(m, point_step=2 ** 31)),
+    ("point_step 2^31", True, lambda m: dict(m, point_step=2**31)),
     ("row_step + 1", True, lambda m: dict(m, row_step=m["row_step"] + 1)),
-    ("row_step 2^32 - 1", True, lambda m: dict(m, row_step=2 ** 32 - 1)),
+    ("row_step 2^32 - 1", True, lambda m: dict(m, row_step=2**32 - 1)),
     ("row_step 0 (means width x point_step)", True, lambda m: dict(m, row_step=0)),
     ("x overlapping y", True, lambda m: _replace_fields(m, "x", offset=2)),
-    ("label past the point", True,
-     lambda m: _replace_fields(m, "label", offset=m["point_step"] - 1)),
+    (
+        "label past the point",
+        True,
+        lambda m: _replace_fields(m, "label", offset=m["point_step"] - 1),
+    ),
     ("x datatype 0", True, lambda m: _replace_fields(m, "x", datatype=0)),
     ("x datatype 255", True, lambda m: _replace_fields(m, "x", datatype=255)),
     ("x as float64", True, lambda m: _replace_fields(m, "x", datatype=8)),
     ("x count 3", True, lambda m: _replace_fields(m, "x", count=3)),
-    ("label count 2^32 - 1", True, lambda m: _replace_fields(m, "label", count=2 ** 32 - 1)),
+    ("label count 2^32 - 1", True, lambda m: _replace_fields(m, "label", count=2**32 - 1)),
     ("label count 0 (means 1)", True, lambda m: _replace_fields(m, "label", count=0)),
     ("data one byte short", True, lambda m: dict(m, data=m["data"][:-1])),
-    ("data one point short", True, lambda m: dict(m, data=m["data"][:-m["point_step"]])),
+    ("data one point short", True, lambda m: dict(m, data=m["data"][: -m["point_step"]])),
     ("data one byte long", True, lambda m: dict(m, data=m["data"] + b"\0")),
     ("data one point long", True, lambda m: dict(m, data=m["data"] + bytes(m["point_step"]))),
     ("data empty", True, lambda m: dict(m, data=b"")),
@@ -309,12 +365,13 @@ def _cloud_layout(base: Base, rng) -> Mutation:
 
     def hook(i: int, msg: dict) -> dict:
         return change(msg) if i == k else msg
+
     return Mutation("zstd", f"cloud {k}: {what}", detectable, hook=hook)
 
 
 def _float_labels(base: Base, rng) -> Mutation:
     k = int(rng.integers(base.options["n_scans"]))
-    value = _pick(rng, [np.nan, np.inf, -np.inf, 1e300, -1.0, 0.5, 2.0 ** 32, 1e20])
+    value = _pick(rng, [np.nan, np.inf, -np.inf, 1e300, -1.0, 0.5, 2.0**32, 1e20])
     points = sorted(int(i) for i in rng.choice(base.options["n_points"], 3, replace=False))
 
     def set_labels(arr: np.ndarray) -> None:
@@ -322,8 +379,10 @@ def _float_labels(base: Base, rng) -> Mutation:
 
     def hook(i: int, msg: dict) -> dict:
         return _with_points(msg, set_labels) if i == k else msg
-    return Mutation("float labels", f"cloud {k}: labels of points {points} set to {value}",
-                    True, hook=hook)
+
+    return Mutation(
+        "float labels", f"cloud {k}: labels of points {points} set to {value}", True, hook=hook
+    )
 
 
 def mcap_mutation(bases: dict[str, Base], rng: np.random.Generator, kind: int) -> Mutation:

@@ -13,6 +13,7 @@ Outcomes:
 - failure: any other exception, or damage that nothing reports: a scan that differs, an index
   read twice, scans that vanish from an MCAP file without a loss in its report.
 """
+
 from __future__ import annotations
 
 import json
@@ -31,7 +32,7 @@ OUTCOMES = ("identical", "reported", "refused", "undetectable", "failure")
 
 @dataclass
 class Outcome:
-    kind: str                     # one of OUTCOMES
+    kind: str  # one of OUTCOMES
     detail: str = ""
 
 
@@ -41,8 +42,15 @@ def _bytes(a: np.ndarray | None) -> bytes | None:
 
 def signature(scan: Scan) -> tuple:
     """What must be byte-identical between a scan and the intact input's scan."""
-    return (scan.index, _bytes(scan.points_sensor), _bytes(scan.labels), _bytes(scan.probs),
-            _bytes(scan.gt_labels), _bytes(scan.T_world_sensor), float(scan.stamp_s))
+    return (
+        scan.index,
+        _bytes(scan.points_sensor),
+        _bytes(scan.labels),
+        _bytes(scan.probs),
+        _bytes(scan.gt_labels),
+        _bytes(scan.T_world_sensor),
+        float(scan.stamp_s),
+    )
 
 
 def reference(items) -> dict[int, Scan]:
@@ -61,13 +69,18 @@ def _unknown(scan: Scan) -> tuple[int, int]:
 
 def _labels_reported(scan: Scan, ref: Scan) -> bool:
     """Only labels changed, each to 0, and at least as many were counted unknown."""
-    if (_bytes(scan.points_sensor), _bytes(scan.T_world_sensor), scan.stamp_s,
-            _bytes(scan.probs)) != (_bytes(ref.points_sensor), _bytes(ref.T_world_sensor),
-                                    ref.stamp_s, _bytes(ref.probs)):
+    if (
+        _bytes(scan.points_sensor),
+        _bytes(scan.T_world_sensor),
+        scan.stamp_s,
+        _bytes(scan.probs),
+    ) != (_bytes(ref.points_sensor), _bytes(ref.T_world_sensor), ref.stamp_s, _bytes(ref.probs)):
         return False
     (unknown, unknown_gt), (was, was_gt) = _unknown(scan), _unknown(ref)
-    for new, old, more in ((scan.labels, ref.labels, unknown - was),
-                           (scan.gt_labels, ref.gt_labels, unknown_gt - was_gt)):
+    for new, old, more in (
+        (scan.labels, ref.labels, unknown - was),
+        (scan.gt_labels, ref.gt_labels, unknown_gt - was_gt),
+    ):
         if new is None or old is None:
             if (new is None) != (old is None):
                 return False
@@ -78,8 +91,14 @@ def _labels_reported(scan: Scan, ref: Scan) -> bool:
     return True
 
 
-def judge(items: list, ref: dict[int, Scan], detectable: bool, suspect=(),
-          losses: bool = False, vanish_needs_loss: bool = False) -> Outcome:
+def judge(
+    items: list,
+    ref: dict[int, Scan],
+    detectable: bool,
+    suspect=(),
+    losses: bool = False,
+    vanish_needs_loss: bool = False,
+) -> Outcome:
     """The outcome of the items (`Scan | SkippedScan`) one read of a damaged input gave."""
     counts = Counter(item.index for item in items)
     twice = sorted(k for k, n in counts.items() if n > 1 and k not in suspect)
@@ -100,16 +119,19 @@ def judge(items: list, ref: dict[int, Scan], detectable: bool, suspect=(),
         else:
             unseen.append(item.index)
     if silent:
-        return Outcome("failure", f"scan(s) {silent} differ from the intact input and nothing "
-                                  f"reports it")
+        return Outcome(
+            "failure", f"scan(s) {silent} differ from the intact input and nothing reports it"
+        )
     missing = sorted(set(ref) - set(counts))
     if missing and vanish_needs_loss and not losses and detectable:
         return Outcome("failure", f"scan(s) {missing} vanished without a loss in the report")
     if unseen:
         return Outcome("undetectable", f"scan(s) {unseen} changed")
     if reported or missing:
-        return Outcome("reported", f"{sum(isinstance(i, SkippedScan) for i in items)} skipped, "
-                                   f"{len(missing)} missing")
+        return Outcome(
+            "reported",
+            f"{sum(isinstance(i, SkippedScan) for i in items)} skipped, {len(missing)} missing",
+        )
     return Outcome("identical")
 
 
@@ -122,6 +144,7 @@ def _failure(e: BaseException) -> Outcome:
 def judge_mcap(path: Path, ref: dict[int, Scan], detectable: bool) -> Outcome:
     """Read a damaged recording twice (as a run does, for the final map) and judge it."""
     from tisem.io.mcap_reader import McapScanReader
+
     try:
         reader = McapScanReader(path)
         first, second = list(reader), list(reader)
@@ -134,12 +157,19 @@ def judge_mcap(path: Path, ref: dict[int, Scan], detectable: bool) -> Outcome:
     if [_item_key(i) for i in first] != [_item_key(i) for i in second]:
         return Outcome("failure", "a second read of the file gave other scans")
     report = reader.report
-    return judge(first, ref, detectable, suspect=report.suspect, losses=bool(report.losses),
-                 vanish_needs_loss=True)
+    return judge(
+        first,
+        ref,
+        detectable,
+        suspect=report.suspect,
+        losses=bool(report.losses),
+        vanish_needs_loss=True,
+    )
 
 
 def judge_kitti(folder: Path, ref: dict[int, Scan], detectable: bool) -> Outcome:
     from tisem.io.semantickitti import SemanticKittiSequence
+
     try:
         items = list(SemanticKittiSequence(folder))
     except (DatasetError, ScanError) as e:

@@ -14,6 +14,7 @@ cell size, world corner, cell counts, on-screen zoom and the map's pixel box), s
 (x, y) can be located in the picture: column = left_px + (x - x0) / pixel_m * zoom,
 row = top_px + (y0 + height * pixel_m - y) / pixel_m * zoom.
 """
+
 from __future__ import annotations
 
 import json
@@ -22,24 +23,34 @@ import os
 from dataclasses import asdict, dataclass
 
 import numpy as np
+from matplotlib import patheffects
 from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
 from matplotlib.patches import Patch
-from matplotlib import patheffects
 from mpl_toolkits.axes_grid1.anchored_artists import AnchoredSizeBar
 
 from tisem.labels import class_colors, class_names
 from tisem.snapshot import MapSnapshot
 
-__all__ = ["render_bev", "TopDownGrid", "top_labels", "colorize", "draw_label_image",
-           "draw_trajectory", "add_scale_bar", "legend_handles", "EMPTY", "BACKGROUNDS",
-           "PNG_KEY"]
+__all__ = [
+    "render_bev",
+    "TopDownGrid",
+    "top_labels",
+    "colorize",
+    "draw_label_image",
+    "draw_trajectory",
+    "add_scale_bar",
+    "legend_handles",
+    "EMPTY",
+    "BACKGROUNDS",
+    "PNG_KEY",
+]
 
-EMPTY = -1                     # label image value of a cell with nothing in it
+EMPTY = -1  # label image value of a cell with nothing in it
 BACKGROUNDS = {"white": (255, 255, 255), "black": (0, 0, 0)}
 PNG_KEY = "tisem:bev"
-_DPI = 100                     # figure inches <-> pixels; the layout below is in pixels
-_TARGET_PX = 800               # small maps are enlarged (integer zoom) to about this size
+_DPI = 100  # figure inches <-> pixels; the layout below is in pixels
+_TARGET_PX = 800  # small maps are enlarged (integer zoom) to about this size
 _MAX_ZOOM = 8
 
 
@@ -54,8 +65,9 @@ class TopDownGrid:
     height: int
 
     @classmethod
-    def covering(cls, xmin: float, ymin: float, xmax: float, ymax: float,
-                 pixel_m: float) -> "TopDownGrid":
+    def covering(
+        cls, xmin: float, ymin: float, xmax: float, ymax: float, pixel_m: float
+    ) -> TopDownGrid:
         """The smallest grid with edges on multiples of `pixel_m` that covers the box.
 
         Edges on multiples of `pixel_m` mean that when `pixel_m` is a multiple of the voxel size,
@@ -71,8 +83,12 @@ class TopDownGrid:
     @property
     def extent(self) -> tuple[float, float, float, float]:
         """(left, right, bottom, top) in metres, as imshow's `extent` wants it."""
-        return (self.x0, self.x0 + self.width * self.pixel_m,
-                self.y0, self.y0 + self.height * self.pixel_m)
+        return (
+            self.x0,
+            self.x0 + self.width * self.pixel_m,
+            self.y0,
+            self.y0 + self.height * self.pixel_m,
+        )
 
     def cells(self, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Flat cell index (row-major, row 0 = lowest y) of each (x, y), and which are inside."""
@@ -91,9 +107,9 @@ def top_labels(grid: TopDownGrid, xy: np.ndarray, z: np.ndarray, labels: np.ndar
     flat, z, labels = flat[inside], np.asarray(z)[inside], np.asarray(labels)[inside]
     image = np.full(grid.width * grid.height, EMPTY, dtype=np.int32)
     if flat.size:
-        order = np.lexsort((z, flat))             # by cell, then by height within the cell
+        order = np.lexsort((z, flat))  # by cell, then by height within the cell
         flat_sorted = flat[order]
-        highest = np.r_[flat_sorted[1:] != flat_sorted[:-1], True]   # last item of each cell
+        highest = np.r_[flat_sorted[1:] != flat_sorted[:-1], True]  # last item of each cell
         image[flat_sorted[highest]] = labels[order][highest]
     return image.reshape(grid.height, grid.width)
 
@@ -109,11 +125,17 @@ def colorize(label_image: np.ndarray, background: str = "white") -> np.ndarray:
     return rgb
 
 
-def draw_label_image(ax, grid: TopDownGrid, label_image: np.ndarray,
-                     background: str = "white") -> None:
+def draw_label_image(
+    ax, grid: TopDownGrid, label_image: np.ndarray, background: str = "white"
+) -> None:
     """Show a label image on `ax` in world metres, one image pixel per grid cell."""
-    ax.imshow(colorize(label_image, background), origin="lower", extent=grid.extent,
-              interpolation="nearest", aspect="equal")
+    ax.imshow(
+        colorize(label_image, background),
+        origin="lower",
+        extent=grid.extent,
+        interpolation="nearest",
+        aspect="equal",
+    )
     left, right, bottom, top = grid.extent
     ax.set_xlim(left, right)
     ax.set_ylim(bottom, top)
@@ -122,8 +144,15 @@ def draw_label_image(ax, grid: TopDownGrid, label_image: np.ndarray,
 def legend_handles(labels_present) -> list:
     """Colour patches with class names for the given train ids, in train id order."""
     colors, names = class_colors(), class_names()
-    return [Patch(facecolor=colors[c] / 255.0, edgecolor="0.4", linewidth=0.5,
-                  label=f"{int(c):2d} {names[c]}") for c in sorted(set(labels_present))]
+    return [
+        Patch(
+            facecolor=colors[c] / 255.0,
+            edgecolor="0.4",
+            linewidth=0.5,
+            label=f"{int(c):2d} {names[c]}",
+        )
+        for c in sorted(set(labels_present))
+    ]
 
 
 def _nice_length(max_m: float) -> float:
@@ -138,8 +167,18 @@ def add_scale_bar(ax, width_m: float, background: str = "white", loc: str = "low
     """Draw a scale bar of about a fifth of the view's width; returns its length in metres."""
     length = _nice_length(width_m / 5.0)
     ink = "black" if background == "white" else "white"
-    bar = AnchoredSizeBar(ax.transData, length, f"{length:g} m", loc=loc, pad=0.3, borderpad=0.6,
-                          sep=3, color=ink, frameon=True, size_vertical=width_m / 250.0)
+    bar = AnchoredSizeBar(
+        ax.transData,
+        length,
+        f"{length:g} m",
+        loc=loc,
+        pad=0.3,
+        borderpad=0.6,
+        sep=3,
+        color=ink,
+        frameon=True,
+        size_vertical=width_m / 250.0,
+    )
     bar.patch.set_facecolor(background)
     bar.patch.set_alpha(0.75)
     bar.patch.set_edgecolor("0.5")
@@ -155,19 +194,38 @@ def draw_trajectory(ax, trajectory_xy) -> list:
         return []
     halo = [patheffects.withStroke(linewidth=3.5, foreground="white")]  # visible on any class
     ax.plot(xy[:, 0], xy[:, 1], color="black", linewidth=1.5, path_effects=halo, zorder=3)
-    ax.plot(*xy[0], marker="o", markersize=9, markerfacecolor="lime", markeredgecolor="black",
-            zorder=4)
-    ax.plot(*xy[-1], marker="s", markersize=8, markerfacecolor="red", markeredgecolor="black",
-            zorder=4)
-    return [Line2D([], [], color="black", linewidth=1.5, label="trajectory"),
-            Line2D([], [], linestyle="none", marker="o", markerfacecolor="lime",
-                   markeredgecolor="black", label="start"),
-            Line2D([], [], linestyle="none", marker="s", markerfacecolor="red",
-                   markeredgecolor="black", label="end")]
+    ax.plot(
+        *xy[0], marker="o", markersize=9, markerfacecolor="lime", markeredgecolor="black", zorder=4
+    )
+    ax.plot(
+        *xy[-1], marker="s", markersize=8, markerfacecolor="red", markeredgecolor="black", zorder=4
+    )
+    return [
+        Line2D([], [], color="black", linewidth=1.5, label="trajectory"),
+        Line2D(
+            [],
+            [],
+            linestyle="none",
+            marker="o",
+            markerfacecolor="lime",
+            markeredgecolor="black",
+            label="start",
+        ),
+        Line2D(
+            [],
+            [],
+            linestyle="none",
+            marker="s",
+            markerfacecolor="red",
+            markeredgecolor="black",
+            label="end",
+        ),
+    ]
 
 
-def _choose_pixel(snapshot_res: float, span_m: float, pixel_m: float | None,
-                  max_pixels: int) -> float:
+def _choose_pixel(
+    snapshot_res: float, span_m: float, pixel_m: float | None, max_pixels: int
+) -> float:
     """Cell size: the voxel size (or `pixel_m`), coarsened to a whole multiple of it if the
     longer side would exceed `max_pixels` cells."""
     base = float(pixel_m) if pixel_m else float(snapshot_res)
@@ -177,9 +235,15 @@ def _choose_pixel(snapshot_res: float, span_m: float, pixel_m: float | None,
     return base * factor
 
 
-def render_bev(snapshot: MapSnapshot, path: str | os.PathLike, trajectory_xy=None,
-               title: str | None = None, pixel_m: float | None = None, max_pixels: int = 2000,
-               background: str = "white") -> float:
+def render_bev(
+    snapshot: MapSnapshot,
+    path: str | os.PathLike,
+    trajectory_xy=None,
+    title: str | None = None,
+    pixel_m: float | None = None,
+    max_pixels: int = 2000,
+    background: str = "white",
+) -> float:
     """Write a top-down PNG of the map coloured by class; returns the cell size used (metres).
 
     Each (x, y) cell shows the label of the highest voxel with evidence above it; cells without
@@ -194,8 +258,11 @@ def render_bev(snapshot: MapSnapshot, path: str | os.PathLike, trajectory_xy=Non
     has_evidence = snapshot.counts.sum(axis=1) > 0 if len(snapshot) else np.zeros(0, bool)
     centers = snapshot.centers()[has_evidence]
     labels = snapshot.labels()[has_evidence]
-    traj = None if trajectory_xy is None else \
-        np.asarray(trajectory_xy, dtype=np.float64).reshape(-1, 2)
+    traj = (
+        None
+        if trajectory_xy is None
+        else np.asarray(trajectory_xy, dtype=np.float64).reshape(-1, 2)
+    )
 
     # the view covers the voxels' columns (centre +- half a voxel) and the whole trajectory
     lo, hi = [], []
@@ -208,7 +275,7 @@ def render_bev(snapshot: MapSnapshot, path: str | os.PathLike, trajectory_xy=Non
         hi.append(finite.max(axis=0) + 2 * res)
     if lo:
         lo_xy, hi_xy = np.min(lo, axis=0), np.max(hi, axis=0)
-    else:                                    # nothing to show: a small empty square at 0
+    else:  # nothing to show: a small empty square at 0
         lo_xy, hi_xy = np.array([-res, -res]), np.array([res, res])
     cell = _choose_pixel(res, float(np.max(hi_xy - lo_xy)), pixel_m, max_pixels)
     grid = TopDownGrid.covering(lo_xy[0], lo_xy[1], hi_xy[0], hi_xy[1], cell)
@@ -221,12 +288,13 @@ def render_bev(snapshot: MapSnapshot, path: str | os.PathLike, trajectory_xy=Non
     handles = legend_handles(present)
     pad, legend_w = 16, 200
     top = 40 if title else pad
-    legend_h = 22 * (len(handles) + 3) + 120     # entries + trajectory + caption
+    legend_h = 22 * (len(handles) + 3) + 120  # entries + trajectory + caption
     fig_w = pad + map_w + pad + legend_w
     fig_h = max(top + map_h + pad, legend_h)
     # a hair over the exact size so that float inches * dpi never truncates a pixel away
-    fig = Figure(figsize=((fig_w + 1e-3) / _DPI, (fig_h + 1e-3) / _DPI), dpi=_DPI,
-                 facecolor="white")
+    fig = Figure(
+        figsize=((fig_w + 1e-3) / _DPI, (fig_h + 1e-3) / _DPI), dpi=_DPI, facecolor="white"
+    )
     ax = fig.add_axes((pad / fig_w, (fig_h - top - map_h) / fig_h, map_w / fig_w, map_h / fig_h))
     draw_label_image(ax, grid, image, background)
     ax.set_xticks([])
@@ -239,17 +307,30 @@ def render_bev(snapshot: MapSnapshot, path: str | os.PathLike, trajectory_xy=Non
         fig.text(pad / fig_w, 1 - 12 / fig_h, title, ha="left", va="top", fontsize=13)
     legend_x = (pad + map_w + pad) / fig_w
     if handles:
-        fig.legend(handles=handles, loc="upper left", bbox_to_anchor=(legend_x, 1 - top / fig_h),
-                   frameon=False, fontsize=9, title="classes", alignment="left",
-                   prop={"family": "monospace", "size": 9})
+        fig.legend(
+            handles=handles,
+            loc="upper left",
+            bbox_to_anchor=(legend_x, 1 - top / fig_h),
+            frameon=False,
+            fontsize=9,
+            title="classes",
+            alignment="left",
+            prop={"family": "monospace", "size": 9},
+        )
     left, right, bottom, top_m = grid.extent
-    caption = (f"{len(centers)} voxels with evidence\ncell {grid.pixel_m:g} m, "
-               f"bar {bar_m:g} m\nx {left:.1f} .. {right:.1f} m\ny {bottom:.1f} .. {top_m:.1f} m")
+    caption = (
+        f"{len(centers)} voxels with evidence\ncell {grid.pixel_m:g} m, "
+        f"bar {bar_m:g} m\nx {left:.1f} .. {right:.1f} m\ny {bottom:.1f} .. {top_m:.1f} m"
+    )
     if not len(centers):
         caption = "empty map: no voxel with evidence\n" + caption
     fig.text(legend_x, pad / fig_h, caption, ha="left", va="bottom", fontsize=8, color="0.25")
 
     georef = dict(asdict(grid), zoom=zoom, left_px=pad, top_px=top, image_w=fig_w, image_h=fig_h)
-    fig.savefig(os.fspath(path), format="png", dpi=_DPI,
-                metadata={"Software": "tisem", PNG_KEY: json.dumps(georef)})
+    fig.savefig(
+        os.fspath(path),
+        format="png",
+        dpi=_DPI,
+        metadata={"Software": "tisem", PNG_KEY: json.dumps(georef)},
+    )
     return grid.pixel_m

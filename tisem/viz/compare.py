@@ -7,6 +7,7 @@ points of a region top-down with the same raster as the BEV (highest point per c
 three panels differ only by their labels and the map's cleaning shows as colour changes.
 Each panel's title carries its accuracy against the ground truth over the region's points.
 """
+
 from __future__ import annotations
 
 import json
@@ -18,15 +19,21 @@ import yaml
 from matplotlib.figure import Figure
 
 from tisem.labels import raw_to_train
-from tisem.viz.bev import (TopDownGrid, add_scale_bar, draw_label_image, draw_trajectory,
-                           legend_handles, top_labels)
+from tisem.viz.bev import (
+    TopDownGrid,
+    add_scale_bar,
+    draw_label_image,
+    draw_trajectory,
+    legend_handles,
+    top_labels,
+)
 from tisem.viz.sources import open_run_scans
 
 __all__ = ["render_comparison", "load_results", "region_accuracy", "DEFAULT_REGION_M"]
 
-DEFAULT_REGION_M = 40.0       # side of the default square region
-_PANEL_PX = 400               # cells across a panel (0.1 m for the default region)
-_DEFAULT_MAX_RANGE_M = 80.0   # scans whose sensor is farther than this from the region are skipped
+DEFAULT_REGION_M = 40.0  # side of the default square region
+_PANEL_PX = 400  # cells across a panel (0.1 m for the default region)
+_DEFAULT_MAX_RANGE_M = 80.0  # scans whose sensor is farther than this from the region are skipped
 
 
 def load_results(results_dir: str | os.PathLike) -> tuple[dict, dict]:
@@ -86,8 +93,13 @@ def _distance_to_box(xy: np.ndarray, box) -> np.ndarray:
     return np.hypot(dx, dy)
 
 
-def render_comparison(results_dir: str | os.PathLike, out: str | os.PathLike | None = None,
-                      region=None, scan: int | None = None, pixel_m: float | None = None) -> dict:
+def render_comparison(
+    results_dir: str | os.PathLike,
+    out: str | os.PathLike | None = None,
+    region=None,
+    scan: int | None = None,
+    pixel_m: float | None = None,
+) -> dict:
     """Draw the 3-panel comparison PNG; returns {"out", "region", "scans", "points", "accuracy"}.
 
     region: (x0, y0, x1, y1) world metres; default a 40 m square around the middle of the
@@ -103,16 +115,21 @@ def render_comparison(results_dir: str | os.PathLike, out: str | os.PathLike | N
     pred_dir = _map_predictions_dir(results_dir, seq.sequence_name)
 
     run_ids = set(int(i) for i in run.get("scan_ids", seq.scan_ids))
-    positions = {k: seq.poses_lidar[k][:3, 3] for k, sid in enumerate(seq.scan_ids)
-                 if sid in run_ids and seq.has_pose[k]}
+    positions = {
+        k: seq.poses_lidar[k][:3, 3]
+        for k, sid in enumerate(seq.scan_ids)
+        if sid in run_ids and seq.has_pose[k]
+    }
     if not positions:
         raise ValueError(f"{results_dir}: no scan of the run has a pose in {seq.origin}")
     trajectory = np.array([positions[k][:2] for k in sorted(positions)])
     if scan is not None:
         chosen = [k for k in positions if seq.scan_ids[k] == int(scan)]
         if not chosen:
-            raise ValueError(f"scan {scan} is not a mapped scan of {results_dir} "
-                             f"(scans {min(run_ids)}..{max(run_ids)})")
+            raise ValueError(
+                f"scan {scan} is not a mapped scan of {results_dir} "
+                f"(scans {min(run_ids)}..{max(run_ids)})"
+            )
     else:
         chosen = sorted(positions)
     if region is None:
@@ -123,14 +140,15 @@ def render_comparison(results_dir: str | os.PathLike, out: str | os.PathLike | N
         raise ValueError(f"region must be x0 y0 x1 y1 with x1 > x0 and y1 > y0, got {region}")
     reach = float((config.get("mapper") or {}).get("max_range_m", _DEFAULT_MAX_RANGE_M))
     sensor_xy = np.array([positions[k][:2] for k in chosen])
-    chosen = [k for k, d in zip(chosen, _distance_to_box(sensor_xy, (x0, y0, x1, y1)))
-              if d <= reach]
+    chosen = [
+        k for k, d in zip(chosen, _distance_to_box(sensor_xy, (x0, y0, x1, y1))) if d <= reach
+    ]
 
     # gather the region's points with their three labelings
     parts = {"xy": [], "z": [], "net": [], "map": [], "gt": []}
     used, skipped = [], []
-    for k, s in seq.load(chosen):
-        if isinstance(s, str):                       # why the scan cannot be read
+    for _k, s in seq.load(chosen):
+        if isinstance(s, str):  # why the scan cannot be read
             skipped.append(s)
             continue
         mapped = _map_labels(pred_dir / f"{s.index:06d}.label", s)
@@ -140,29 +158,43 @@ def render_comparison(results_dir: str | os.PathLike, out: str | os.PathLike | N
         pts = s.points_world()
         inside = (pts[:, 0] >= x0) & (pts[:, 0] < x1) & (pts[:, 1] >= y0) & (pts[:, 1] < y1)
         gt = s.gt_labels if s.gt_labels is not None else np.zeros(s.num_points, np.int32)
-        for key, values in (("xy", pts[:, :2]), ("z", pts[:, 2]), ("net", s.labels),
-                            ("map", mapped), ("gt", gt)):
+        for key, values in (
+            ("xy", pts[:, :2]),
+            ("z", pts[:, 2]),
+            ("net", s.labels),
+            ("map", mapped),
+            ("gt", gt),
+        ):
             parts[key].append(values[inside])
         used.append(s.index)
     if not used:
-        raise ValueError(f"{results_dir}: no scan could be drawn for region {region}: "
-                         + ("; ".join(skipped) or "no scan within reach"))
+        raise ValueError(
+            f"{results_dir}: no scan could be drawn for region {region}: "
+            + ("; ".join(skipped) or "no scan within reach")
+        )
     pts = {key: np.concatenate(v) for key, v in parts.items()}
     has_gt = seq.has_ground_truth
 
     cell = float(pixel_m) if pixel_m else max(x1 - x0, y1 - y0) / _PANEL_PX
     grid = TopDownGrid.covering(x0, y0, x1, y1, cell)
-    accuracy = {"network": region_accuracy(pts["net"], pts["gt"])[0] if has_gt else None,
-                "map": region_accuracy(pts["map"], pts["gt"])[0] if has_gt else None}
+    accuracy = {
+        "network": region_accuracy(pts["net"], pts["gt"])[0] if has_gt else None,
+        "map": region_accuracy(pts["map"], pts["gt"])[0] if has_gt else None,
+    }
     n_eval = region_accuracy(pts["map"], pts["gt"])[1]
 
     def acc_text(a):
         return "accuracy n/a (no ground truth)" if a is None else f"accuracy {100 * a:.2f} %"
 
-    panels = [(input_title, pts["net"], acc_text(accuracy["network"])),
-              ("map", pts["map"], acc_text(accuracy["map"])),
-              ("ground truth", pts["gt"], f"{n_eval} labelled points" if has_gt else
-               "no ground truth in the sequence")]
+    panels = [
+        (input_title, pts["net"], acc_text(accuracy["network"])),
+        ("map", pts["map"], acc_text(accuracy["map"])),
+        (
+            "ground truth",
+            pts["gt"],
+            f"{n_eval} labelled points" if has_gt else "no ground truth in the sequence",
+        ),
+    ]
     fig = Figure(figsize=(18, 7.4), dpi=100, layout="constrained", facecolor="white")
     axes = fig.subplots(1, 3, sharex=True, sharey=True)
     present = set()
@@ -171,22 +203,37 @@ def render_comparison(results_dir: str | os.PathLike, out: str | os.PathLike | N
         present.update(np.unique(image[image >= 0]).tolist())
         draw_label_image(ax, grid, image)
         draw_trajectory(ax, trajectory)
-        ax.set_xlim(x0, x1)            # the trajectory must not widen the view
+        ax.set_xlim(x0, x1)  # the trajectory must not widen the view
         ax.set_ylim(y0, y1)
         ax.set_title(f"{name}\n{subtitle}", fontsize=12)
         ax.set_xlabel("x [m]")
     axes[0].set_ylabel("y [m]")
     add_scale_bar(axes[0], x1 - x0)
     ids = f"{used[0]}" if len(used) == 1 else f"{min(used)}..{max(used)} ({len(used)})"
-    fig.suptitle(f"{results_dir.name}: sequence {seq.sequence_name}, scans {ids}, region "
-                 f"x {x0:.1f}..{x1:.1f} m, y {y0:.1f}..{y1:.1f} m, {len(pts['z'])} points, "
-                 f"cell {grid.pixel_m:.2g} m", fontsize=12)
+    fig.suptitle(
+        f"{results_dir.name}: sequence {seq.sequence_name}, scans {ids}, region "
+        f"x {x0:.1f}..{x1:.1f} m, y {y0:.1f}..{y1:.1f} m, {len(pts['z'])} points, "
+        f"cell {grid.pixel_m:.2g} m",
+        fontsize=12,
+    )
     handles = legend_handles(present)
     if handles:
-        fig.legend(handles=handles, loc="outside lower center", ncols=min(10, len(handles)),
-                   frameon=False, fontsize=10)
+        fig.legend(
+            handles=handles,
+            loc="outside lower center",
+            ncols=min(10, len(handles)),
+            frameon=False,
+            fontsize=10,
+        )
     if out is None:
         out = results_dir / ("compare.png" if scan is None else f"compare_{int(scan):06d}.png")
     fig.savefig(os.fspath(out), format="png")
-    return {"out": Path(out), "region": (x0, y0, x1, y1), "scans": used, "skipped": skipped,
-            "points": int(len(pts["z"])), "evaluated": n_eval, "accuracy": accuracy}
+    return {
+        "out": Path(out),
+        "region": (x0, y0, x1, y1),
+        "scans": used,
+        "skipped": skipped,
+        "points": int(len(pts["z"])),
+        "evaluated": n_eval,
+        "accuracy": accuracy,
+    }

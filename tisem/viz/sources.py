@@ -5,11 +5,12 @@ MCAP recording, behind one interface (`RunScans`).
 reads the input again: the sequence folder that run.json names under `data`, or the recording
 it names under `mcap`, read with the options the run used (`options`).
 """
+
 from __future__ import annotations
 
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable, Iterator
 
 import numpy as np
 
@@ -26,11 +27,11 @@ class RunScans:
 
     sequence_name: str
     scan_ids: list[int]
-    poses_lidar: np.ndarray                    # (len, 4, 4)
-    has_pose: np.ndarray                       # (len,) bool
+    poses_lidar: np.ndarray  # (len, 4, 4)
+    has_pose: np.ndarray  # (len,) bool
     has_ground_truth: bool
-    origin: str                                # the folder or the recording
-    input_title: str                           # what the first panel shows
+    origin: str  # the folder or the recording
+    input_title: str  # what the first panel shows
     _load: Callable[[list[int]], Iterator[tuple[int, Scan | str]]] = field(repr=False)
 
     def load(self, positions: list[int]) -> Iterator[tuple[int, Scan | str]]:
@@ -40,15 +41,20 @@ class RunScans:
 def _resolve(path: str, results_dir: Path) -> Path:
     given = Path(path)
     if not given.is_absolute() and not given.exists() and (results_dir / given).exists():
-        return results_dir / given          # a results folder moved together with its data
+        return results_dir / given  # a results folder moved together with its data
     return given
 
 
 def _kitti_scans(data: Path, run: dict, config: dict) -> RunScans:
     from tisem.io.semantickitti import SemanticKittiSequence
-    kwargs = dict(sequence=run.get("sequence"), first=int(run.get("first", config.get("first", 0))),
-                  last=run.get("last", config.get("last")), poses=run.get("poses"))
-    try:       # the network's labels as input when the folder has them
+
+    kwargs = dict(
+        sequence=run.get("sequence"),
+        first=int(run.get("first", config.get("first", 0))),
+        last=run.get("last", config.get("last")),
+        poses=run.get("poses"),
+    )
+    try:  # the network's labels as input when the folder has them
         seq, title = SemanticKittiSequence(data, input="predictions", **kwargs), "network labels"
     except DatasetError:
         fallback = config.get("input", "labels")
@@ -63,18 +69,28 @@ def _kitti_scans(data: Path, run: dict, config: dict) -> RunScans:
             except ScanError as exc:
                 yield k, f"{seq.scan_ids[k]}: {exc}"
 
-    return RunScans(seq.sequence_name, list(seq.scan_ids), seq.poses_lidar, seq.has_pose,
-                    seq.has_ground_truth, str(seq.sequence_dir), title, load)
+    return RunScans(
+        seq.sequence_name,
+        list(seq.scan_ids),
+        seq.poses_lidar,
+        seq.has_pose,
+        seq.has_ground_truth,
+        str(seq.sequence_dir),
+        title,
+        load,
+    )
 
 
 def _recording_scans(path: Path, run: dict) -> RunScans:
     from tisem.extras import require
+
     require("mcap")
     from tisem.io.mcap_reader import McapOptions, McapScanReader
+
     options = McapOptions(**(run.get("options") or {}))
     reader = McapScanReader(path, options)
     ids, poses = [], []
-    for item in reader:                       # one pass for the trajectory
+    for item in reader:  # one pass for the trajectory
         if isinstance(item, Scan):
             ids.append(item.index)
             poses.append(item.T_world_sensor)
@@ -87,9 +103,16 @@ def _recording_scans(path: Path, run: dict) -> RunScans:
             if isinstance(item, Scan) and item.index in wanted:
                 yield wanted[item.index], item
 
-    return RunScans(str(run.get("sequence", "00")), ids, np.asarray(poses),
-                    np.ones(len(ids), dtype=bool), options.gt_field is not None, str(path),
-                    "network labels", load)
+    return RunScans(
+        str(run.get("sequence", "00")),
+        ids,
+        np.asarray(poses),
+        np.ones(len(ids), dtype=bool),
+        options.gt_field is not None,
+        str(path),
+        "network labels",
+        load,
+    )
 
 
 def open_run_scans(run: dict, config: dict, results_dir: Path, run_path: Path) -> RunScans:
@@ -98,5 +121,6 @@ def open_run_scans(run: dict, config: dict, results_dir: Path, run_path: Path) -
         return _kitti_scans(_resolve(run["data"], results_dir), run, config)
     if "mcap" in run:
         return _recording_scans(_resolve(run["mcap"], results_dir), run)
-    raise ValueError(f"{run_path}: names no input ('data': a sequence folder, or 'mcap': a "
-                     f"recording)")
+    raise ValueError(
+        f"{run_path}: names no input ('data': a sequence folder, or 'mcap': a recording)"
+    )
