@@ -347,7 +347,8 @@ def format_result(r: dict) -> str:
             lines
             + [
                 f"second 1 GiB host chunk mapped at scan {p['scan']}: "
-                f"{p['live_blocks']:,} live leaf blocks ({p['blocks_before']:,} just before), {p['live_voxels']:,} voxels, "
+                f"{p['live_blocks']:,} live leaf blocks ({p['blocks_before']:,} just before), "
+                f"{p['live_voxels']:,} voxels, "
                 f"VMS {p['vms_mb']:.0f} MB, RSS {p['rss_mb']:.0f} MB"
             ]
         )
