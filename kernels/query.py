@@ -30,7 +30,7 @@ def blended_posterior(m: ti.template(), w, x, center, half, radius_m, inv_res):
                     total = 0.0
                     for c in ti.static(range(m.C)):
                         total += m.counts[u, c]
-                    if total > 0:
+                    if total > 0 and not m.is_empty(u):  # (space seen through says nothing)
                         k = sparse_kernel(d / radius_m) / total
                         for c in ti.static(range(m.C)):
                             acc[c] += k * m.counts[u, c]
@@ -125,8 +125,9 @@ def query_kernel(blend: bool):
             lookup(m, w, center, half, p, out_label, out_inside, out_prob, with_prob)
             if ti.static(blend):
                 # a point in the window whose voxel has no evidence (label 0: class 0 is never
-                # evidence): the voxels around it
-                if out_inside[p] == 1 and out_label[p] == 0:
+                # evidence): the voxels around it; not in a voxel seen to be empty (free
+                # space), whose answer is that nothing is there
+                if out_inside[p] == 1 and out_label[p] == 0 and not m.is_empty(m.wrap(w)):
                     answer(
                         m,
                         blended_posterior(m, w, x, center, half, radius_m, inv_res),
