@@ -313,6 +313,10 @@ def test_a_full_spill_folder_ends_the_run_with_what_could_be_written(tmp_path):
         "window_xy_m=24",
         "--set",
         "window_z_m=12",
+        "--set",  # (a band the 12 m window holds with the kernel's reach)
+        "min_z_m=-4",
+        "--set",
+        "max_z_m=8",
         "--set",
         f"store_dir={spill}",
     )

@@ -165,13 +165,16 @@ class MapperConfig:
     @property
     def evidence_caps_m(self) -> np.ndarray:
         """(num_classes,) how far each class's evidence reaches at most, metres (inf: as far
-        as the receiving voxel's kernel); csm has no kernel to cap."""
-        from tisem.labels import CLASS_NAMES
+        as the receiving voxel's kernel); csm has no kernel to cap. Names are looked up in the
+        active label space; a thin class it does not have caps nothing."""
+        from tisem.labels import class_names
 
+        names = class_names()
         caps = np.full(self.num_classes, np.inf)
         if self.uses_kernel:
             for name in self.thin_classes:
-                caps[CLASS_NAMES.index(name)] = self.ell_min_m
+                if name in names and names.index(name) < self.num_classes:
+                    caps[names.index(name)] = self.ell_min_m
         return caps
 
     @property

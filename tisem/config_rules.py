@@ -106,12 +106,13 @@ class Choice:
 
 @dataclass(frozen=True)
 class ClassNames:
-    """A list of distinct SemanticKITTI class names (tisem.labels.CLASS_NAMES, not unlabeled)."""
+    """A list of distinct class names: SemanticKITTI's (tisem.labels.CLASS_NAMES) or the active
+    label space's, not unlabeled."""
 
     def check(self, key: str, value, where: str = ""):
-        from tisem.labels import CLASS_NAMES
+        from tisem.labels import CLASS_NAMES, class_names
 
-        known = CLASS_NAMES[1:]
+        known = CLASS_NAMES[1:] + tuple(n for n in class_names()[1:] if n not in CLASS_NAMES)
         if not isinstance(value, (list, tuple)) or not all(isinstance(v, str) for v in value):
             raise ConfigError(
                 f"{_prefix(where, key, value)}: expected a list of class names, "

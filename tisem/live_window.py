@@ -344,6 +344,10 @@ class LiveWindow:
             probs,
             blend_radius_m,
         )
+        if not finite.all():  # (they were looked up at the origin only to keep the index sane)
+            labels[~finite] = 0
+            if probs is not None:
+                probs[~finite] = 0.0
 
     def lookup(
         self,

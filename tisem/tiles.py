@@ -280,8 +280,9 @@ class TiledMap:
     def query(
         self, points_world: np.ndarray, with_probs: bool = True
     ) -> tuple[np.ndarray, np.ndarray | None]:
-        """Labels (N,) int32 and probabilities (N, C) float32 of world points, as
-        `Mapper.query` gives them: a point in no voxel gets label 0 and zeros."""
+        """Labels (N,) int32 and probabilities (N, C) float32 of world points, from the
+        voxel each falls in, as `Mapper.query` gives them with `query_blend: off`: a point in
+        no voxel gets label 0 and zeros (no blend of the voxels around it)."""
         pts = np.asarray(points_world, np.float64)
         if pts.ndim != 2 or pts.shape[1] != 3:
             raise ValueError(f"query points must be (N, 3), got {pts.shape}")
