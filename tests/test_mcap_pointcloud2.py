@@ -158,7 +158,7 @@ def test_label_types():
 
 def test_float_labels_that_are_no_label_are_marked_invalid():
     """NaN, inf, huge, negative and fractional floats cannot be labels: 0 and marked, so the
-    reader counts them as unknown (a 1e300 used to wrap silently into a small class)."""
+    reader counts them as unknown (cast as they are, a 1e300 would wrap into a small class)."""
     raw = np.array(
         [40.0, np.nan, np.inf, -np.inf, 1e300, -1.0, 0.5, 2.0**32, 2.0**32 - 1, 10.0], np.float64
     )
