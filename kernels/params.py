@@ -13,9 +13,12 @@ over a `KernelSettings` and branch with `ti.static`, so every mode compiles to k
 the branches of the other modes.
 """
 
+import weakref
 from dataclasses import dataclass
 
 import taichi as ti
+from taichi.lang import impl
+from taichi.lang.argpack import ArgPack
 
 vec3i = ti.types.vector(3, ti.i32)
 vec3f = ti.types.vector(3, ti.f32)
@@ -43,6 +46,31 @@ ScanParams = ti.types.argpack(
     sigma0=ti.f32,  # the sparse kernel's scale
     inv_tau=ti.f32,  # 1 / tau of the decay (0 for tau = inf: plain accumulation)
 )
+
+# every ScanParams value made by new_scan_params, with the runtime it belongs to
+_made: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+
+def new_scan_params(**members) -> ArgPack:
+    """A ScanParams value of the running runtime (use this, never ScanParams(...) directly).
+
+    taichi 1.7.4 frees an argument pack when Python collects it by asking the *running* runtime
+    to delete the pack's C++ address. A pack of an earlier runtime (whose memory went with that
+    runtime) that is collected late, by the cycle collector or after a reassignment, can
+    therefore free a pack of the running runtime that the allocator placed at the same address,
+    and the next kernel that reads it crashes the process at random. So before a new pack is
+    made, every pack of an earlier runtime forgets its address, and its finalizer deletes
+    nothing.
+    """
+    runtime = impl.get_runtime()
+    for pack, made_in in list(_made.items()):
+        if made_in() is not runtime:
+            pack._ArgPack__argpack = None  # the finalizer's delete_argpack(None) is a no-op
+            del _made[pack]
+    pack = ScanParams(**members)
+    _made[pack] = weakref.ref(runtime)
+    return pack
+
 
 # KernelSettings.kernel_length
 NO_KERNEL = "none"  # csm: a voxel's own histogram is its update

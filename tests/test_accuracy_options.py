@@ -27,6 +27,8 @@ from tisem.reference import ReferenceMapper, sparse_kernel
 from tisem.report import results_table
 
 FENCE = 14
+# 2 threads add float evidence in either order: sums agree to float32 rounding, not bitwise
+ATOMIC_ORDER_RTOL = 1e-5
 RES = 0.2
 
 
@@ -164,9 +166,10 @@ def test_evidence_caps_match_the_numpy_reference(pole_maps):
 
 
 @pytest.mark.slow
-def test_no_thin_class_seen_is_the_uncapped_map_bit_for_bit(taichi_cpu):
+def test_no_thin_class_seen_is_the_uncapped_map(taichi_cpu):
     """A cap on a class no point has (bicyclist) runs the capped kernel, which must give the
-    very counters of the uncapped one (thin_classes = [])."""
+    counters of the uncapped one (thin_classes = []): the same voxels, the same sums up to the
+    order of the 2 threads' float atomics."""
     scans, _, _ = pole_scans(np.random.default_rng(6))
     maps = []
     for thin in ([], ["bicyclist"]):
@@ -176,8 +179,10 @@ def test_no_thin_class_seen_is_the_uncapped_map_bit_for_bit(taichi_cpu):
             mapper.integrate(scan)
         snap = mapper.snapshot()
         maps.append((snap.keys, snap.counts, snap.ell_m))
-    for a, b in zip(*maps):
-        np.testing.assert_array_equal(a, b)
+    (keys, counts, ell), (keys_cap, counts_cap, ell_cap) = maps
+    np.testing.assert_array_equal(keys, keys_cap)
+    np.testing.assert_allclose(counts_cap, counts, rtol=ATOMIC_ORDER_RTOL, atol=ATOMIC_ORDER_RTOL)
+    np.testing.assert_allclose(ell_cap, ell, atol=ATOMIC_ORDER_RTOL)
 
 
 # --------------------------------------------------------------------------- query

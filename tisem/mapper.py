@@ -39,7 +39,7 @@ from tisem.kernels.params import (
     FIXED_LENGTH,
     NO_KERNEL,
     KernelSettings,
-    ScanParams,
+    new_scan_params,
 )
 from tisem.live_window import LiveWindow, VoxelArrays
 from tisem.map_clock import MapClock
@@ -151,7 +151,7 @@ class Mapper:
         cfg, geo = self.config, self.geometry
         res = geo.resolution_m
         tau = cfg.decay_tau_s
-        return ScanParams(
+        return new_scan_params(
             rotation=np.eye(3, dtype=np.float32),
             translation_m=np.zeros(3),
             center_vox=np.zeros(3, np.int64),
