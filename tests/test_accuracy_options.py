@@ -27,7 +27,7 @@ from tisem.reference import ReferenceMapper, sparse_kernel
 from tisem.report import results_table
 
 FENCE = 14
-# 2 threads add float evidence in either order: sums agree to float32 rounding, not bitwise
+# two kernels' float sums (fast math, 2 threads): equal to float32 rounding, not bitwise
 ATOMIC_ORDER_RTOL = 1e-5
 RES = 0.2
 
@@ -168,8 +168,8 @@ def test_evidence_caps_match_the_numpy_reference(pole_maps):
 @pytest.mark.slow
 def test_no_thin_class_seen_is_the_uncapped_map(taichi_cpu):
     """A cap on a class no point has (bicyclist) runs the capped kernel, which must give the
-    counters of the uncapped one (thin_classes = []): the same voxels, the same sums up to the
-    order of the 2 threads' float atomics."""
+    counters of the uncapped one (thin_classes = []): the same voxels, the same sums to float32
+    rounding (two kernels, two fast-math codes, two threads' order of float adds)."""
     scans, _, _ = pole_scans(np.random.default_rng(6))
     maps = []
     for thin in ([], ["bicyclist"]):

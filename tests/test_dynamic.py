@@ -148,7 +148,8 @@ def test_input_motion_labels_flag_points_and_add_no_evidence(taichi_cpu):
 
 def test_without_rays_through_the_map_free_space_changes_nothing(taichi_cpu):
     """The wall alone, seen from the front: the rays stop before it and cross no voxel, so the
-    map with free space is bitwise the map without it."""
+    map with free space is the map without it (to float32 rounding: the two layouts compile to
+    two kernels, whose fast-math sums may round differently)."""
     snaps = []
     for on in (False, True):
         fresh_runtime()
@@ -159,8 +160,10 @@ def test_without_rays_through_the_map_free_space_changes_nothing(taichi_cpu):
         snaps.append(mapper.snapshot())
     off, on = snaps
     assert off.occupancy is None and on.occupancy is not None
-    for name in ("keys", "counts", "t_last", "ell_m"):
+    for name in ("keys", "t_last"):
         assert np.array_equal(getattr(off, name), getattr(on, name)), name
+    for name in ("counts", "ell_m"):
+        np.testing.assert_allclose(getattr(on, name), getattr(off, name), rtol=1e-5, atol=1e-5)
     alpha = math.exp(-DT / small_config().tau_s)
     assert np.allclose(on.occupancy, 1 + alpha + alpha**2 + alpha**3)  # hit every scan
 
