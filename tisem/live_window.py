@@ -32,6 +32,7 @@ from tisem.kernels.layout import LEAF, TOP, MapFields
 from tisem.scan import finite_rows
 from tisem.snapshot import MapSnapshot
 from tisem.store import KEY_LIMIT, BlockStore
+from tisem.voxel_arrays import VoxelArrays, from_store
 
 log = logging.getLogger(__name__)
 
@@ -75,51 +76,6 @@ class WindowMove:
 
     evicted_voxels: int = 0
     reloaded_voxels: int = 0
-
-
-@dataclass
-class VoxelArrays:
-    """Voxels as host arrays: keys relative to the map origin, times to the map's t0."""
-
-    keys: np.ndarray  # (M, 3) int32
-    counts: np.ndarray  # (M, C) float32
-    t_last_rel: np.ndarray  # (M,) float32 seconds since t0
-    length_m: np.ndarray  # (M,) float32 kernel length
-    occupancy: np.ndarray | None = None  # (M,) float32 occupancy evidence (free space)
-
-    def __len__(self) -> int:
-        return len(self.keys)
-
-    def arrays(self) -> tuple:
-        """(keys, counts, t_last_rel, length_m) as the store takes them: with free space the
-        occupancy evidence travels as one more counter column (the store keeps any column
-        count, and its non-zero encoding costs nothing for a voxel never seen through)."""
-        counts = self.counts
-        if self.occupancy is not None:
-            counts = np.concatenate([counts, self.occupancy[:, None]], axis=1)
-        return self.keys, counts, self.t_last_rel, self.length_m
-
-    def rows(self, keep: np.ndarray) -> VoxelArrays:
-        return VoxelArrays(
-            *(
-                None if a is None else a[keep]
-                for a in (self.keys, self.counts, self.t_last_rel, self.length_m, self.occupancy)
-            )
-        )
-
-
-def from_store(arrays: tuple, num_classes: int) -> VoxelArrays:
-    """VoxelArrays of what the store gave back (`VoxelArrays.arrays` in reverse)."""
-    keys, counts, t_last_rel, length_m = arrays
-    if counts.shape[1] == num_classes:
-        return VoxelArrays(keys, counts, t_last_rel, length_m)
-    return VoxelArrays(
-        keys,
-        np.ascontiguousarray(counts[:, :num_classes]),
-        t_last_rel,
-        length_m,
-        np.ascontiguousarray(counts[:, num_classes]),
-    )
 
 
 class LiveWindow:

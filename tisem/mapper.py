@@ -20,36 +20,30 @@ from __future__ import annotations
 import contextlib
 import logging
 import time
-from dataclasses import dataclass
 
 import numpy as np
 import taichi as ti
-from taichi.lang.argpack import ArgPack
 
 from tisem import backend
 from tisem.block_cap import cut_to_nearest, new_blocks_beyond
 from tisem.config import MapperConfig
 from tisem.errors import ScanError
-from tisem.free_space import FreeSpace, class_inv_tau, decay_rule, without_moving
+from tisem.free_space import FreeSpace, class_inv_tau, without_moving
 from tisem.geometry import MapGeometry, block_aligned_origin
+from tisem.integration_report import IntegrationReport
+from tisem.kernel_inputs import kernel_settings, scan_params, set_scan
 from tisem.kernels import bki, entropy, fusion, rasterize, table, training
 from tisem.kernels.layout import MapFields
-from tisem.kernels.params import (
-    ADAPTIVE_LENGTH,
-    FIXED_LENGTH,
-    NO_KERNEL,
-    KernelSettings,
-    new_scan_params,
-)
-from tisem.live_window import LiveWindow, VoxelArrays
+from tisem.live_window import LiveWindow
 from tisem.map_clock import MapClock
 from tisem.mapper_state import check_snapshot, parse_state, relative_arrays
 from tisem.preprocess import CheckedScan, check_scan
-from tisem.scan import Scan, checked_stamp, scan_label
+from tisem.scan import Scan, checked_query_points, checked_stamp, scan_label
 from tisem.scan_buffers import ScanBuffers, ScanPoints, TrainingRows
 from tisem.snapshot import MapSnapshot
 from tisem.store import KEY_LIMIT, BlockStore
 from tisem.trace import IntegrationTrace
+from tisem.voxel_arrays import VoxelArrays, snapshot_of
 
 log = logging.getLogger(__name__)
 
@@ -59,38 +53,6 @@ log = logging.getLogger(__name__)
 # (with the adaptive lengths' entropy, fused in its pass over the map); free space (the dynamic
 # points' flags, the hits and the rays; 0 when off); resetting the table
 STAGES = ("preprocess", "window", "voxelize", "filter", "length", "update", "free_space", "clear")
-
-
-@dataclass
-class IntegrationReport:
-    """What happened to one scan's points."""
-
-    points: int = 0
-    used: int = 0
-    dropped_nonfinite: int = 0
-    dropped_range: int = 0
-    dropped_band: int = 0  # in range, but outside the height band: unmapped
-    dropped_window: int = 0
-    dropped_far: int = 0  # of dropped_range: implausibly far (> 1 km), corrupt data
-    dropped_dense: int = 0  # a scan too dense for the block cap: points cut away
-    training_voxels: int = 0
-    evicted_voxels: int = 0
-    reloaded_voxels: int = 0
-    dynamic_points: int = 0  # free space: points flagged dynamic
-    freed_voxels: int = 0  # free space: voxels the scan's rays took evidence from
-    dynamic: np.ndarray | None = None  # free space: (points,) bool, which points are dynamic
-
-
-def kernel_settings(cfg: MapperConfig, per_voxel: bool) -> KernelSettings:
-    """The compile-time settings of a map's kernels for its config."""
-    length = ADAPTIVE_LENGTH if cfg.adaptive else FIXED_LENGTH if cfg.uses_kernel else NO_KERNEL
-    return KernelSettings(
-        kernel_length=length,
-        decay=decay_rule(cfg),
-        unit_weight=cfg.point_weight == "unit",
-        per_voxel=per_voxel,
-        evidence_caps=bool(np.isfinite(cfg.evidence_caps_m).any()),
-    )
 
 
 class Mapper:
@@ -136,7 +98,7 @@ class Mapper:
         self._fields.class_inv_tau.from_numpy(class_inv_tau(cfg))
         self._free = FreeSpace(self._fields, cfg, self._settings.decay) if cfg.free_space else None
         self.window = LiveWindow(self._fields, self.store, self.geometry, cfg.max_live_blocks)
-        self._params = self._scan_params()
+        self._params = scan_params(cfg, self.geometry)
         self._cap_inv2 = bki.evidence_cap_table(cfg.evidence_caps_m)
         self.origin_vox: np.ndarray | None = None  # global voxel index of local voxel 0
         self.clock = MapClock(cfg.decay_tau_s)  # map time: seconds since the first scan
@@ -145,34 +107,6 @@ class Mapper:
         self.profile = profile
         self.stage_seconds = {s: 0.0 for s in STAGES}
         self._buf = ScanBuffers()
-
-    def _scan_params(self) -> ArgPack:
-        """The map's ScanParams; `_preprocess` refreshes the pose, time and stamp per scan."""
-        cfg, geo = self.config, self.geometry
-        res = geo.resolution_m
-        tau = cfg.decay_tau_s
-        return new_scan_params(
-            rotation=np.eye(3, dtype=np.float32),
-            translation_m=np.zeros(3),
-            center_vox=np.zeros(3, np.int64),
-            limit_vox=geo.point_limit_vox,
-            min_range2_m2=cfg.min_range_m**2,
-            max_range2_m2=cfg.max_range_m**2,
-            min_z_m=cfg.min_z_m,
-            max_z_m=cfg.max_z_m,
-            resolution_m=res,
-            inv_resolution=1.0 / res,
-            time_rel_s=0.0,
-            stamp=0,
-            min_points=cfg.min_points,
-            reach_blk=geo.reach_blk,
-            fixed_length_m=cfg.ell_fixed_vox * res,
-            length_min_m=cfg.ell_min_m,
-            length_max_m=cfg.ell_max_m,
-            prior=cfg.prior,
-            sigma0=cfg.sigma0,
-            inv_tau=0.0 if tau in (0.0, float("inf")) else 1.0 / tau,
-        )
 
     @property
     def t0(self) -> float | None:
@@ -284,12 +218,7 @@ class Mapper:
         map_time = self.clock.time_of(stamp, where)
         self.origin_vox = origin  # (integrate takes a first scan's back if it fails)
         center_vox = np.floor(translation / res).astype(np.int64)
-        p = self._params
-        p.rotation = T[:3, :3].astype(np.float32)
-        p.translation_m = translation
-        p.center_vox = center_vox
-        p.time_rel_s = map_time
-        p.stamp = self.scans + 1
+        set_scan(self._params, T[:3, :3], translation, center_vox, map_time, self.scans + 1)
         return checked, center_vox, map_time
 
     def _flag_dynamic(
@@ -450,12 +379,7 @@ class Mapper:
         label 0 and all-zero probabilities.
         """
         self._check_alive()
-        pts = np.asarray(points_world)
-        if pts.dtype.kind not in "biuf":
-            raise ValueError(f"query points must be numbers, got an array of dtype {pts.dtype}")
-        pts = pts.astype(np.float64, copy=False)
-        if pts.ndim != 2 or pts.shape[1] != 3:
-            raise ValueError(f"query points must be (N, 3), got {pts.shape}")
+        pts = checked_query_points(points_world)
         n = len(pts)
         labels = np.zeros(n, np.int32)
         probs = np.zeros((n, self.C), np.float32) if with_probs else None
@@ -491,34 +415,10 @@ class Mapper:
         return self._snapshot_of(parts)
 
     def _snapshot_of(self, parts: list[VoxelArrays]) -> MapSnapshot:
-        res = self.geometry.resolution_m
-        if not parts:
-            return self._with_occupancy(
-                MapSnapshot(
-                    np.zeros((0, 3), np.int64),
-                    np.zeros((0, self.C), np.float32),
-                    np.zeros(0),
-                    np.zeros(0, np.float32),
-                    res,
-                ),
-                np.zeros(0, np.float32),
-            )
-        keys = np.concatenate([p.keys for p in parts]).astype(np.int64) + self.origin_vox
-        counts = np.concatenate([p.counts for p in parts])
-        t_last = np.concatenate([p.t_last_rel for p in parts]).astype(np.float64) + self.t0
-        length_m = np.concatenate([p.length_m for p in parts])
-        order = MapSnapshot.sort_order(keys)
-        snap = MapSnapshot(keys[order], counts[order], t_last[order], length_m[order], res)
-        if self._free is None:
-            return snap
-        return self._with_occupancy(snap, np.concatenate([p.occupancy for p in parts])[order])
-
-    def _with_occupancy(self, snap: MapSnapshot, occupancy: np.ndarray) -> MapSnapshot:
-        """The snapshot with its voxels' occupancy evidence (free space only)."""
-        if self._free is not None:
-            snap.occupancy = occupancy
-            snap.empty_evidence = self.config.empty_evidence
-        return snap
+        empty = self.config.empty_evidence if self._free is not None else None
+        return snapshot_of(
+            parts, self.origin_vox, self.t0, self.geometry.resolution_m, self.C, empty
+        )
 
     def state(self) -> dict:
         """Scalars that, with `snapshot()`, rebuild this mapper exactly (for checkpoints)."""

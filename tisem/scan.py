@@ -73,6 +73,19 @@ def _numeric(values, what: str, where: str) -> np.ndarray:
     return a
 
 
+def checked_query_points(points_world) -> np.ndarray:
+    """Points to look up in a map (not a scan's, but checked by the same rules) as an (N, 3)
+    float64 array; ValueError unless they are numbers of that shape (a non-finite point is the
+    query's to answer: label 0)."""
+    pts = np.asarray(points_world)
+    if pts.dtype.kind not in _NUMERIC:
+        raise ValueError(f"query points must be numbers, got an array of dtype {pts.dtype}")
+    pts = pts.astype(np.float64, copy=False)
+    if pts.ndim != 2 or pts.shape[1] != 3:
+        raise ValueError(f"query points must be (N, 3), got {pts.shape}")
+    return pts
+
+
 def checked_ids(values, what: str, where: str, limit: int = LABEL_LIMIT) -> np.ndarray:
     """`values` as an int32 array of ids in [0, limit), checked before the cast, so that no
     value wraps (2^32 + 9 is refused, not read as 9); ValueError naming the first bad one.

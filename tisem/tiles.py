@@ -24,6 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from tisem.io.mapfile import atomic_write, load_map_file, save_map
+from tisem.scan import checked_query_points
 from tisem.snapshot import MapSnapshot
 
 __all__ = [
@@ -283,9 +284,7 @@ class TiledMap:
         """Labels (N,) int32 and probabilities (N, C) float32 of world points, from the
         voxel each falls in, as `Mapper.query` gives them with `query_blend: off`: a point in
         no voxel gets label 0 and zeros (no blend of the voxels around it)."""
-        pts = np.asarray(points_world, np.float64)
-        if pts.ndim != 2 or pts.shape[1] != 3:
-            raise ValueError(f"query points must be (N, 3), got {pts.shape}")
+        pts = checked_query_points(points_world)
         n = len(pts)
         labels = np.zeros(n, np.int32)
         probs = np.zeros((n, self.num_classes), np.float32) if with_probs else None
