@@ -34,6 +34,9 @@ from pathlib import Path
 
 import numpy as np
 
+if not __package__:  # run as `python benchmarks/NAME.py`: import from the checkout
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
 from benchmarks.common import KITTI_MINI, benchmark_main, device_line, median
 
 log = logging.getLogger("peers")

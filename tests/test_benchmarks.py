@@ -216,3 +216,24 @@ def test_peers_benchmark_skips_an_unbuilt_peer(tiny_sequence, tmp_path, capsys):
     assert [x["method"] for x in r["rows"]] == ["network input", "csm"]
     assert "sbki-tuned" in r["skipped"]
     assert "skipped sbki-tuned: S-BKI is not built" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize(
+    "script",
+    sorted(
+        p.name
+        for p in (REPO / "benchmarks").glob("*.py")
+        if p.name not in ("__init__.py", "common.py")
+    ),
+)
+def test_every_benchmark_starts_as_a_script(script):
+    """`python benchmarks/NAME.py`, as the docs run them, from outside the checkout."""
+    proc = subprocess.run(
+        [sys.executable, str(REPO / "benchmarks" / script), "--help"],
+        capture_output=True,
+        text=True,
+        cwd="/",
+        timeout=120,
+    )
+    assert proc.returncode == 0, proc.stderr[-500:]
+    assert "usage:" in proc.stdout
