@@ -207,7 +207,11 @@ class MapFields:
         fb.place(self.counter)
         self.kernel_lut = ti.field(ti.f32)  # g(r) sampled in r^2 (kernels/bki.py)
         fb.dense(ti.i, KERNEL_TABLE + 1).place(self.kernel_lut)
-        self._tree = fb.finalize()
+        # The tree is not kept: taichi's SNodeTree object holds its Program, so a map kept past
+        # a new ti.init would keep the earlier Program alive, and its late destruction (when
+        # the map is collected) unmaps memory under the running runtime. Fields alone do not
+        # hold the Program; the tree lives as long as its runtime, and tisem never destroys one.
+        fb.finalize()
         self.col_lo.fill(EMPTY_LO)
         self.col_hi.fill(-1)
 

@@ -11,6 +11,7 @@ threads float atomics are not bitwise reproducible, so comparisons carry named t
 
 # (no `from __future__ import annotations`: Taichi reads the kernels' annotations)
 import math
+import os
 from types import SimpleNamespace
 
 import numpy as np
@@ -36,7 +37,10 @@ A_CLASS, B_CLASS = ROAD, BUILDING  # A < B: at an exact tie the map keeps A
 
 
 def fresh_runtime(debug: bool = False) -> None:
-    """A new Taichi runtime (every map built before it is gone: never touch it again)."""
+    """A new Taichi runtime (every map built before it is gone: never touch it again).
+    TISEM_TEST_DEBUG=1 runs every test's kernels with Taichi's bounds checks (several times
+    slower; an out-of-range index raises instead of corrupting memory)."""
+    debug = debug or os.environ.get("TISEM_TEST_DEBUG") == "1"
     init_taichi("cpu", threads=2, debug=debug)
 
 
