@@ -154,3 +154,37 @@ def test_recording_maps_are_written_in_one_pass_and_cleared_by_overwrite(tmp_pat
     (tmp_path / "notes.txt").write_text("mine")
     assert clear_previous_run(tmp_path) == 3  # map.mcap, metadata.yaml, the bag's mcap
     assert sorted(p.name for p in tmp_path.iterdir()) == ["notes.txt"]
+
+
+def test_with_free_space_the_recordings_hold_the_static_map_and_the_trails_apart(tmp_path):
+    """The voxels seen through leave /semantic_map (as they leave map.ply) and go to
+    /semantic_map_dynamic, in map.mcap and in map_ros2/ alike, offered transient_local."""
+    from mcap.reader import make_reader
+    from mcap_protobuf.decoder import DecoderFactory
+
+    from tisem.io.pointcloud2 import foxglove_cloud_to_array
+    from tisem.outputs import write_recording_maps
+
+    snap = synthetic_snapshot(200)
+    rng = np.random.default_rng(3)
+    snap.occupancy = rng.uniform(-4, 4, len(snap)).astype(np.float32)
+    snap.empty_evidence = 2.0
+    empty = snap.empty()
+    assert 0 < empty.sum() < len(snap)
+    info = write_recording_maps(tmp_path, snap, "map")
+    assert info["voxels"] == (~empty).sum() and info["dynamic_voxels"] == empty.sum()
+    layers = {"/semantic_map": snap.static_map(), "/semantic_map_dynamic": snap.dynamic_layer()}
+    clouds = decoded_clouds(info["bag"])
+    with open(info["mcap"], "rb") as f:
+        reader = make_reader(f, decoder_factories=[DecoderFactory()])
+        foxglove = {ch.topic: msg for _, ch, _, msg in reader.iter_decoded_messages()}
+    assert set(clouds) == set(foxglove) == set(layers)
+    for topic, layer in layers.items():
+        (cloud,) = clouds[topic]
+        xyz = np.stack([cloud["x"], cloud["y"], cloud["z"]], 1)
+        assert np.array_equal(xyz, layer.centers().astype(np.float32)), topic
+        assert np.array_equal(cloud["label"], layer.labels()), topic
+        assert np.array_equal(foxglove_cloud_to_array(foxglove[topic])["label"], layer.labels())
+    with Reader(info["bag"]) as reader:
+        durability = {c.topic: c.ext.offered_qos_profiles[0].durability for c in reader.connections}
+    assert durability == dict.fromkeys(layers, QosDurability.TRANSIENT_LOCAL)

@@ -134,8 +134,10 @@ def write_recording_maps(
     """map.mcap (foxglove.PointCloud, for Foxglove) and map_ros2/ (a rosbag2 folder of
     sensor_msgs/PointCloud2, for `ros2 bag play` and RViz), both on /semantic_map, with the
     scans (Scan, mapped train ids) on /semantic_scans; the scans are read once, both files
-    are written as they come. Returns {"mcap": path, "bag": path, "voxels", "scans"}."""
-    from tisem.io.mcap_writer import write_map_mcap
+    are written as they come. With free space, /semantic_map is the static map and the voxels
+    seen through go to /semantic_map_dynamic, as map.ply and map_dynamic.ply split them.
+    Returns {"mcap": path, "bag": path, "voxels", "dynamic_voxels", "scans"}."""
+    from tisem.io.mcap_writer import DYNAMIC_MAP_TOPIC, write_map_mcap
     from tisem.io.rosbag_map import MapBag
     from tisem.io.stamps import map_stamp_ns
 
@@ -143,8 +145,13 @@ def write_recording_maps(
     first = next(scans, None)
     stamp_ns = map_stamp_ns(snapshot, first[0] if first is not None else None)
     paths = {"mcap": out_dir / "map.mcap", "bag": out_dir / MAP_BAG}
+    static, dynamic = snapshot, None
+    if snapshot.occupancy is not None:
+        static, dynamic = snapshot.static_map(), snapshot.dynamic_layer()
     with MapBag(paths["bag"], frame_id) as bag:
-        bag.write_map(snapshot, stamp_ns)
+        bag.write_map(static, stamp_ns)
+        if dynamic is not None:
+            bag.write_map(dynamic, stamp_ns, DYNAMIC_MAP_TOPIC)
 
         def both() -> Iterator[tuple[Scan, np.ndarray]]:
             for item in [first] if first is not None else []:
@@ -155,9 +162,19 @@ def write_recording_maps(
                 yield item
 
         info = write_map_mcap(
-            paths["mcap"], snapshot, frame_id=frame_id, scans=both(), stamp_ns=stamp_ns
+            paths["mcap"],
+            static,
+            frame_id=frame_id,
+            scans=both(),
+            stamp_ns=stamp_ns,
+            dynamic=dynamic,
         )
-    return {**paths, "voxels": info["voxels"], "scans": info["scans"]}
+    return {
+        **paths,
+        "voxels": info["voxels"],
+        "dynamic_voxels": info["dynamic_voxels"],
+        "scans": info["scans"],
+    }
 
 
 def is_results_folder(folder: Path) -> bool:

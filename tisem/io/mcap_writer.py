@@ -44,6 +44,8 @@ COMPRESSION = {
 
 MAP_TOPIC = "/semantic_map"
 SCANS_TOPIC = "/semantic_scans"
+# free space: the voxels seen through (trails of what moved), apart from the static map
+DYNAMIC_MAP_TOPIC = "/semantic_map_dynamic"
 
 # ---- ROS 2 message definitions, as rosbag2 stores them -------------------------------------
 
@@ -331,8 +333,10 @@ def write_map_mcap(
     *,
     compression: str = "zstd",
     stamp_ns: int | None = None,
+    dynamic: MapSnapshot | None = None,
 ) -> dict:
     """Write the map (and optionally the scans with their mapped labels) as an MCAP file.
+    `dynamic` (free space): the voxels seen through, on DYNAMIC_MAP_TOPIC beside the map.
 
     scans: (Scan, mapped train ids) pairs, e.g. re-read and queried after mapping; they may
     be a generator, written as they come. The map message is logged at `stamp_ns`, by default
@@ -364,12 +368,16 @@ def write_map_mcap(
                 "probability": "normalised semantic counter of the label",
             },
         )
-        writer.write_message(
-            MAP_TOPIC,
-            array_to_foxglove_cloud(map_points(snapshot), frame_id, stamp_ns),
-            log_time=stamp_ns,
-            publish_time=stamp_ns,
-        )
+        layers = [(MAP_TOPIC, snapshot)]
+        if dynamic is not None:
+            layers.append((DYNAMIC_MAP_TOPIC, dynamic))
+        for topic, layer in layers:
+            writer.write_message(
+                topic,
+                array_to_foxglove_cloud(map_points(layer), frame_id, stamp_ns),
+                log_time=stamp_ns,
+                publish_time=stamp_ns,
+            )
         for scan, mapped in itertools.chain([first] if first is not None else [], scans):
             t = max(scan_stamp_ns(scan), 0)
             cloud = array_to_foxglove_cloud(
@@ -383,6 +391,7 @@ def write_map_mcap(
     return {
         "path": str(path),
         "voxels": len(snapshot),
+        "dynamic_voxels": 0 if dynamic is None else len(dynamic),
         "scans": n_scans,
         "map_topic": MAP_TOPIC,
         "scans_topic": SCANS_TOPIC,

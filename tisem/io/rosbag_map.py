@@ -7,7 +7,8 @@
   and `probability` float32 (of that label);
 - `/semantic_scans` (with scans): each scan in the map frame (so no /tf is needed in RViz with
   the map frame fixed), fields `x y z rgb` (colour of the mapped label), `label` (mapped),
-  `input_label` and, with ground truth, `gt_label`.
+  `input_label` and, with ground truth, `gt_label`;
+- `/semantic_map_dynamic` (free space, transient_local): the voxels seen through, as the map.
 Every field sits at a 4-byte aligned offset. Clouds are encoded by
 `tisem.io.pointcloud2.array_to_ros_cloud`, as everywhere else.
 """
@@ -20,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from tisem.io.mcap_writer import MAP_TOPIC, SCANS_TOPIC
+from tisem.io.mcap_writer import DYNAMIC_MAP_TOPIC, MAP_TOPIC, SCANS_TOPIC
 from tisem.io.pointcloud2 import pack_rgb
 from tisem.io.rosbag_writer import Rosbag2Writer
 from tisem.io.stamps import map_stamp_ns, scan_stamp_ns
@@ -93,13 +94,15 @@ class MapBag:
         self.scans = 0
         # a map is rewritten like map.npz: the bag of an earlier run in that folder goes
         self._bag = Rosbag2Writer(
-            folder, ros_distro=ros_distro, latched=(MAP_TOPIC,), overwrite=True
+            folder,
+            ros_distro=ros_distro,
+            latched=(MAP_TOPIC, DYNAMIC_MAP_TOPIC),
+            overwrite=True,
         )
 
-    def write_map(self, snapshot: MapSnapshot, stamp_ns: int) -> None:
-        self._bag.write_cloud(
-            MAP_TOPIC, ros_map_points(snapshot), self.frame_id, stamp_ns, stamp_ns
-        )
+    def write_map(self, snapshot: MapSnapshot, stamp_ns: int, topic: str = MAP_TOPIC) -> None:
+        """The map on `topic` (free space: DYNAMIC_MAP_TOPIC for the voxels seen through)."""
+        self._bag.write_cloud(topic, ros_map_points(snapshot), self.frame_id, stamp_ns, stamp_ns)
 
     def write_scan(self, scan: Scan, mapped_labels: np.ndarray) -> None:
         t = max(scan_stamp_ns(scan), 0)
