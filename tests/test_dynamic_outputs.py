@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from tisem.io.mapfile import load_map_file, save_map
-from tisem.io.semantickitti import write_dynamic_flags
+from tisem.io.semantickitti import read_dynamic_flags, write_dynamic_flags
 from tisem.snapshot import MapSnapshot
 from tisem.synth.movers import STILL_M, Mover, street_movers
 
@@ -62,6 +62,10 @@ def test_dynamic_flags_are_their_own_file_beside_the_labels(tmp_path):
     path = write_dynamic_flags(tmp_path, 8, 3, flags)
     assert path == tmp_path / "sequences" / "08" / "predictions" / "000003.dynamic"
     assert np.array_equal(np.fromfile(path, np.uint8), flags.astype(np.uint8))
+    assert np.array_equal(read_dynamic_flags(tmp_path, 8, 3, 5), flags)
+    assert read_dynamic_flags(tmp_path, 8, 4, 5) is None  # no file: free space was off
+    with pytest.raises(ValueError, match=r"000003\.dynamic: 5 flags for a scan of 6 points"):
+        read_dynamic_flags(tmp_path, 8, 3, 6)
 
 
 def test_movers_ground_truth_knows_who_is_where_at_the_end():

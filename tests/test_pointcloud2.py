@@ -188,3 +188,50 @@ def test_with_free_space_the_recordings_hold_the_static_map_and_the_trails_apart
     with Reader(info["bag"]) as reader:
         durability = {c.topic: c.ext.offered_qos_profiles[0].durability for c in reader.connections}
     assert durability == dict.fromkeys(layers, QosDurability.TRANSIENT_LOCAL)
+
+
+def test_each_scans_dynamic_points_have_their_own_topic(tmp_path):
+    """Scans given with free-space flags: their flagged points, and only those, on
+    /dynamic_points in map.mcap and map_ros2/; a scan with no flagged point (or no flags)
+    adds no message there."""
+    from mcap.reader import make_reader
+    from mcap_protobuf.decoder import DecoderFactory
+
+    from tisem.io.pointcloud2 import foxglove_cloud_to_array
+    from tisem.outputs import write_recording_maps
+
+    rng = np.random.default_rng(4)
+    scans, flags = [], [rng.random(40) < 0.3, np.zeros(40, bool), None]
+    for k in range(3):
+        pose = np.eye(4)
+        pose[:3, 3] = [2.0 * k, 1.0, 1.7]
+        scans.append(
+            Scan(
+                points_sensor=rng.uniform(-5, 5, (40, 3)).astype(np.float32),
+                T_world_sensor=pose,
+                stamp_s=1.0 + k,
+                index=k,
+                labels=rng.integers(0, 20, 40).astype(np.int32),
+            )
+        )
+    items = [(s, s.labels, f) for s, f in zip(scans, flags)]
+    info = write_recording_maps(tmp_path, synthetic_snapshot(50), "map", iter(items))
+    assert info["scans"] == 3
+    (bag_cloud,) = decoded_clouds(info["bag"])["/dynamic_points"]
+    with open(info["mcap"], "rb") as f:
+        reader = make_reader(f, decoder_factories=[DecoderFactory()])
+        found = [
+            (m.sequence, msg)
+            for _, ch, m, msg in reader.iter_decoded_messages()
+            if ch.topic == "/dynamic_points"
+        ]
+    ((sequence, msg),) = found
+    assert sequence == 0
+    xyz = np.stack([bag_cloud["x"], bag_cloud["y"], bag_cloud["z"]], 1)
+    assert np.abs(xyz - scans[0].points_world()[flags[0]]).max() < 1e-5  # the map frame
+    assert np.array_equal(bag_cloud["label"], scans[0].labels[flags[0]])
+    assert np.array_equal(foxglove_cloud_to_array(msg)["label"], scans[0].labels[flags[0]])
+    with pytest.raises(ValueError, match="scan 0: .* dynamic flags for 40 points"):
+        write_recording_maps(
+            tmp_path, synthetic_snapshot(50), "map", [(scans[0], scans[0].labels, np.ones(3, bool))]
+        )

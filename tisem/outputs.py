@@ -135,7 +135,8 @@ def write_recording_maps(
     sensor_msgs/PointCloud2, for `ros2 bag play` and RViz), both on /semantic_map, with the
     scans (Scan, mapped train ids) on /semantic_scans; the scans are read once, both files
     are written as they come. With free space, /semantic_map is the static map and the voxels
-    seen through go to /semantic_map_dynamic, as map.ply and map_dynamic.ply split them.
+    seen through go to /semantic_map_dynamic, as map.ply and map_dynamic.ply split them; scans
+    given as (Scan, mapped, dynamic flags) put their flagged points on /dynamic_points too.
     Returns {"mcap": path, "bag": path, "voxels", "dynamic_voxels", "scans"}."""
     from tisem.io.mcap_writer import DYNAMIC_MAP_TOPIC, write_map_mcap
     from tisem.io.rosbag_map import MapBag

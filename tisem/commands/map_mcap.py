@@ -186,7 +186,9 @@ def map_recording(args: argparse.Namespace) -> int:
     result = run.run(show_progress=not args.no_progress)
     out = plan.out_dir
     try:
-        map_path = write_map(result, reader, out / "map.mcap", args.save_scans, options.map_frame)
+        map_path = write_map(
+            result, reader, out / "map.mcap", args.save_scans, options.map_frame, sequence_name
+        )
         (out / "mcap_report.json").write_text(json.dumps(reader.report.to_dict(), indent=2))
     except OSError as exc:
         raise RunError(
@@ -208,18 +210,29 @@ def map_recording(args: argparse.Namespace) -> int:
 
 
 def write_map(
-    result: RunResult, reader: McapScanReader, path: Path, save_scans: bool, frame_id: str
+    result: RunResult,
+    reader: McapScanReader,
+    path: Path,
+    save_scans: bool,
+    frame_id: str,
+    sequence_name: str = "00",
 ) -> Path:
     """map.mcap and map_ros2/ from the final map; with `save_scans`, the log is read once
     more and every mapped scan written with its labels looked up in the final map (the same
-    as its predictions file; a scan that was not mapped has neither)."""
+    as its predictions file; a scan that was not mapped has neither) and, with free space,
+    its dynamic flags (its .dynamic file)."""
+    from tisem.io.semantickitti import read_dynamic_flags
     from tisem.outputs import write_recording_maps
     from tisem.scan import Scan
 
     scans = None
     if save_scans:
         scans = (
-            (s, result.mapper.query(s.points_world(), with_probs=False)[0])
+            (
+                s,
+                result.mapper.query(s.points_world(), with_probs=False)[0],
+                read_dynamic_flags(result.out_dir, sequence_name, s.index, s.num_points),
+            )
             for s in reader
             if isinstance(s, Scan) and result.is_mapped(s.index)
         )

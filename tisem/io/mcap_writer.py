@@ -44,8 +44,10 @@ COMPRESSION = {
 
 MAP_TOPIC = "/semantic_map"
 SCANS_TOPIC = "/semantic_scans"
-# free space: the voxels seen through (trails of what moved), apart from the static map
+# free space: the voxels seen through (trails of what moved), apart from the static map, and
+# per scan its points that landed in space seen empty
 DYNAMIC_MAP_TOPIC = "/semantic_map_dynamic"
+DYNAMIC_POINTS_TOPIC = "/dynamic_points"
 
 # ---- ROS 2 message definitions, as rosbag2 stores them -------------------------------------
 
@@ -325,6 +327,18 @@ def scan_points(scan: Scan, mapped_labels: np.ndarray) -> np.ndarray:
     return out
 
 
+def checked_flags(scan: Scan, dynamic: np.ndarray | None) -> np.ndarray | None:
+    """A scan's dynamic flags as bool, one per point (None stays None)."""
+    if dynamic is None:
+        return None
+    dynamic = np.asarray(dynamic, bool)
+    if dynamic.shape != (scan.num_points,):
+        raise ValueError(
+            f"scan {scan.index}: {dynamic.shape} dynamic flags for {scan.num_points} points"
+        )
+    return dynamic
+
+
 def write_map_mcap(
     path: str | Path,
     snapshot: MapSnapshot,
@@ -338,11 +352,13 @@ def write_map_mcap(
     """Write the map (and optionally the scans with their mapped labels) as an MCAP file.
     `dynamic` (free space): the voxels seen through, on DYNAMIC_MAP_TOPIC beside the map.
 
-    scans: (Scan, mapped train ids) pairs, e.g. re-read and queried after mapping; they may
-    be a generator, written as they come. The map message is logged at `stamp_ns`, by default
-    the first scan's stamp (Foxglove shows a message once playback reaches it, so the map is
-    there from the start), or the last voxel update when there are no scans.
-    Returns what was written: {"path", "voxels", "scans", "map_topic", "scans_topic"}.
+    scans: (Scan, mapped train ids) pairs, e.g. re-read and queried after mapping, or
+    (Scan, mapped, dynamic flags) triples whose flagged points also go to DYNAMIC_POINTS_TOPIC
+    (flags None: none); they may be a generator, written as they come. The map message is
+    logged at `stamp_ns`, by default the first scan's stamp (Foxglove shows a message once
+    playback reaches it, so the map is there from the start), or the last voxel update when
+    there are no scans. Returns what was written: {"path", "voxels", "dynamic_voxels",
+    "scans", "dynamic_scans", "map_topic", "scans_topic"}.
     """
     from mcap_protobuf.writer import Writer
 
@@ -351,7 +367,7 @@ def write_map_mcap(
     if stamp_ns is None:
         stamp_ns = map_stamp_ns(snapshot, first[0] if first is not None else None)
     stamp_ns = max(int(stamp_ns), 0)
-    n_scans = 0
+    n_scans = n_dynamic = 0
     with open(path, "wb") as f:
         writer = Writer(f, compression=COMPRESSION[compression])
         writer.add_metadata(
@@ -378,14 +394,23 @@ def write_map_mcap(
                 log_time=stamp_ns,
                 publish_time=stamp_ns,
             )
-        for scan, mapped in itertools.chain([first] if first is not None else [], scans):
+        for item in itertools.chain([first] if first is not None else [], scans):
+            scan, mapped, dynamic_points = (*item, None)[:3]
             t = max(scan_stamp_ns(scan), 0)
-            cloud = array_to_foxglove_cloud(
-                scan_points(scan, mapped), frame_id, t, T_frame_cloud=scan.T_world_sensor
-            )
-            writer.write_message(
-                SCANS_TOPIC, cloud, log_time=t, publish_time=t, sequence=scan.index
-            )
+            points = scan_points(scan, mapped)
+            dynamic_points = checked_flags(scan, dynamic_points)
+            clouds = [(SCANS_TOPIC, points)]
+            if dynamic_points is not None and dynamic_points.any():
+                clouds.append((DYNAMIC_POINTS_TOPIC, points[dynamic_points]))
+                n_dynamic += 1
+            for topic, cloud in clouds:
+                writer.write_message(
+                    topic,
+                    array_to_foxglove_cloud(cloud, frame_id, t, T_frame_cloud=scan.T_world_sensor),
+                    log_time=t,
+                    publish_time=t,
+                    sequence=scan.index,
+                )
             n_scans += 1
         writer.finish()
     return {
@@ -393,6 +418,7 @@ def write_map_mcap(
         "voxels": len(snapshot),
         "dynamic_voxels": 0 if dynamic is None else len(dynamic),
         "scans": n_scans,
+        "dynamic_scans": n_dynamic,  # scans with points on DYNAMIC_POINTS_TOPIC
         "map_topic": MAP_TOPIC,
         "scans_topic": SCANS_TOPIC,
     }

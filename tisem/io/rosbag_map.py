@@ -8,7 +8,9 @@
 - `/semantic_scans` (with scans): each scan in the map frame (so no /tf is needed in RViz with
   the map frame fixed), fields `x y z rgb` (colour of the mapped label), `label` (mapped),
   `input_label` and, with ground truth, `gt_label`;
-- `/semantic_map_dynamic` (free space, transient_local): the voxels seen through, as the map.
+- `/semantic_map_dynamic` (free space, transient_local): the voxels seen through, as the map;
+- `/dynamic_points` (free space, with scans): each scan's points that landed in space seen
+  empty, with the fields of `/semantic_scans`.
 Every field sits at a 4-byte aligned offset. Clouds are encoded by
 `tisem.io.pointcloud2.array_to_ros_cloud`, as everywhere else.
 """
@@ -21,7 +23,13 @@ from pathlib import Path
 
 import numpy as np
 
-from tisem.io.mcap_writer import DYNAMIC_MAP_TOPIC, MAP_TOPIC, SCANS_TOPIC
+from tisem.io.mcap_writer import (
+    DYNAMIC_MAP_TOPIC,
+    DYNAMIC_POINTS_TOPIC,
+    MAP_TOPIC,
+    SCANS_TOPIC,
+    checked_flags,
+)
 from tisem.io.pointcloud2 import pack_rgb
 from tisem.io.rosbag_writer import Rosbag2Writer
 from tisem.io.stamps import map_stamp_ns, scan_stamp_ns
@@ -104,16 +112,19 @@ class MapBag:
         """The map on `topic` (free space: DYNAMIC_MAP_TOPIC for the voxels seen through)."""
         self._bag.write_cloud(topic, ros_map_points(snapshot), self.frame_id, stamp_ns, stamp_ns)
 
-    def write_scan(self, scan: Scan, mapped_labels: np.ndarray) -> None:
+    def write_scan(
+        self, scan: Scan, mapped_labels: np.ndarray, dynamic: np.ndarray | None = None
+    ) -> None:
+        """A scan with its mapped labels; its points flagged in `dynamic` (free space) also go
+        to DYNAMIC_POINTS_TOPIC."""
         t = max(scan_stamp_ns(scan), 0)
-        self._bag.write_cloud(
-            SCANS_TOPIC,
-            ros_scan_points(scan, mapped_labels),
-            self.frame_id,
-            t,
-            t,
-            sequence=self.scans,
-        )
+        points = ros_scan_points(scan, mapped_labels)
+        dynamic = checked_flags(scan, dynamic)
+        clouds = [(SCANS_TOPIC, points)]
+        if dynamic is not None and dynamic.any():
+            clouds.append((DYNAMIC_POINTS_TOPIC, points[dynamic]))
+        for topic, cloud in clouds:
+            self._bag.write_cloud(topic, cloud, self.frame_id, t, t, sequence=self.scans)
         self.scans += 1
 
     def finish(self) -> None:

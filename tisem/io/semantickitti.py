@@ -110,6 +110,22 @@ def write_dynamic_flags(
     return path
 
 
+def read_dynamic_flags(
+    out_root: str | os.PathLike, sequence_name: str | int, scan_id: int, num_points: int
+) -> np.ndarray | None:
+    """The flags `write_dynamic_flags` wrote for a scan of `num_points` points, as bool; None
+    where there is no such file (free space was off, or the scan was not mapped). A file of
+    another length is not this scan's: ValueError naming it."""
+    folder = Path(out_root) / "sequences" / _normalise_sequence(sequence_name) / "predictions"
+    path = folder / f"{int(scan_id):06d}.dynamic"
+    if not path.is_file():
+        return None
+    flags = np.fromfile(path, np.uint8)
+    if len(flags) != num_points:
+        raise ValueError(f"{path}: {len(flags)} flags for a scan of {num_points} points")
+    return flags.astype(bool)
+
+
 # --------------------------------------------------------------------------- reader
 
 
