@@ -327,16 +327,22 @@ def scan_points(scan: Scan, mapped_labels: np.ndarray) -> np.ndarray:
     return out
 
 
-def checked_flags(scan: Scan, dynamic: np.ndarray | None) -> np.ndarray | None:
-    """A scan's dynamic flags as bool, one per point (None stays None)."""
-    if dynamic is None:
-        return None
-    dynamic = np.asarray(dynamic, bool)
-    if dynamic.shape != (scan.num_points,):
-        raise ValueError(
-            f"scan {scan.index}: {dynamic.shape} dynamic flags for {scan.num_points} points"
-        )
-    return dynamic
+def scan_clouds(
+    scan: Scan, points: np.ndarray, dynamic: np.ndarray | None
+) -> list[tuple[str, np.ndarray]]:
+    """(topic, cloud) of one scan's points (`points`, one row per point, in either writer's
+    layout): all of them on SCANS_TOPIC and, when `dynamic` flags some, those on
+    DYNAMIC_POINTS_TOPIC."""
+    clouds = [(SCANS_TOPIC, points)]
+    if dynamic is not None:
+        dynamic = np.asarray(dynamic, bool)
+        if dynamic.shape != (scan.num_points,):
+            raise ValueError(
+                f"scan {scan.index}: {dynamic.shape} dynamic flags for {scan.num_points} points"
+            )
+        if dynamic.any():
+            clouds.append((DYNAMIC_POINTS_TOPIC, points[dynamic]))
+    return clouds
 
 
 def write_map_mcap(
@@ -395,14 +401,10 @@ def write_map_mcap(
                 publish_time=stamp_ns,
             )
         for item in itertools.chain([first] if first is not None else [], scans):
-            scan, mapped, dynamic_points = (*item, None)[:3]
+            scan, mapped, dynamic = (*item, None)[:3]
             t = max(scan_stamp_ns(scan), 0)
-            points = scan_points(scan, mapped)
-            dynamic_points = checked_flags(scan, dynamic_points)
-            clouds = [(SCANS_TOPIC, points)]
-            if dynamic_points is not None and dynamic_points.any():
-                clouds.append((DYNAMIC_POINTS_TOPIC, points[dynamic_points]))
-                n_dynamic += 1
+            clouds = scan_clouds(scan, scan_points(scan, mapped), dynamic)
+            n_dynamic += len(clouds) - 1
             for topic, cloud in clouds:
                 writer.write_message(
                     topic,

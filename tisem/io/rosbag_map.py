@@ -23,13 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from tisem.io.mcap_writer import (
-    DYNAMIC_MAP_TOPIC,
-    DYNAMIC_POINTS_TOPIC,
-    MAP_TOPIC,
-    SCANS_TOPIC,
-    checked_flags,
-)
+from tisem.io.mcap_writer import DYNAMIC_MAP_TOPIC, MAP_TOPIC, SCANS_TOPIC, scan_clouds
 from tisem.io.pointcloud2 import pack_rgb
 from tisem.io.rosbag_writer import Rosbag2Writer
 from tisem.io.stamps import map_stamp_ns, scan_stamp_ns
@@ -118,12 +112,7 @@ class MapBag:
         """A scan with its mapped labels; its points flagged in `dynamic` (free space) also go
         to DYNAMIC_POINTS_TOPIC."""
         t = max(scan_stamp_ns(scan), 0)
-        points = ros_scan_points(scan, mapped_labels)
-        dynamic = checked_flags(scan, dynamic)
-        clouds = [(SCANS_TOPIC, points)]
-        if dynamic is not None and dynamic.any():
-            clouds.append((DYNAMIC_POINTS_TOPIC, points[dynamic]))
-        for topic, cloud in clouds:
+        for topic, cloud in scan_clouds(scan, ros_scan_points(scan, mapped_labels), dynamic):
             self._bag.write_cloud(topic, cloud, self.frame_id, t, t, sequence=self.scans)
         self.scans += 1
 
