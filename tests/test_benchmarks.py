@@ -39,6 +39,7 @@ def tiny_sequence(tmp_path_factory) -> Path:
     return out
 
 
+@pytest.mark.slow
 def test_throughput_benchmark_runs(tiny_sequence, tmp_path, capsys):
     out = tmp_path / "t.json"
     assert (
@@ -66,6 +67,7 @@ def test_throughput_benchmark_runs(tiny_sequence, tmp_path, capsys):
     assert "| **mapping, end to end** |" in capsys.readouterr().out
 
 
+@pytest.mark.slow
 def test_kernel_length_benchmark_runs(tiny_sequence, tmp_path, capsys):
     out = tmp_path / "k.json"
     assert (
@@ -98,6 +100,7 @@ def test_kernel_length_benchmark_runs(tiny_sequence, tmp_path, capsys):
     assert "| fixed 6 vox | 1.2 m |" in capsys.readouterr().out
 
 
+@pytest.mark.slow
 def test_modes_benchmark_runs(tiny_sequence, tmp_path, capsys):
     out = tmp_path / "m.json"
     assert (
@@ -188,6 +191,7 @@ def test_peers_benchmark_runs_sbki(tiny_sequence, tmp_path, capsys):
     assert "| 0-3 | sbki-upstream |" in capsys.readouterr().out
 
 
+@pytest.mark.slow
 def test_peers_benchmark_skips_an_unbuilt_peer(tiny_sequence, tmp_path, capsys):
     out = tmp_path / "p.json"
     assert (

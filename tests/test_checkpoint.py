@@ -154,6 +154,7 @@ def reference_run(scans, cfg, out, q=None):
 # --------------------------------------------------------------------------- tests
 
 
+@pytest.mark.slow
 def test_resume_equals_uninterrupted(taichi_cpu, tmp_path):
     scans = make_scans(6)
     cfg = run_config()
@@ -254,6 +255,7 @@ def test_resume_refuses_another_mapper_config(taichi_cpu, tmp_path):
         load_checkpoint(tmp_path / "nowhere")
 
 
+@pytest.mark.slow
 def test_interrupted_checkpoint_write_keeps_the_previous_one(taichi_cpu, tmp_path, monkeypatch):
     scans = make_scans(6, seed=3)
     cfg = run_config()
@@ -301,6 +303,7 @@ def test_interrupted_checkpoint_write_keeps_the_previous_one(taichi_cpu, tmp_pat
     assert load_checkpoint(out).last_index == 5  # checkpoints went on
 
 
+@pytest.mark.slow
 def test_skipped_scans_survive_a_resume(taichi_cpu, tmp_path):
     scans = make_scans(5, points=1500, seed=4)
     far = scans[3]
@@ -329,6 +332,7 @@ def test_skipped_scans_survive_a_resume(taichi_cpu, tmp_path):
     assert_same_map(resumed.mapper.snapshot(), full_snap)
 
 
+@pytest.mark.slow
 def test_load_map_round_trip(taichi_cpu, tmp_path):
     scans = make_scans(4, seed=1)
     result = run_pipeline(scans, run_config(), tmp_path, progress=False)  # writes map.npz
@@ -374,6 +378,7 @@ np.testing.assert_allclose(probs[:, [9, 13, 15]], np.eye(3), atol=1e-6)
     subprocess.run([sys.executable, "-c", code], check=True, timeout=300, cwd=tmp_path)
 
 
+@pytest.mark.slow
 def test_checkpoint_restores_evicted_blocks(taichi_cpu, tmp_path):
     # 60 m steps with a 30 m window: each scan evicts the previous one's blocks to the store
     scans = make_scans(6, step_m=60.0, seed=5, points=2000)

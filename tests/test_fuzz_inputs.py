@@ -49,6 +49,7 @@ def test_a_reader_process_that_dies_is_one_failed_case_and_the_campaign_goes_on(
     assert all(r.outcome != "failure" for r in results[::2])
 
 
+@pytest.mark.slow
 def test_the_campaign_benchmark_runs_and_replays(tmp_path, capsys):
     out = tmp_path / "fuzz.json"
     assert fuzz_inputs.main(["--cases", "6", "--seed", "1", "--json", str(out)]) == 0

@@ -417,9 +417,18 @@ def _check_blend(mapper, ref, pts, lab, prob, missing, tainted, where):
     return int(np.count_nonzero(r_lab))
 
 
+FAST_STAGES = {("st", "per block"), ("csm", "per block")}
+
+
 @pytest.mark.parametrize(
     "mode,loop",
-    [(mode, "per block") for mode in MODE_CONFIGS] + [("st", "per voxel"), ("bki", "per voxel")],
+    [
+        # st and csm in the fast subset (the method and its floor); the other modes, and the
+        # GPUs' loop form, in the full run
+        pytest.param(mode, loop, marks=() if (mode, loop) in FAST_STAGES else pytest.mark.slow)
+        for mode, loop in [(m, "per block") for m in MODE_CONFIGS]
+        + [("st", "per voxel"), ("bki", "per voxel")]
+    ],
 )
 def test_stages_match_reference(taichi_cpu, mode, loop):
     """All of `integrate` against the numpy oracle, stage by stage, after every scan.

@@ -202,7 +202,14 @@ def debug_map():
 # --------------------------------------------------------------------------- plane, boundaries
 
 
-@pytest.mark.parametrize("mode", ["st", "adaptive", "bki"])
+@pytest.mark.parametrize(
+    "mode",
+    [
+        "st",
+        pytest.param("adaptive", marks=pytest.mark.slow),
+        pytest.param("bki", marks=pytest.mark.slow),
+    ],
+)
 def test_noisy_plane_and_boundaries(request, mode):
     """Input 80 % right: the road plane comes out >= 99 % road, and every point farther than
     the kernel's reach from another class gets its own class back (sidewalk, wall, pole)."""
@@ -270,7 +277,9 @@ def test_csm_is_exact_per_voxel_counting(request, fixture):
 # --------------------------------------------------------------------------- decay
 
 
-@pytest.mark.parametrize("tau_s,fixture", [(0.5, "debug_map"), (2.0, "st_map")])
+@pytest.mark.parametrize(
+    "tau_s,fixture", [pytest.param(0.5, "debug_map", marks=pytest.mark.slow), (2.0, "st_map")]
+)
 def test_decay_switches_class_after_predicted_scans(request, tau_s, fixture):
     """st: class A for 30 scans (0.1 s apart), then class B: the map follows B exactly from
     the n*-th B scan that sigma_t = alpha sigma_{t-1} + Delta predicts, alpha = exp(-0.1/tau)."""
@@ -311,7 +320,7 @@ def test_no_decay_switches_only_after_as_many_scans(adaptive_map):
 # --------------------------------------------------------------------------- probabilities
 
 
-@pytest.mark.parametrize("mode", ["csm", "bki"])
+@pytest.mark.parametrize("mode", ["csm", pytest.param("bki", marks=pytest.mark.slow)])
 def test_probabilities_one_hot_equal_labels_and_split_mass(request, mode):
     """The same scans as labels (region 1) and as one-hot probabilities (region 2: the same
     sensor-frame points, poses 64 m away) give the same voxels and counters; points whose
@@ -351,6 +360,7 @@ def test_probabilities_one_hot_equal_labels_and_split_mass(request, mode):
 # --------------------------------------------------------------------------- debug=True
 
 
+@pytest.mark.slow
 def test_debug_pose_far_from_the_origin(debug_map):
     out = debug_map
     for name in ("far_home", "far_away", "far_home_after"):

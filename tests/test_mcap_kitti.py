@@ -131,6 +131,7 @@ def test_real_sequence_round_trips(tmp_path, kitti_mini):
     assert_same_scans(kitti_mini, tmp_path / "08.mcap", pose_tol=2e-6)
 
 
+@pytest.mark.slow
 def test_map_mcap_gives_the_same_predictions_and_metrics_as_map_kitti(tmp_path):
     seq = write_tiny_sequence(tmp_path / "seq", n_scans=3, n_points=3000)
     convert(seq, tmp_path / "seq.mcap")

@@ -278,6 +278,7 @@ def test_class_boundary_matches_brute_force_knn():
     assert 0.05 < (expected >= 0).mean() < 0.6
 
 
+@pytest.mark.slow
 def test_error_rate_is_the_profiles_in_expectation():
     """Over many independent fields (seeds), each point is wrong with its probability."""
     seq = SyntheticSequence(2, seed=0, points_per_ring=256)
@@ -312,6 +313,7 @@ def street_stats():
     )
 
 
+@pytest.mark.slow
 def test_street_statistics_land_near_the_real_networks(street_stats):
     s = street_stats
     # the class mix differs from the real frames', so accuracy only roughly matches

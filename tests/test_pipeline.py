@@ -125,6 +125,7 @@ SKIPPED = {
 MAPPED = [0, 3, 4, 5, 7]
 
 
+@pytest.mark.slow
 def test_bad_scans_are_skipped_and_reported_the_rest_mapped(damaged):
     seq, out, rc, rec, metrics = damaged
     assert rc == 0, rec.text()
@@ -154,6 +155,7 @@ def test_bad_scans_are_skipped_and_reported_the_rest_mapped(damaged):
     assert (nonfinite == 0).all(), "the NaN/inf points keep their place, unlabeled"
 
 
+@pytest.mark.slow
 def test_metrics_json_has_every_protocol_and_figure(damaged):
     _, out, rc, _, metrics = damaged
     assert rc == 0
@@ -169,6 +171,7 @@ def test_metrics_json_has_every_protocol_and_figure(damaged):
     assert metrics["final"]["accuracy"] > 0.5
 
 
+@pytest.mark.slow
 def test_dropped_points_are_reported_with_their_file(damaged):
     """Points dropped from a scan that is still mapped: a message names the scan's file
     (its .bin or .label) and the problem."""
@@ -236,6 +239,7 @@ def test_resume_refuses_options_the_checkpoint_holds(app, argv, flag, capsys):
 # --------------------------------------------------------------------------- embedded default
 
 
+@pytest.mark.slow
 def test_embedded_default_beats_the_network_input(tmp_path, monkeypatch):
     """`python apps/map_kitti.py --arch cpu --synthetic-scans 6 --out DIR --no-progress`."""
     out = tmp_path / "run"

@@ -10,6 +10,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pytest
 from test_checkpoint import assert_same_map, comparable_metrics, make_scans
 
 from tisem.checkpoint import load_checkpoint
@@ -74,6 +75,7 @@ def assert_same_results(part: Path, full: Path) -> None:
     )
 
 
+@pytest.mark.slow
 def test_map_kitti_checkpoint_and_resume(tmp_path):
     data = write_kitti(tmp_path / "08", make_scans(5, points=1500, seed=6))
     (tmp_path / "mapper.yaml").write_text(MAPPER_YAML)
@@ -96,6 +98,7 @@ def test_map_kitti_checkpoint_and_resume(tmp_path):
     assert_same_results(tmp_path / "part", tmp_path / "full")
 
 
+@pytest.mark.slow
 def test_map_mcap_checkpoint_and_resume(tmp_path):
     """The resumed run is given neither the recording nor its options: it reads them from the
     checkpoint."""

@@ -229,6 +229,7 @@ def test_store_round_trip_through_the_spill_file():
     assert len(store) == 0 and store.num_blocks == 0 and store.disk_bytes == 0
 
 
+@pytest.mark.slow
 def test_store_file_stays_bounded():
     """Putting a drive's slabs and taking most of them back, lap after lap: the garbage is
     reclaimed, so the spill file never holds more than ~2x the most ever stored (+ the floor),

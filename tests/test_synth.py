@@ -206,6 +206,7 @@ def test_moving_car_and_person_move(street):
     assert not np.isin(static.gt_raw, (MOVING_CAR, 30)).any()
 
 
+@pytest.mark.slow
 def test_noisy_labels_accuracy_range_and_boundaries():
     seq = SyntheticSequence(40, seed=2, points_per_ring=512)
     ok, rng_m, edge = [], [], []

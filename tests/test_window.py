@@ -220,6 +220,7 @@ def test_points_on_voxel_faces_find_the_same_voxel_live_and_stored(taichi_cpu):
     np.testing.assert_allclose(stored_probs, live_probs, rtol=0, atol=1e-6)
 
 
+@pytest.mark.slow
 def test_small_window_equals_window_holding_everything(taichi_cpu):
     """Out 40 m and back at 10 m per scan with a 25 m window (everything leaves and comes back)
     gives the same map as a 64 m window that never evicts: labels and queries identical,
@@ -247,6 +248,7 @@ def test_small_window_equals_window_holding_everything(taichi_cpu):
     np.testing.assert_allclose(q_small[1], probs, rtol=0, atol=1e-6)
 
 
+@pytest.mark.slow
 def test_cap_shrinks_the_window_and_the_map_stays_correct(taichi_cpu, caplog):
     scans = drive([4.0 * i for i in range(16)], seed=6)
     ref, _ = map_drive(config(window_xy_m=64.0), scans)
@@ -276,6 +278,7 @@ def test_cap_shrinks_the_window_and_the_map_stays_correct(taichi_cpu, caplog):
     np.testing.assert_allclose(probs, want_q[1], rtol=0, atol=1e-6)
 
 
+@pytest.mark.slow
 def test_cap_too_small_for_the_scans_cuts_them_and_a_map_that_cannot_fit_is_refused(
     taichi_cpu, tmp_path, caplog
 ):
@@ -304,6 +307,7 @@ def test_cap_too_small_for_the_scans_cuts_them_and_a_map_that_cannot_fit_is_refu
         small.restore(before, state)
 
 
+@pytest.mark.slow
 def test_far_origin_jumps_and_refusal(taichi_cpu):
     """A drive 500 km from the world origin (UTM-like), a bad fix 5 km away and back, and one
     300 km away: maps without a crash or a wrapped index; the 300 km scan is refused clearly."""
@@ -344,6 +348,7 @@ def test_far_origin_jumps_and_refusal(taichi_cpu):
     assert not labels.any()
 
 
+@pytest.mark.slow
 def test_decay_covers_the_time_away(taichi_cpu):
     """A voxel that left and came back decays by exp(-dt/tau) over the whole time since its
     last update, time away included. The return scan is a few labelled points of one class, one
@@ -392,6 +397,7 @@ def test_decay_covers_the_time_away(taichi_cpu):
     np.testing.assert_array_equal(after.t_last[rows[kept]], before.t_last[kept])
 
 
+@pytest.mark.slow
 def test_long_drive_benchmark_runs(tmp_path):
     from benchmarks import long_drive
 
