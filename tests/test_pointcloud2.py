@@ -215,8 +215,12 @@ def test_each_scans_dynamic_points_have_their_own_topic(tmp_path):
             )
         )
     items = [(s, s.labels, f) for s, f in zip(scans, flags)]
-    info = write_recording_maps(tmp_path, synthetic_snapshot(50), "map", iter(items))
+    snap = synthetic_snapshot(50)
+    snap.occupancy = np.where(np.arange(len(snap)) % 5 == 0, -3.0, 1.0).astype(np.float32)
+    snap.empty_evidence = 2.0
+    info = write_recording_maps(tmp_path, snap, "map", iter(items))
     assert info["scans"] == 3
+    assert info["dynamic_voxels"] == snap.empty().sum() > 0  # the layer's, not a scan's flags
     (bag_cloud,) = decoded_clouds(info["bag"])["/dynamic_points"]
     with open(info["mcap"], "rb") as f:
         reader = make_reader(f, decoder_factories=[DecoderFactory()])

@@ -93,15 +93,14 @@ def write_map_files(
         save_map(paths["npz"], snap, to_dict(config), dict(mapper.state()))
         bar.update()
         bar.set_postfix_str(paths["ply"].name)
-        if snap.occupancy is not None:
-            # free space: map.ply is the static map, map_dynamic.ply the voxels seen through
-            # (trails of what moved, with the class they held); map.npz keeps both, and the
-            # top view draws the removed voxels in the colour of label 0 (black)
+        # free space: map.ply is the static map, map_dynamic.ply the voxels seen through
+        # (trails of what moved, with the class they held); map.npz keeps both, and the
+        # top view draws the removed voxels in the colour of label 0 (black)
+        static, dynamic = snap.layers()
+        if dynamic is not None:
             paths["dynamic_ply"] = out_dir / "map_dynamic.ply"
-            write_ply(paths["dynamic_ply"], snap.dynamic_layer())
-            write_ply(paths["ply"], snap.static_map())
-        else:
-            write_ply(paths["ply"], snap)
+            write_ply(paths["dynamic_ply"], dynamic)
+        write_ply(paths["ply"], static)
         bar.update()
         try:  # the picture is the one output that needs an extra
             require("matplotlib")
@@ -146,15 +145,13 @@ def write_recording_maps(
     first = next(scans, None)
     stamp_ns = map_stamp_ns(snapshot, first[0] if first is not None else None)
     paths = {"mcap": out_dir / "map.mcap", "bag": out_dir / MAP_BAG}
-    static, dynamic = snapshot, None
-    if snapshot.occupancy is not None:
-        static, dynamic = snapshot.static_map(), snapshot.dynamic_layer()
+    static, dynamic = snapshot.layers()
     with MapBag(paths["bag"], frame_id) as bag:
         bag.write_map(static, stamp_ns)
         if dynamic is not None:
             bag.write_map(dynamic, stamp_ns, DYNAMIC_MAP_TOPIC)
 
-        def both() -> Iterator[tuple[Scan, np.ndarray]]:
+        def both() -> Iterator[tuple]:  # (Scan, mapped) or (Scan, mapped, dynamic flags)
             for item in [first] if first is not None else []:
                 bag.write_scan(*item)
                 yield item

@@ -78,6 +78,13 @@ class MapSnapshot:
         gone.occupancy = None
         return gone
 
+    def layers(self) -> tuple[MapSnapshot, MapSnapshot | None]:
+        """What a map's exports show: the static map and the dynamic layer apart with free
+        space (occupancy), else the whole map and None."""
+        if self.occupancy is None:
+            return self, None
+        return self.static_map(), self.dynamic_layer()
+
     def confidence(self) -> np.ndarray:
         """(M,) probability of each voxel's label."""
         p = self.probabilities()

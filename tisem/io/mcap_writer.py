@@ -401,9 +401,9 @@ def write_map_mcap(
                 publish_time=stamp_ns,
             )
         for item in itertools.chain([first] if first is not None else [], scans):
-            scan, mapped, dynamic = (*item, None)[:3]
+            scan, mapped, flags = (*item, None)[:3]
             t = max(scan_stamp_ns(scan), 0)
-            clouds = scan_clouds(scan, scan_points(scan, mapped), dynamic)
+            clouds = scan_clouds(scan, scan_points(scan, mapped), flags)
             n_dynamic += len(clouds) - 1
             for topic, cloud in clouds:
                 writer.write_message(

@@ -75,6 +75,24 @@ _BIN_RE = re.compile(r"^(\d+)\.bin$")
 # --------------------------------------------------------------------------- writer
 
 
+def prediction_file(
+    out_root: str | os.PathLike, sequence_name: str | int, scan_id: int, suffix: str
+) -> Path:
+    """`out_root/sequences/NN/predictions/NNNNNN<suffix>`: where a run's per-scan outputs go."""
+    folder = Path(out_root) / "sequences" / _normalise_sequence(sequence_name) / "predictions"
+    return folder / f"{int(scan_id):06d}{suffix}"
+
+
+def _write_whole(path: Path, values: np.ndarray) -> Path:
+    """`values` into `path`, its folders created, through a temporary name renamed at the end,
+    so that a reader never sees a half-written file."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".tmp")
+    values.tofile(tmp)
+    os.replace(tmp, path)
+    return path
+
+
 def write_predictions(
     out_root: str | os.PathLike, sequence_name: str | int, scan_id: int, train_labels: np.ndarray
 ) -> Path:
@@ -85,13 +103,7 @@ def write_predictions(
     temporary name first and renamed, so a reader never sees a half-written file.
     """
     raw = train_to_raw(np.asarray(train_labels).ravel()).astype("<u4", copy=False)
-    folder = Path(out_root) / "sequences" / _normalise_sequence(sequence_name) / "predictions"
-    folder.mkdir(parents=True, exist_ok=True)
-    path = folder / f"{int(scan_id):06d}.label"
-    tmp = path.with_name(path.name + ".tmp")
-    raw.tofile(tmp)
-    os.replace(tmp, path)
-    return path
+    return _write_whole(prediction_file(out_root, sequence_name, scan_id, ".label"), raw)
 
 
 def write_dynamic_flags(
@@ -101,13 +113,7 @@ def write_dynamic_flags(
     scan, 1 where free space found it dynamic (its own file beside the .label, so the
     SemanticKITTI layout stays valid); written like `write_predictions`."""
     flags = np.asarray(dynamic, dtype=bool).ravel().astype(np.uint8)
-    folder = Path(out_root) / "sequences" / _normalise_sequence(sequence_name) / "predictions"
-    folder.mkdir(parents=True, exist_ok=True)
-    path = folder / f"{int(scan_id):06d}.dynamic"
-    tmp = path.with_name(path.name + ".tmp")
-    flags.tofile(tmp)
-    os.replace(tmp, path)
-    return path
+    return _write_whole(prediction_file(out_root, sequence_name, scan_id, ".dynamic"), flags)
 
 
 def read_dynamic_flags(
@@ -116,8 +122,7 @@ def read_dynamic_flags(
     """The flags `write_dynamic_flags` wrote for a scan of `num_points` points, as bool; None
     where there is no such file (free space was off, or the scan was not mapped). A file of
     another length is not this scan's: ValueError naming it."""
-    folder = Path(out_root) / "sequences" / _normalise_sequence(sequence_name) / "predictions"
-    path = folder / f"{int(scan_id):06d}.dynamic"
+    path = prediction_file(out_root, sequence_name, scan_id, ".dynamic")
     if not path.is_file():
         return None
     flags = np.fromfile(path, np.uint8)
