@@ -1,6 +1,7 @@
 """The Taichi kernels of tisem: one module per step of the method, plus the map's layout.
 
-Every step of `tisem.mapper.Mapper.integrate`, where its kernels live:
+Every step of `tisem.mapper.Mapper.integrate` (steps 2-8 run by
+`tisem.scan_integrator.ScanIntegrator`), where its kernels live:
 
 | step of the method                        | module       | kernels / functions             |
 |-------------------------------------------|--------------|---------------------------------|

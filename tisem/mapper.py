@@ -18,34 +18,30 @@ the store raises `tisem.spill.SpillError` with the map as it was.
 from __future__ import annotations
 
 import contextlib
-import logging
 import time
 
 import numpy as np
 import taichi as ti
 
 from tisem import backend
-from tisem.block_cap import cut_to_nearest, new_blocks_beyond
 from tisem.config import MapperConfig
 from tisem.errors import ScanError
 from tisem.free_space import FreeSpace, class_inv_tau, without_moving
 from tisem.geometry import MapGeometry, block_aligned_origin
 from tisem.integration_report import IntegrationReport
 from tisem.kernel_inputs import kernel_settings, scan_params, set_scan
-from tisem.kernels import bki, entropy, fusion, rasterize, table, training
+from tisem.kernels import bki, table
 from tisem.kernels.layout import MapFields
 from tisem.live_window import LiveWindow
 from tisem.map_clock import MapClock
 from tisem.mapper_state import check_snapshot, parse_state, relative_arrays
 from tisem.preprocess import CheckedScan, check_scan
 from tisem.scan import Scan, checked_query_points, checked_stamp, scan_label
-from tisem.scan_buffers import ScanBuffers, ScanPoints, TrainingRows
+from tisem.scan_integrator import ScanIntegrator
 from tisem.snapshot import MapSnapshot
 from tisem.store import KEY_LIMIT, BlockStore
 from tisem.trace import IntegrationTrace
 from tisem.voxel_arrays import VoxelArrays, snapshot_of
-
-log = logging.getLogger(__name__)
 
 # the timed stages of `integrate` (profile=True), one per step of its recipe: the checks and the
 # pose; the live window; locating the points and sorting them by leaf block; sorting them by
@@ -99,14 +95,15 @@ class Mapper:
         self._free = FreeSpace(self._fields, cfg, self._settings.decay) if cfg.free_space else None
         self.window = LiveWindow(self._fields, self.store, self.geometry, cfg.max_live_blocks)
         self._params = scan_params(cfg, self.geometry)
-        self._cap_inv2 = bki.evidence_cap_table(cfg.evidence_caps_m)
+        self._steps = ScanIntegrator(
+            self._fields, self._params, self._settings, cfg, self.geometry, self.window
+        )
         self.origin_vox: np.ndarray | None = None  # global voxel index of local voxel 0
         self.clock = MapClock(cfg.decay_tau_s)  # map time: seconds since the first scan
         self.scans = 0
         self.last_stamp_s: float | None = None
         self.profile = profile
         self.stage_seconds = {s: 0.0 for s in STAGES}
-        self._buf = ScanBuffers()
 
     @property
     def t0(self) -> float | None:
@@ -122,7 +119,7 @@ class Mapper:
         ValueError) naming it, and a full disk under the store SpillError, before the map
         changes."""
         self._check_alive()
-        m, p, settings = self._fields, self._params, self._settings
+        steps = self._steps
         report = IntegrationReport(points=scan.num_points)
         timer = self._timer()
         with self._one_scan(scan):
@@ -141,28 +138,30 @@ class Mapper:
                 checked = self._flag_dynamic(scan, checked, report)
                 timer("free_space")
             # 2. downsample / voxelize: range and window checks, the points sorted by leaf block
-            points = self._voxelize(checked, report, trace)
+            points = steps.voxelize(checked, report, trace, self.origin_vox)
             timer("voxelize")
             # 3. redundant-voxel filter, then per kept voxel a training point: its centroid and
             # class histogram, sorted by leaf block; a scan that would make more blocks live
             # than the cap has room for is cut to its nearest blocks (nothing is live yet)
-            rows = self._training_points(checked, points, report, trace)
-            points, rows = self._hold_block_cap(scan, checked, points, rows, report, trace)
+            rows = steps.training_points(checked, points, report, trace)
+            points, rows = steps.hold_block_cap(
+                scan, checked, points, rows, report, trace, self.origin_vox
+            )
             timer("filter")
             # 4-5. semantic uncertainty and kernel length of the voxels the training points hit
-            entropy.assign_lengths(
-                m, p, points.blocks, rows.voxel, rows.hist, settings.kernel_length
-            )
+            steps.assign_lengths(points, rows)
             timer("length")
             # 6-8. sparse kernel, Bayesian kernel update and temporal fusion of every live
             # voxel within reach of a training point
-            self._update(points, rows, report.training_voxels)
+            steps.update(points, rows, report.training_voxels)
             timer("update")
             if self._free is not None:
                 # hits, then rays from the sensor to the training points clear what they cross
-                report.freed_voxels = self._free.integrate(p, rows, report.training_voxels)
+                report.freed_voxels = self._free.integrate(
+                    self._params, rows, report.training_voxels
+                )
                 timer("free_space")
-            table.clear_table(m)  # the scan's table, empty again for the next scan
+            table.clear_table(self._fields)  # the scan's table, empty again for the next scan
             timer("clear")
         self.clock.advance(scan.stamp_s, map_time)
         self.scans += 1
@@ -231,121 +230,6 @@ class Mapper:
         )
         report.dynamic_points = int(report.dynamic.sum())
         return checked if scan.moving is None else without_moving(checked, scan.moving)
-
-    def _hold_block_cap(
-        self,
-        scan: Scan,
-        checked: CheckedScan,
-        pts: ScanPoints,
-        rows: TrainingRows,
-        report: IntegrationReport,
-        trace: IntegrationTrace | None,
-    ) -> tuple[ScanPoints, TrainingRows]:
-        """Keep the live blocks under max_live_blocks (tisem/block_cap.py): a scan whose
-        training rows would make more blocks live than there is room for keeps only its points
-        in live blocks and in the nearest new blocks (steps 2-3 again on those), or is refused
-        when that leaves none. The common case costs one comparison: the occupied blocks fit."""
-        free = self.window.free_blocks
-        new = new_blocks_beyond(self._fields, self._params, pts.blocks, free)
-        if new is None:
-            return pts, rows
-        m, where = self._fields, scan_label(scan.index, scan.name)
-        cut = cut_to_nearest(
-            pts.cell, pts.blocks, new, m.table_shape, m.table_half, free, self.geometry.resolution_m
-        )
-        table.clear_table(m)
-        cap = self.window.cap
-        if not cut.keep.any():
-            raise ValueError(cut.refusal(where, cap, report.used))
-        log.warning(cut.describe(where, cap, report.used))
-        kept = checked.subset(cut.keep)
-        again = IntegrationReport(points=len(kept.points_sensor))
-        if trace is not None:
-            trace.scans.pop()  # the trace records the points the scan kept
-        pts = self._voxelize(kept, again, trace)
-        rows = self._training_points(kept, pts, again, trace)
-        if trace is not None:
-            trace.scans[-1].cut_points = np.flatnonzero(cut.keep)
-        report.dropped_dense = report.used - again.used
-        report.used, report.training_voxels = again.used, again.training_voxels
-        return pts, rows
-
-    def _voxelize(
-        self, checked: CheckedScan, report: IntegrationReport, trace: IntegrationTrace | None
-    ) -> ScanPoints:
-        """Step 2: locate every point in the scan's table of leaf blocks and list each block's
-        points together."""
-        m = self._fields
-        pts = self._buf.points(len(checked.points_sensor))
-        stats = rasterize.locate_kernel(checked.use_probs)(
-            m, self._params, checked.points_sensor, checked.evidence, pts.cell, pts.code, pts.blocks
-        )
-        report.used = int(stats[rasterize.USED])
-        report.dropped_range = int(stats[rasterize.OUT_OF_RANGE]) - report.dropped_nonfinite
-        report.dropped_band = int(stats[rasterize.OUT_OF_BAND])
-        report.dropped_window = int(stats[rasterize.OUT_OF_WINDOW])
-        report.dropped_far = int(stats[rasterize.IMPLAUSIBLY_FAR]) - report.dropped_nonfinite
-        # in table order (x, y, z), so that the per-block passes touch the map block by block
-        # along columns, as the kernel update will (~1 ms less than the points' order)
-        pts = pts._replace(blocks=pts.blocks[: int(stats[rasterize.BLOCKS])])
-        pts.blocks.sort()
-        table.column_slots(m, table.points_in, m.p_start, True)
-        rasterize.scatter_points(m, pts.cell, pts.by_block)
-        if trace is not None:
-            trace.points_located(
-                pts.cell,
-                pts.code,
-                pts.blocks,
-                pts.by_block[: report.used],
-                m.table_half,
-                self.window.center_vox,
-                self.origin_vox,
-                self.geometry.resolution_m,
-            )
-        return pts
-
-    def _training_points(
-        self,
-        checked: CheckedScan,
-        pts: ScanPoints,
-        report: IntegrationReport,
-        trace: IntegrationTrace | None,
-    ) -> TrainingRows:
-        """Step 3: sort each block's points by voxel, filter the voxels, write the kept ones'
-        training rows."""
-        m = self._fields
-        training.sort_blocks(
-            m, self.config.min_points, pts.blocks, pts.code, pts.by_block, pts.by_voxel
-        )
-        n = table.column_slots(m, table.rows_in, m.b_start, False)
-        report.training_voxels = int(n)
-        rows = self._buf.training(max(n, 1), self.C)
-        training.training_kernel(self._settings.unit_weight, checked.use_probs)(
-            m,
-            self._params,
-            checked.points_sensor,
-            checked.evidence,
-            pts.blocks,
-            pts.code,
-            pts.by_voxel,
-            *rows,
-        )
-        if trace is not None:
-            trace.training_written(
-                n, m.b_start.to_numpy(), m.b_layers.to_numpy(), rows.xyz, rows.hist
-            )
-        return rows
-
-    def _update(self, pts: ScanPoints, rows: TrainingRows, n_rows: int) -> None:
-        """Steps 6-8: the kernel update of every voxel within reach of the n_rows training
-        points and its fusion; csm (no kernel) adds each training voxel's own histogram."""
-        m, p, settings = self._fields, self._params, self._settings
-        if not settings.uses_kernel:
-            fusion.fuse_histograms(m, p, pts.blocks, rows.voxel, rows.hist)
-        elif n_rows:
-            bki.update_kernel(settings)(
-                m, p, rows.xyz, rows.hist, rows.classes, rows.single, self._cap_inv2
-            )
 
     def _check_alive(self) -> None:
         if self._generation != backend.generation():
