@@ -104,3 +104,26 @@ def test_the_benchmark_scores_free_space_on_the_synthetic_street(tmp_path):
     assert plain["da"] < free["da"] and free["trail_voxels"] < plain["trail_voxels"]
     assert free["sa"] > 0.98 and free["stages_ms"]["free_space"] > 0
     assert plain["stages_ms"]["free_space"] == 0
+
+
+class _Points:
+    """What the DA bound reads of a scan: its world points and their motion ground truth."""
+
+    def __init__(self, world: np.ndarray, moving: np.ndarray):
+        self._world, self.gt_moving = world, moving
+
+    def points_world(self) -> np.ndarray:
+        return self._world
+
+
+def test_the_da_bound_counts_dynamic_points_that_share_a_voxel_with_a_static_one():
+    from benchmarks.dynamic import da_bound
+
+    # scan 0: road at the origin voxel, a car passing two voxels away; scan 1: the car parks
+    # at the road's voxel (static from then on) and the car's first place is empty
+    first = _Points(np.array([[0.05, 0.05, 0.05], [0.45, 0.05, 0.05]]), np.array([False, True]))
+    second = _Points(np.array([[0.15, 0.15, 0.15], [0.11, 0.01, 0.02]]), np.array([True, False]))
+    # dynamic points: (0.45, .) alone in its voxel, (0.15, .) in the static points' voxel
+    assert da_bound([first, second], 0.2) == pytest.approx(0.5)
+    assert da_bound([first, second], 0.1) == pytest.approx(1.0)  # finer voxels share none
+    assert da_bound([_Points(np.zeros((1, 3)), np.array([False]))], 0.2) == 1.0
