@@ -10,8 +10,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from tisem.io.kitti_predictions import read_dynamic_flags, write_dynamic_flags
 from tisem.io.mapfile import load_map_file, save_map
-from tisem.io.semantickitti import read_dynamic_flags, write_dynamic_flags
 from tisem.snapshot import MapSnapshot
 from tisem.synth.movers import STILL_M, Mover, street_movers
 

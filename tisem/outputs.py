@@ -1,6 +1,6 @@
 """The files of a results folder: config.yaml and run.json first, metrics.json at the end,
 then the map files (map.npz, map.ply, map_bev.png). Per-point predictions are written scan by
-scan (`tisem.io.semantickitti.write_predictions`), checkpoints to checkpoint/; map_mcap.py adds
+scan (`tisem.io.kitti_predictions.write_predictions`), checkpoints to checkpoint/; map_mcap.py adds
 map.mcap, the ROS 2 bag map_ros2/ (`write_recording_maps`) and mcap_report.json,
 map_kitti.py's embedded default its synthetic/ sequence, render.py compare.png.
 `clear_previous_run` removes exactly these, for --overwrite."""

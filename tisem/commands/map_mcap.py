@@ -221,7 +221,7 @@ def write_map(
     more and every mapped scan written with its labels looked up in the final map (the same
     as its predictions file; a scan that was not mapped has neither) and, with free space,
     its dynamic flags (its .dynamic file)."""
-    from tisem.io.semantickitti import read_dynamic_flags
+    from tisem.io.kitti_predictions import read_dynamic_flags
     from tisem.outputs import write_recording_maps
     from tisem.scan import Scan
 

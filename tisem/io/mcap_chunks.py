@@ -30,6 +30,20 @@ class BadChunk(Exception):
     """A chunk whose bytes cannot be trusted (the message says why); it is skipped whole."""
 
 
+# what the functions here raise on damaged bytes: BadChunk for what they check, and whatever
+# the decompressors and parsers raise on the rest ("these bytes are damaged")
+UNTRUSTED = (
+    BadChunk,
+    Malformed,
+    zstandard.ZstdError,
+    RuntimeError,
+    struct.error,
+    ValueError,
+    OverflowError,
+    EOFError,
+)
+
+
 @dataclass
 class ChunkHeader:
     start_time: int

@@ -22,9 +22,10 @@ from pathlib import Path
 from mcap.records import Channel, ChunkIndex, Schema
 
 from tisem.errors import DatasetError
+from tisem.io.mcap_items import LostMessages, McapMessage
 from tisem.io.mcap_report import Loss, ReadReport
 from tisem.io.mcap_summary import MAGIC, crc_of_range, read_footer, read_summary
-from tisem.io.mcap_walk import LostMessages, McapMessage, Walk
+from tisem.io.mcap_walk import Walk
 
 __all__ = ["McapRecords", "McapMessage", "LostMessages", "Loss", "ReadReport", "MAGIC"]
 
@@ -109,7 +110,7 @@ class McapRecords:
                     crc = crc_of_range(f, 0, footer.data_end_at)
                 self.data_crc = "match" if crc == footer.data_end_crc else "mismatch"
         if self.data_crc == "mismatch":
-            report.losses.append(Loss("data section", walk.data_crc_mismatch()))
+            report.losses.append(Loss("data section", walk.ledger.data_crc_mismatch()))
 
     def _notes(self, report: ReadReport) -> None:
         if self.footer is None:

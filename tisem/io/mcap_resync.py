@@ -7,11 +7,14 @@ must be consistent in every field that can be checked without trusting it (a chu
 compression name, its data length against its record length, and a valid record right after
 it). What the skipped stretch held is counted from the message index records of the chunks
 the index places there; without an index the count is unknown, and the reader says so.
-After a pass, `index_disagreements` compares the index with the chunks the data held.
+Where the index puts a record (`RecordFinder.expected_at`, `listed_chunk`) also tells a
+damaged opcode or length. After a pass, `index_disagreements` compares the index with the
+chunks the data held.
 """
 
 from __future__ import annotations
 
+import bisect
 import re
 import struct
 from collections import Counter
@@ -41,6 +44,27 @@ class RecordFinder:
 
     def __init__(self, f: BinaryIO, limit: int, index: dict[int, list[ChunkIndex]]) -> None:
         self.f, self.limit, self.index = f, limit, index
+        self.listed = sorted(index)  # chunk offsets the index gives
+        self.index_records = {  # ... and where it puts their message index records
+            at for entries in index.values() for at in entries[0].message_index_offsets.values()
+        }
+
+    def expected_at(self, pos: int) -> int | None:
+        """The opcode of the record the index puts at `pos` (a chunk or a message index
+        record), or None where it puts none."""
+        if pos in self.index:
+            return Opcode.CHUNK
+        return Opcode.MESSAGE_INDEX if pos in self.index_records else None
+
+    def listed_chunk(self, start: int, end: int, skip) -> int | None:
+        """The first chunk the index lists after `start` and before `end` that looks intact
+        (but not at the offsets in `skip`, chunks already read), or None."""
+        i = bisect.bisect_right(self.listed, start)
+        while i < len(self.listed) and self.listed[i] < end:
+            if self.listed[i] not in skip and self.looks_like_chunk(self.listed[i]):
+                return self.listed[i]
+            i += 1
+        return None
 
     def _at(self, pos: int, size: int) -> bytes:
         self.f.seek(pos)

@@ -4,23 +4,22 @@
 appends to the report what it could not use: chunks that fail their checks (their loss counted
 from the message index records after them, or from their own records), records whose header
 is damaged (reading goes on at the next intact record, `tisem.io.mcap_resync`), a file cut
-short, CRC mismatches, and a chunk index that disagrees with the data.
+short, CRC mismatches, and a chunk index that disagrees with the data. What it yields is
+`tisem.io.mcap_items`; how many messages each loss held, and what no CRC covered, is counted
+by its `Ledger` (`tisem.io.mcap_losses`).
 """
 
 from __future__ import annotations
 
-import bisect
 import struct
-from collections import Counter
 from collections.abc import Iterator
-from dataclasses import dataclass
 from typing import TYPE_CHECKING, BinaryIO
 
-import zstandard
 from mcap.opcode import Opcode
 from mcap.records import Channel
 
 from tisem.io.mcap_chunks import (
+    UNTRUSTED,
     BadChunk,
     checked_records,
     chunk_header,
@@ -28,6 +27,8 @@ from tisem.io.mcap_chunks import (
     inner_records,
     messages_in_damaged,
 )
+from tisem.io.mcap_items import LostMessages, chunk_items, record_item
+from tisem.io.mcap_losses import Ledger
 from tisem.io.mcap_report import Loss, ReadReport
 from tisem.io.mcap_resync import RecordFinder, index_disagreements
 from tisem.io.mcap_summary import (
@@ -37,63 +38,11 @@ from tisem.io.mcap_summary import (
     attachment_problem,
     crc_of_range,
     opcode_name,
-    parse_channel,
-    parse_message_index,
-    parse_schema,
     valid_opcode,
 )
 
 if TYPE_CHECKING:
     from tisem.io.mcap_records import McapRecords
-
-# what untrusted bytes make decompressors and parsers raise: "these bytes are damaged"
-_UNTRUSTED = (
-    BadChunk,
-    Malformed,
-    zstandard.ZstdError,
-    RuntimeError,
-    struct.error,
-    ValueError,
-    OverflowError,
-    EOFError,
-)
-
-
-@dataclass
-class McapMessage:
-    """A Message record: where it came from and whether a CRC vouched for its bytes."""
-
-    channel_id: int
-    log_time: int
-    data: bytes
-    crc_checked: bool  # its chunk's CRC matched (False outside chunks)
-
-
-@dataclass
-class LostMessages:
-    """Yielded where damaged data held `count` messages of a channel, so that readers keep
-    numbering messages as in the intact file. None: unknown (which channel, how many)."""
-
-    channel_id: int | None
-    count: int | None
-    where: str
-
-
-@dataclass
-class _LostChunk:
-    """A skipped chunk whose count waits for the message index records after it."""
-
-    loss: Loss
-    from_records: Counter | None  # what its damaged records still show
-    from_index: Counter | None = None  # what the message index records after it say
-    index_damaged: bool = False
-
-
-def _message(content, crc_checked: bool) -> McapMessage:
-    if len(content) < 22:
-        raise Malformed(f"a message record of {len(content)} bytes (a message has at least 22)")
-    channel_id, _, log_time, _ = struct.unpack_from("<HIQQ", content)
-    return McapMessage(channel_id, log_time, bytes(content[22:]), crc_checked)
 
 
 def _time_range(start: int, end: int) -> str:
@@ -110,7 +59,7 @@ class Walk:
     def __init__(self, owner: McapRecords, f: BinaryIO, report: ReadReport) -> None:
         self.o, self.f, self.report = owner, f, report
         self.channels: dict[int, Channel] = dict(owner.summary.channels) if owner.summary else {}
-        self.lost: _LostChunk | None = None
+        self.ledger = Ledger(report, self.channels)
         self.seen: dict[int, int] = {}  # chunk offset -> its record's length in bytes
         self.reached = len(MAGIC)  # how far the walk got
         # where the record before the current one started, and whether its length was vouched
@@ -118,28 +67,20 @@ class Walk:
         # by a few bytes, so the next intact record is looked for from just after that record
         self.previous, self.previous_sure = len(MAGIC) - 1, True
         self.last_sure = len(MAGIC) - 1  # where the last vouched-for record started
-        self.listed = sorted(owner.index)  # chunk offsets the index gives
-        self.index_at = set(owner.index) | {  # ... and message index offsets
-            at
-            for entries in owner.index.values()
-            for at in entries[0].message_index_offsets.values()
-        }
         self.chunk_ok = False  # the last chunk checked out
-        self.no_crc = 0  # chunks without a CRC
-        self.outside = 0  # messages outside chunks
         self.finder = RecordFinder(f, owner.limit, owner.index)
 
     # -- the walk
     def run(self) -> Iterator:
         yield from self._walk()
-        yield from self._settle()
+        yield from self.ledger.settle()
 
     def _walk(self) -> Iterator:
         pos, limit, cut = len(MAGIC), self.o.limit, self.o.footer is None
         while pos is not None:
             self.reached = pos
             if pos >= limit:
-                yield from self._settle()
+                yield from self.ledger.settle()
                 self._no_data_end(pos)
                 return
             inside = self._listed_inside(pos)
@@ -158,7 +99,7 @@ class Walk:
             head = self.f.read(RECORD_HEADER)
             opcode = head[0]
             if opcode != Opcode.MESSAGE_INDEX:
-                yield from self._settle()
+                yield from self.ledger.settle()
             if len(head) < RECORD_HEADER:  # only where there is no footer
                 self.report.losses.append(
                     Loss(
@@ -169,7 +110,7 @@ class Walk:
                 return
             length = struct.unpack_from("<Q", head, 1)[0]
             end = pos + RECORD_HEADER + length
-            expected = self._expected_at(pos)
+            expected = self.finder.expected_at(pos)
             if expected is not None and opcode != expected:
                 # the index puts a chunk or a message index record here: its opcode is damaged
                 # (a message index turned message would be taken for a cloud)
@@ -207,11 +148,6 @@ class Walk:
                 self._after(pos, opcode == Opcode.MESSAGE)
                 pos = end
 
-    def _expected_at(self, pos: int) -> int | None:
-        if pos not in self.index_at:
-            return None
-        return Opcode.CHUNK if pos in self.o.index else Opcode.MESSAGE_INDEX
-
     def _wrong_opcode(self, pos: int, opcode: int, expected: int, end: int) -> Iterator:
         why = (
             f"the chunk index has a {opcode_name(expected)} record here, the data opcode "
@@ -236,12 +172,7 @@ class Walk:
         for): that record's length was damaged, and the walk must go back to the chunk."""
         if self.previous_sure:
             return None
-        i = bisect.bisect_right(self.listed, self.previous)
-        while i < len(self.listed) and self.listed[i] < pos:
-            if self.listed[i] not in self.seen and self.finder.looks_like_chunk(self.listed[i]):
-                return self.listed[i]
-            i += 1
-        return None
+        return self.finder.listed_chunk(self.previous, pos, self.seen)
 
     def _top_level(self, pos: int, opcode: int, length: int) -> Iterator:
         """A record outside chunks (unchunked files keep their messages here)."""
@@ -251,53 +182,24 @@ class Walk:
         if opcode not in (Opcode.SCHEMA, Opcode.CHANNEL, Opcode.MESSAGE, Opcode.MESSAGE_INDEX):
             return  # header, metadata, private records
         content = self.f.read(length)
+        if opcode == Opcode.MESSAGE_INDEX:
+            self.ledger.message_index(content)
+            return
+        self.ledger.outside += opcode == Opcode.MESSAGE
         try:
-            if opcode == Opcode.MESSAGE_INDEX:
-                if self.lost is not None:
-                    channel_id, n = parse_message_index(content)
-                    self.lost.from_index = self.lost.from_index or Counter()
-                    self.lost.from_index[channel_id] += n
-                return
-            if opcode == Opcode.MESSAGE:
-                self.outside += 1
-                yield _message(content, False)
-                return
-            rec = parse_schema(content) if opcode == Opcode.SCHEMA else parse_channel(content)
+            rec = record_item(opcode, content, False, self.channels)
         except Malformed as e:
-            if opcode == Opcode.MESSAGE_INDEX:
-                self.lost.index_damaged = True
-                return
             loss = Loss(f"{opcode_name(opcode)} record at byte {pos}", f"unparseable ({e})")
             self.report.losses.append(loss)
             if opcode == Opcode.MESSAGE:
                 loss.uncounted = True
                 yield LostMessages(None, None, loss.where)
             return
-        if isinstance(rec, Channel):
-            self.channels[rec.id] = rec
         yield rec
 
-    def _records_of_chunk(self, records, checked: bool, where: str) -> Iterator:
-        for opcode, content in records:
-            try:
-                if opcode == Opcode.MESSAGE:
-                    yield _message(content, checked)
-                elif opcode in (Opcode.SCHEMA, Opcode.CHANNEL):
-                    rec = (
-                        parse_schema(content) if opcode == Opcode.SCHEMA else parse_channel(content)
-                    )
-                    if isinstance(rec, Channel):
-                        self.channels[rec.id] = rec
-                    yield rec
-            except Malformed as e:
-                loss = Loss(
-                    where,
-                    f"a {opcode_name(opcode)} record inside it is unparseable ({e})",
-                    uncounted=opcode == Opcode.MESSAGE,
-                )
-                self.report.losses.append(loss)
-                if loss.uncounted:
-                    yield LostMessages(None, None, where)
+    def _items(self, records, checked: bool, where: str) -> Iterator:
+        """The items of a chunk's records (`mcap_items.chunk_items`)."""
+        return chunk_items(records, checked, where, self.channels, self.report)
 
     # -- chunks
     def _chunk(self, pos: int, length: int) -> Iterator:
@@ -308,18 +210,18 @@ class Walk:
             head = chunk_header(self.f.read(length))
             where += f" ({_time_range(head.start_time, head.end_time)})"
             records, checked = checked_records(head)
-        except _UNTRUSTED as e:
+        except UNTRUSTED as e:
             fixed = yield from self._chunk_by_index(pos, where)
             self.chunk_ok = fixed is not None
             if fixed is not None:
                 return fixed
             loss = Loss(where, f"chunk skipped ({_why(e)})")
             self.report.losses.append(loss)
-            self.lost = _LostChunk(loss, messages_in_damaged(head) if head else None)
+            self.ledger.count_from_index(loss, messages_in_damaged(head) if head else None)
             return pos + RECORD_HEADER + length
-        self.no_crc += not checked
+        self.ledger.no_crc += not checked
         self.chunk_ok = True
-        yield from self._records_of_chunk(records, checked, where)
+        yield from self._items(records, checked, where)
         return pos + RECORD_HEADER + length
 
     def _chunk_by_index(self, pos: int, where: str) -> Iterator:
@@ -335,7 +237,7 @@ class Walk:
                 records, checked = checked_records(
                     chunk_header(self.f.read(entry.chunk_length - RECORD_HEADER))
                 )
-            except _UNTRUSTED:
+            except UNTRUSTED:
                 continue
             self.report.losses.append(
                 Loss(
@@ -346,34 +248,10 @@ class Walk:
                 )
             )
             self.seen[pos] = entry.chunk_length
-            self.no_crc += not checked
-            yield from self._records_of_chunk(records, checked, where)
+            self.ledger.no_crc += not checked
+            yield from self._items(records, checked, where)
             return pos + entry.chunk_length
         return None
-
-    def _settle(self) -> Iterator:
-        """Count what the last skipped chunk held, now that its message index records (if any)
-        have been read."""
-        lost, self.lost = self.lost, None
-        if lost is None:
-            return
-        counts = lost.from_index if not lost.index_damaged else None
-        if counts is None and lost.from_records is not None:
-            counts = lost.from_records
-            lost.loss.what += " (counted from its damaged records)"
-        yield from self._account(lost.loss, counts)
-
-    def _account(self, loss: Loss, counts: Counter | None) -> Iterator:
-        if counts is None:
-            loss.uncounted = True
-            yield LostMessages(None, None, loss.where)
-            return
-        loss.messages = sum(counts.values())
-        for channel_id, n in sorted(counts.items()):
-            ch = self.channels.get(channel_id)
-            loss.topics[ch.topic if ch else f"channel {channel_id}"] += n
-            if n:
-                yield LostMessages(channel_id, n, loss.where)
 
     # -- damage to the record structure
     def _broken(self, pos: int, why: str, nxt: int | None = None) -> Iterator:
@@ -413,9 +291,9 @@ class Walk:
         )
         if counts is None and nxt is not None and self._at(nxt, 1)[0] == Opcode.MESSAGE_INDEX:
             # the stretch ends where a chunk's message index records start: it was that chunk
-            self.lost = _LostChunk(loss, None)
+            self.ledger.count_from_index(loss)
             return nxt
-        yield from self._account(loss, counts)
+        yield from self.ledger.account(loss, counts)
         return nxt
 
     def _next_record(self, pos: int) -> int | None:
@@ -441,10 +319,10 @@ class Walk:
             head = chunk_header(self._at(pos + RECORD_HEADER, have), complete=False)
             loss.where = f"chunk at byte {pos} ({_time_range(head.start_time, head.end_time)})"
             records = inner_records(inflate(head, complete=False), complete=False)
-        except _UNTRUSTED:
+        except UNTRUSTED:
             return
         self.report.partial_chunk_messages += sum(op == Opcode.MESSAGE for op, _ in records)
-        yield from self._records_of_chunk(records, False, loss.where)
+        yield from self._items(records, False, loss.where)
 
     def _no_data_end(self, pos: int) -> None:
         if self.o.footer is None:
@@ -474,15 +352,6 @@ class Walk:
                 else "mismatch"
             )
 
-    def data_crc_mismatch(self) -> str:
-        """What a data-section CRC that does not match means for this file's messages."""
-        return "its CRC (in the data-end record) does not match: some bytes are corrupted" + (
-            "; every message lies in a chunk whose own CRC matched, so none is affected"
-            if self.outside == 0 and self.no_crc == 0
-            else "; messages without a CRC of their own cannot be told apart from damaged "
-            "ones (their scans are marked suspect)"
-        )
-
     def _attachment(self, pos: int, length: int) -> None:
         problem = attachment_problem(self.f, pos, length)
         if problem is not None:
@@ -490,17 +359,7 @@ class Walk:
 
     def finish(self) -> None:
         """After the walk: what the CRCs could not cover, and the index against the data."""
-        if self.no_crc:
-            self.report.notes.append(
-                f"{self.no_crc} chunk(s) carry no CRC (rosbag2's default): "
-                f"corrupted bytes inside them cannot be detected"
-            )
-        if self.outside and self.o.data_crc == "absent":
-            self.report.notes.append(
-                f"{self.outside} message(s) lie outside chunks and the "
-                f"data section carries no CRC: corrupted bytes in them "
-                f"cannot be detected"
-            )
+        self.ledger.note_unchecked(self.o.data_crc)
         if self.o.summary is not None and self.o.summary.chunk_indexes:
             problems = index_disagreements(self.o.index, self.seen, self.reached)
             if problems:

@@ -5,6 +5,7 @@ frame, with `red green blue alpha` uint8 fields (Foxglove then colours by "RGBA 
 fields)" on its own), the train id `label` and its `probability`; the class table goes in a
 metadata record. With `scans`, each input scan follows on its own topic, its points in the
 sensor frame and its pose in the message's `pose` field, so it overlays the map without /tf.
+The topics and the point layouts are `tisem.io.map_clouds`.
 
 `Ros2McapWriter` writes `cdr` messages with rosbag2's schema texts (rosbag2 spells
 dependencies `MSG: std_msgs/Header`; Rerun resolves only that spelling) and exposes the choices
@@ -29,25 +30,44 @@ from mcap.writer import Writer as McapWriter
 # (always indexed, always chunked), which rosbag2 presets and our damage tests need to vary.
 from mcap_ros2._dynamic import serialize_dynamic
 
+from tisem.io.map_clouds import (
+    DYNAMIC_MAP_TOPIC,
+    DYNAMIC_POINTS_TOPIC,
+    MAP_TOPIC,
+    SCANS_TOPIC,
+    map_points,
+    scan_clouds,
+    scan_points,
+)
 from tisem.io.pointcloud2 import array_to_foxglove_cloud, array_to_ros_cloud
 from tisem.io.stamps import map_stamp_ns, ros_time, scan_stamp_ns
 from tisem.io.tf import matrix_to_quat
-from tisem.labels import CLASS_COLORS_RGB, class_table
+from tisem.labels import class_table
 from tisem.scan import Scan
 from tisem.snapshot import MapSnapshot
+
+__all__ = [
+    "COMPRESSION",
+    "Ros2McapWriter",
+    "ros2_msgdef",
+    "transform_stamped",
+    "pose_msg",
+    "write_map_mcap",
+    # the topics and point layouts of the map file (`tisem.io.map_clouds`)
+    "MAP_TOPIC",
+    "SCANS_TOPIC",
+    "DYNAMIC_MAP_TOPIC",
+    "DYNAMIC_POINTS_TOPIC",
+    "map_points",
+    "scan_points",
+    "scan_clouds",
+]
 
 COMPRESSION = {
     "zstd": CompressionType.ZSTD,
     "lz4": CompressionType.LZ4,
     "none": CompressionType.NONE,
 }
-
-MAP_TOPIC = "/semantic_map"
-SCANS_TOPIC = "/semantic_scans"
-# free space: the voxels seen through (trails of what moved), apart from the static map, and
-# per scan its points that landed in space seen empty
-DYNAMIC_MAP_TOPIC = "/semantic_map_dynamic"
-DYNAMIC_POINTS_TOPIC = "/dynamic_points"
 
 # ---- ROS 2 message definitions, as rosbag2 stores them -------------------------------------
 
@@ -259,90 +279,6 @@ class Ros2McapWriter:
 
 
 # ---- the map ---------------------------------------------------------------------------------
-
-
-def _rgba(labels: np.ndarray) -> np.ndarray:
-    rgba = np.full((len(labels), 4), 255, dtype=np.uint8)
-    rgba[:, :3] = CLASS_COLORS_RGB[labels]
-    return rgba
-
-
-def map_points(snapshot: MapSnapshot) -> np.ndarray:
-    """The map as a structured array: voxel centres, colour, label (train id), probability."""
-    dtype = np.dtype(
-        [
-            ("x", "<f4"),
-            ("y", "<f4"),
-            ("z", "<f4"),
-            ("red", "u1"),
-            ("green", "u1"),
-            ("blue", "u1"),
-            ("alpha", "u1"),
-            ("label", "<u2"),
-            ("probability", "<f4"),
-        ]
-    )
-    labels = snapshot.labels()
-    out = np.empty(len(snapshot), dtype)
-    centres = snapshot.centers()
-    for i, name in enumerate("xyz"):
-        out[name] = centres[:, i]
-    for i, name in enumerate(("red", "green", "blue", "alpha")):
-        out[name] = _rgba(labels)[:, i]
-    out["label"] = labels
-    out["probability"] = snapshot.confidence()
-    return out
-
-
-def scan_points(scan: Scan, mapped_labels: np.ndarray) -> np.ndarray:
-    """One scan in its sensor frame with its mapped labels (colour), input and GT labels."""
-    mapped_labels = np.asarray(mapped_labels)
-    if mapped_labels.shape != (scan.num_points,):
-        raise ValueError(
-            f"scan {scan.index}: {mapped_labels.shape} mapped labels for {scan.num_points} points"
-        )
-    fields = [
-        ("x", "<f4"),
-        ("y", "<f4"),
-        ("z", "<f4"),
-        ("red", "u1"),
-        ("green", "u1"),
-        ("blue", "u1"),
-        ("alpha", "u1"),
-        ("label", "<u2"),
-        ("input_label", "<u2"),
-    ]
-    if scan.gt_labels is not None:
-        fields.append(("gt_label", "<u2"))
-    out = np.empty(scan.num_points, np.dtype(fields))
-    for i, name in enumerate("xyz"):
-        out[name] = scan.points_sensor[:, i]
-    rgba = _rgba(mapped_labels)
-    for i, name in enumerate(("red", "green", "blue", "alpha")):
-        out[name] = rgba[:, i]
-    out["label"] = mapped_labels
-    out["input_label"] = scan.labels if scan.labels is not None else np.argmax(scan.probs, axis=1)
-    if scan.gt_labels is not None:
-        out["gt_label"] = scan.gt_labels
-    return out
-
-
-def scan_clouds(
-    scan: Scan, points: np.ndarray, dynamic: np.ndarray | None
-) -> list[tuple[str, np.ndarray]]:
-    """(topic, cloud) of one scan's points (`points`, one row per point, in either writer's
-    layout): all of them on SCANS_TOPIC and, when `dynamic` flags some, those on
-    DYNAMIC_POINTS_TOPIC."""
-    clouds = [(SCANS_TOPIC, points)]
-    if dynamic is not None:
-        dynamic = np.asarray(dynamic, bool)
-        if dynamic.shape != (scan.num_points,):
-            raise ValueError(
-                f"scan {scan.index}: {dynamic.shape} dynamic flags for {scan.num_points} points"
-            )
-        if dynamic.any():
-            clouds.append((DYNAMIC_POINTS_TOPIC, points[dynamic]))
-    return clouds
 
 
 def write_map_mcap(

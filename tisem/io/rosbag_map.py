@@ -23,7 +23,13 @@ from pathlib import Path
 
 import numpy as np
 
-from tisem.io.mcap_writer import DYNAMIC_MAP_TOPIC, MAP_TOPIC, SCANS_TOPIC, scan_clouds
+from tisem.io.map_clouds import (
+    DYNAMIC_MAP_TOPIC,
+    MAP_TOPIC,
+    SCANS_TOPIC,
+    checked_mapped,
+    scan_clouds,
+)
 from tisem.io.pointcloud2 import pack_rgb
 from tisem.io.rosbag_writer import Rosbag2Writer
 from tisem.io.stamps import map_stamp_ns, scan_stamp_ns
@@ -56,11 +62,7 @@ def ros_map_points(snapshot: MapSnapshot) -> np.ndarray:
 
 def ros_scan_points(scan: Scan, mapped_labels: np.ndarray) -> np.ndarray:
     """One scan in the map frame with its mapped labels (and colour), input and GT labels."""
-    mapped_labels = np.asarray(mapped_labels)
-    if mapped_labels.shape != (scan.num_points,):
-        raise ValueError(
-            f"scan {scan.index}: {mapped_labels.shape} mapped labels for {scan.num_points} points"
-        )
+    mapped_labels = checked_mapped(scan, mapped_labels)
     names = ["x", "y", "z", "rgb", "label", "input_label"]
     if scan.gt_labels is not None:
         names.append("gt_label")

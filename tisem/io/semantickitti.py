@@ -1,4 +1,4 @@
-"""Reader (and prediction writer) for SemanticKITTI sequence folders.
+"""Reader for SemanticKITTI sequence folders.
 
 Layout of one sequence folder::
 
@@ -28,13 +28,14 @@ A plausible time is a finite number of seconds in [0, MAX_TIME_S], and the map's
 runs backwards: of the selected scans, those whose times keep the longest non-decreasing run
 are kept, each scan whose time breaks it (one wild value, or a time earlier than the scans
 around it) is refused. So one bad time costs its own scan, never the ones after it. The
-file helpers (calib.txt, poses.txt, times.txt) are tisem/io/kitti_files.py.
+file helpers (calib.txt, poses.txt, times.txt) are tisem/io/kitti_files.py, finding the
+sequence folder and its scans tisem/io/kitti_layout.py, and writing a run's per-scan outputs
+(`write_predictions`, `write_dynamic_flags`) tisem/io/kitti_predictions.py.
 """
 
 from __future__ import annotations
 
 import os
-import re
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -52,12 +53,22 @@ from tisem.io.kitti_files import (
     read_times,
     read_trajectory,
 )
-from tisem.labels import moving_raw, raw_to_train, train_to_raw
+from tisem.io.kitti_layout import find_sequence, scan_files
+from tisem.io.kitti_predictions import (
+    prediction_file,
+    read_dynamic_flags,
+    write_dynamic_flags,
+    write_predictions,
+)
+from tisem.labels import moving_raw, raw_to_train
 from tisem.scan import KittiSource, Scan, finite_rows
 
 __all__ = [
     "SemanticKittiSequence",
     "write_predictions",
+    "write_dynamic_flags",
+    "read_dynamic_flags",
+    "prediction_file",
     "read_calib_tr",
     "read_poses",
     "read_pose_lines",
@@ -69,81 +80,6 @@ __all__ = [
 
 DEFAULT_SCAN_PERIOD_S = 0.1  # 10 Hz, used when there is no times.txt
 INPUTS = ("predictions", "labels")
-_BIN_RE = re.compile(r"^(\d+)\.bin$")
-
-
-# --------------------------------------------------------------------------- writer
-
-
-def prediction_file(
-    out_root: str | os.PathLike, sequence_name: str | int, scan_id: int, suffix: str
-) -> Path:
-    """`out_root/sequences/NN/predictions/NNNNNN<suffix>`: where a run's per-scan outputs go."""
-    folder = Path(out_root) / "sequences" / _normalise_sequence(sequence_name) / "predictions"
-    return folder / f"{int(scan_id):06d}{suffix}"
-
-
-def _write_whole(path: Path, values: np.ndarray) -> Path:
-    """`values` into `path`, its folders created, through a temporary name renamed at the end,
-    so that a reader never sees a half-written file."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp")
-    values.tofile(tmp)
-    os.replace(tmp, path)
-    return path
-
-
-def write_predictions(
-    out_root: str | os.PathLike, sequence_name: str | int, scan_id: int, train_labels: np.ndarray
-) -> Path:
-    """Write `out_root/sequences/NN/predictions/NNNNNN.label` (uint32 raw ids) and return its path.
-
-    `train_labels` are train ids 0..19; they are stored as raw ids (`train_to_raw`) so that the
-    standard SemanticKITTI tools can score them. Folders are created; the file is written to a
-    temporary name first and renamed, so a reader never sees a half-written file.
-    """
-    raw = train_to_raw(np.asarray(train_labels).ravel()).astype("<u4", copy=False)
-    return _write_whole(prediction_file(out_root, sequence_name, scan_id, ".label"), raw)
-
-
-def write_dynamic_flags(
-    out_root: str | os.PathLike, sequence_name: str | int, scan_id: int, dynamic: np.ndarray
-) -> Path:
-    """Write `out_root/sequences/NN/predictions/NNNNNN.dynamic`: one uint8 per point of the
-    scan, 1 where free space found it dynamic (its own file beside the .label, so the
-    SemanticKITTI layout stays valid); written like `write_predictions`."""
-    flags = np.asarray(dynamic, dtype=bool).ravel().astype(np.uint8)
-    return _write_whole(prediction_file(out_root, sequence_name, scan_id, ".dynamic"), flags)
-
-
-def read_dynamic_flags(
-    out_root: str | os.PathLike, sequence_name: str | int, scan_id: int, num_points: int
-) -> np.ndarray | None:
-    """The flags `write_dynamic_flags` wrote for a scan of `num_points` points, as bool; None
-    where there is no such file (free space was off, or the scan was not mapped). A file of
-    another length is not this scan's: ValueError naming it."""
-    path = prediction_file(out_root, sequence_name, scan_id, ".dynamic")
-    if not path.is_file():
-        return None
-    flags = np.fromfile(path, np.uint8)
-    if len(flags) != num_points:
-        raise ValueError(f"{path}: {len(flags)} flags for a scan of {num_points} points")
-    return flags.astype(bool)
-
-
-# --------------------------------------------------------------------------- reader
-
-
-def _normalise_sequence(sequence: str | int) -> str:
-    s = str(sequence).strip()
-    return s.zfill(2) if s.isdigit() else s
-
-
-def _list_sequences(root: Path) -> list[str]:
-    seq_root = root / "sequences"
-    if not seq_root.is_dir():
-        return []
-    return sorted(p.name for p in seq_root.iterdir() if (p / "velodyne").is_dir())
 
 
 class SemanticKittiSequence:
@@ -183,43 +119,7 @@ class SemanticKittiSequence:
         if input not in INPUTS:
             raise ValueError(f"input must be one of {INPUTS}, got {input!r}")
         self.input = input
-        root = Path(path)
-        if not root.exists():
-            raise DatasetError(f"{root}: folder does not exist")
-        if not root.is_dir():
-            raise DatasetError(
-                f"{root}: not a folder (expected a SemanticKITTI sequence folder "
-                f"with velodyne/, or a dataset root with sequences/NN/)"
-            )
-
-        if (root / "velodyne").is_dir():
-            self.sequence_dir = root
-            if sequence is not None:
-                self.sequence_name = _normalise_sequence(sequence)
-            else:
-                name = root.resolve().name
-                self.sequence_name = name if re.fullmatch(r"\d\d", name) else "00"
-        elif (root / "sequences").is_dir():
-            found = _list_sequences(root)
-            if sequence is None:
-                raise DatasetError(
-                    f"{root}: is a dataset root; choose a sequence "
-                    f"(sequence= / --sequence), found: {', '.join(found) or 'none'}"
-                )
-            name = _normalise_sequence(sequence)
-            seq_dir = root / "sequences" / name
-            if not (seq_dir / "velodyne").is_dir():
-                raise DatasetError(
-                    f"{seq_dir}: no such sequence with a velodyne/ folder; "
-                    f"sequences found: {', '.join(found) or 'none'}"
-                )
-            self.sequence_dir = seq_dir
-            self.sequence_name = name
-        else:
-            raise DatasetError(
-                f"{root}: no velodyne/ folder (not a SemanticKITTI sequence) and "
-                f"no sequences/ folder (not a dataset root)"
-            )
+        self.sequence_dir, self.sequence_name = find_sequence(path, sequence)
 
         d = self.sequence_dir
         self.velodyne_dir = d / "velodyne"
@@ -240,20 +140,7 @@ class SemanticKittiSequence:
                 f"{hint}"
             )
 
-        bin_names: dict[int, str] = {}
-        for p in sorted(self.velodyne_dir.iterdir()):
-            m = _BIN_RE.match(p.name)
-            if not m:
-                continue
-            sid = int(m.group(1))
-            if sid in bin_names:
-                raise DatasetError(
-                    f"{self.velodyne_dir}: {bin_names[sid]} and {p.name} are both "
-                    f"scan {sid}; each scan number must have one file"
-                )
-            bin_names[sid] = p.name
-        if not bin_names:
-            raise DatasetError(f"{self.velodyne_dir}: no NNNNNN.bin scans")
+        bin_names = scan_files(self.velodyne_dir)
         all_ids = sorted(bin_names)
         self.scan_ids = [i for i in all_ids if i >= first and (last is None or i <= last)]
         if not self.scan_ids:

@@ -1,0 +1,57 @@
+"""`McapOptions`: how `McapScanReader` turns a recording into scans.
+
+Its own module because the options are made and checked before any file is opened (from
+the command line, or from what a checkpoint stored), and both passes of the reader read them:
+the survey (`tisem.io.mcap_survey`) and the scans (`tisem.io.mcap_reader`, which exports them).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from tisem.labels import NUM_CLASSES
+
+
+@dataclass
+class McapOptions:
+    """How to turn a recording into scans (the `map_mcap.py` options)."""
+
+    topic: str | None = None  # the cloud topic; found automatically when there is one
+    label_field: str = "label"  # per-point label field ...
+    label_space: str = "raw"  # ... holding raw SemanticKITTI ids or train ids
+    prob_field: str | None = None  # or a count=C float field of class probabilities
+    gt_field: str | None = None  # ground-truth label field (same label space), for metrics
+    map_frame: str = "map"
+    pose_topic: str | None = None  # Odometry / PoseStamped instead of /tf (dynamic)
+    pose_child_frame: str | None = None  # the frame a PoseStamped is the pose of (default: the
+    # top of the cloud frame's /tf_static chain)
+    tf_tolerance_s: float = 0.0  # allowed extrapolation beyond a transform's samples
+    first: int = 0  # scans by message order, last inclusive
+    last: int | None = None
+    num_classes: int = NUM_CLASSES
+
+    def validate(self) -> None:
+        """ValueError naming the option, its value and what is allowed."""
+        if self.label_space not in ("raw", "train"):
+            raise ValueError(f"label_space must be 'raw' or 'train', got {self.label_space!r}")
+        tolerance = self.tf_tolerance_s
+        if not (isinstance(tolerance, (int, float)) and 0 <= tolerance < math.inf):
+            raise ValueError(f"tf_tolerance_s must be a finite number >= 0, got {tolerance!r}")
+        for name in ("label_field", "map_frame"):
+            if not (isinstance(getattr(self, name), str) and getattr(self, name)):
+                raise ValueError(f"{name} must be a non-empty string, got {getattr(self, name)!r}")
+        if not (_is_int(self.first) and self.first >= 0):
+            raise ValueError(f"first must be a whole number >= 0, got {self.first!r}")
+        if self.last is not None and not (_is_int(self.last) and self.last >= self.first):
+            raise ValueError(
+                f"last must be a whole number >= first ({self.first}) or None, got {self.last!r}"
+            )
+        if not (_is_int(self.num_classes) and self.num_classes >= 2):
+            raise ValueError(f"num_classes must be a whole number >= 2, got {self.num_classes!r}")
+
+
+def _is_int(value) -> bool:
+    return isinstance(value, (int, np.integer)) and not isinstance(value, bool)

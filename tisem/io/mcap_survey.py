@@ -1,0 +1,279 @@
+"""The first pass of `McapScanReader` over a recording: the pose messages, the message counts,
+the cloud topic, and whether its clouds have what the options need.
+
+Apart from the reader (`tisem.io.mcap_reader`) because this pass runs once, before any
+mapping, and leaves only its findings behind: every "this cannot work" error of a recording
+comes from here (with the damage that may be why), and the scans are then read without it.
+"""
+
+from __future__ import annotations
+
+from collections import Counter
+
+from mcap.records import Channel, Schema
+
+from tisem.errors import DatasetError
+from tisem.io import pointcloud2 as pc2
+from tisem.io.mcap_messages import (
+    CLOUD_SCHEMAS,
+    POSE_SCHEMAS,
+    TF_SCHEMAS,
+    UNSUPPORTED_CLOUDS,
+    MessageDecoders,
+    cloud_parts,
+    pose_edges,
+)
+from tisem.io.mcap_options import McapOptions
+from tisem.io.mcap_records import Loss, LostMessages, McapRecords, ReadReport
+from tisem.io.tf import TfBuffer, TfError
+
+
+def _describe_topics(counts: Counter, kinds: dict) -> str:
+    return ", ".join(f"{t} ({kinds.get(t, '?')}, {n} msgs)" for t, n in sorted(counts.items()))
+
+
+class Survey:
+    """What the first pass found: `schemas`, `channels` (by id), `kinds` (topic -> schema
+    name), the cloud `topic` and its `frame_id`, the transform buffer `tf`, `total` (scans
+    the options select) and `poses_lost` (pose messages were lost or undecodable).
+
+    Raises `DatasetError` when nothing can be mapped: no cloud topic, an ambiguous one, a
+    missing field, no transform path. Damage found is appended to `report`.
+    """
+
+    def __init__(
+        self,
+        path: str,
+        options: McapOptions,
+        records: McapRecords,
+        decoders: MessageDecoders,
+        report: ReadReport,
+    ) -> None:
+        self.path, self.options, self.report = path, options, report
+        self._survey(records, decoders)
+
+    def _survey(self, records: McapRecords, decoders: MessageDecoders) -> None:
+        opts, report = self.options, self.report
+        schemas: dict[int, Schema] = {}
+        channels: dict[int, Channel] = {}
+        kinds: dict[str, str] = {}  # topic -> schema name
+        samples = []  # (static, foxglove, parent, child, t, xyz, q)
+        first_cloud: dict[str, object] = {}  # topic -> first usable cloud
+        misfits: dict[str, object] = {}  # topic -> first cloud lacking a field
+        self._cloud_errors: dict[str, str] = {}  # topic -> why its first bad cloud failed
+        undecodable = Counter()
+        pose_errors: dict[str, str] = {}
+        lost_clouds = Counter()  # channel id -> messages in lost chunks
+        for rec in records.records(report):
+            if isinstance(rec, Schema):
+                schemas[rec.id] = rec
+                continue
+            if isinstance(rec, Channel):
+                channels[rec.id] = rec
+                schema = schemas.get(rec.schema_id)
+                kinds[rec.topic] = (
+                    schema.name if schema else "unknown schema" if rec.schema_id else "no schema"
+                )
+                continue
+            if isinstance(rec, LostMessages):
+                if rec.channel_id is not None:
+                    lost_clouds[rec.channel_id] += rec.count
+                continue
+            ch = channels[rec.channel_id]
+            name = kinds[ch.topic]
+            # with --pose-topic, /tf is ignored but /tf_static still gives the sensor mount
+            static = ch.topic.endswith("tf_static")
+            is_pose = (
+                name in TF_SCHEMAS
+                and (opts.pose_topic is None or static)
+                or ch.topic == opts.pose_topic
+            )
+            wants_cloud = (
+                name in CLOUD_SCHEMAS
+                and ch.topic not in first_cloud
+                and (opts.topic is None or ch.topic == opts.topic)
+            )
+            if not (is_pose or wants_cloud):
+                continue
+            try:
+                msg = decoders.decode(ch, schemas.get(ch.schema_id), rec.data)
+                if wants_cloud:
+                    parts = cloud_parts(name, msg)
+                    if self._cloud_problem(parts, ch.topic) is None:
+                        first_cloud[ch.topic] = parts
+                    else:  # one odd cloud must not refuse the file
+                        misfits.setdefault(ch.topic, parts)
+                    continue
+                edges = pose_edges(name, msg, default_parent=opts.map_frame, default_child=None)
+            # a damaged message (in a chunk without CRC) or a schema we cannot parse; a bad
+            # cloud is skipped with its reason when the scans are read, so only its reason is
+            # kept here
+            except Exception as e:  # noqa: BLE001 - decoders raise anything on bad bytes
+                why = f"{type(e).__name__}: {e}"
+                if wants_cloud:
+                    self._cloud_errors.setdefault(ch.topic, why)
+                else:
+                    undecodable[ch.topic] += 1
+                    pose_errors.setdefault(ch.topic, why)
+                continue
+            fox = name.startswith("foxglove.")
+            samples += [(static, fox, *e) for e in edges]
+        for topic, n in undecodable.items():
+            report.losses.append(
+                Loss(
+                    topic,
+                    f"messages could not be decoded (the first: {pose_errors[topic][:200]})",
+                    messages=n,
+                    topics=Counter({topic: n}),
+                )
+            )
+        pose_topics = {t for t, k in kinds.items() if k in TF_SCHEMAS or t == opts.pose_topic}
+        # a lost pose message changes the poses interpolated across where it was
+        self.poses_lost = bool(undecodable) or any(
+            loss.uncounted or pose_topics & set(loss.topics) for loss in report.losses
+        )
+        self.kinds = kinds
+        self.schemas, self.channels = schemas, channels
+        try:
+            self.topic = self._pick_topic(kinds, {*first_cloud, *misfits})
+            if self.topic not in first_cloud:  # no cloud has what the options need
+                raise DatasetError(self._cloud_problem(misfits[self.topic], self.topic))
+            self.frame_id = first_cloud[self.topic][1]
+            self._build_tf(samples)
+            self._check_tf()
+        except DatasetError as e:  # what was lost may be why
+            raise DatasetError(f"{e}{self._damage()}") from None
+        n = report.messages[self.topic] + sum(
+            k
+            for cid, k in lost_clouds.items()
+            if cid in channels and channels[cid].topic == self.topic
+        )
+        last = n - 1 if opts.last is None else min(opts.last, n - 1)
+        self.total = max(0, last - opts.first + 1)
+
+    def _pick_topic(self, kinds: dict, decoded: set) -> str:
+        counts = Counter({t: self.report.messages[t] for t in kinds})
+        clouds = {t for t, k in kinds.items() if k in CLOUD_SCHEMAS and counts[t] > 0}
+        where = f"{self.path}"
+
+        def listing(topics) -> str:
+            return _describe_topics(Counter({c: counts[c] for c in topics}), kinds) or "none"
+
+        if self.options.topic is not None:
+            t = self.options.topic
+            if t not in kinds:
+                raise DatasetError(
+                    f"{where}: no topic {t!r}; point-cloud topics: {listing(clouds)}"
+                )
+            if kinds[t] not in CLOUD_SCHEMAS:
+                raise DatasetError(
+                    f"{where}: topic {t!r} carries {kinds[t]}, not a point cloud "
+                    f"tisem reads ({', '.join(CLOUD_SCHEMAS)})"
+                )
+            clouds = {t}
+        if not clouds:
+            other = [t for t, k in kinds.items() if k in UNSUPPORTED_CLOUDS]
+            hint = (
+                f"; {', '.join(f'{t} ({kinds[t]})' for t in other)} cannot be read "
+                f"(supported: {', '.join(CLOUD_SCHEMAS)})"
+                if other
+                else ""
+            )
+            raise DatasetError(
+                f"{where}: no point-cloud messages found{hint}; topics: "
+                f"{_describe_topics(counts, kinds) or 'none'}"
+            )
+        if len(clouds) > 1:
+            raise DatasetError(
+                f"{where}: several point-cloud topics, choose one with --topic: {listing(clouds)}"
+            )
+        topic = clouds.pop()
+        if topic not in decoded:
+            why = self._cloud_errors.get(topic, "unknown")
+            raise DatasetError(
+                f"{where}: none of the {counts[topic]} messages on {topic} "
+                f"could be decoded (the first: {why[:300]})"
+            )
+        return topic
+
+    def _damage(self) -> str:
+        """'; the file is damaged: ...' (the first few losses), or '' for a whole file."""
+        losses = [loss.line() for loss in self.report.losses]
+        if not losses:
+            return ""
+        more = f"; and {len(losses) - 3} more" if len(losses) > 3 else ""
+        return f"; the file is damaged: {'; '.join(losses[:3])}{more}"
+
+    def _cloud_problem(self, parts, topic: str) -> str | None:
+        """Why a decoded cloud lacks what the options need (fields, a frame), or None. Missing
+        fields are a property of the recording: said before mapping anything."""
+        arr, frame_id, _, _ = parts
+        opts = self.options
+        needed = ["x", "y", "z", opts.prob_field or opts.label_field]
+        if opts.gt_field:
+            needed.append(opts.gt_field)
+        missing = [f for f in needed if not pc2.has_field(arr, f)]
+        if missing:
+            what = {
+                opts.label_field: "label field (--label-field)",
+                opts.prob_field: "probability field (--prob-field)",
+                opts.gt_field: "ground-truth field (--gt-field)",
+            }
+            return (
+                f"{self.path}: the clouds on {topic} have no "
+                f"{' and no '.join(repr(f) + ' ' + what.get(f, 'field') for f in missing)}; "
+                f"their fields are: {pc2.describe_fields(arr)}"
+            )
+        if not frame_id:
+            return f"{self.path}: the clouds on {topic} have an empty frame_id"
+        return None
+
+    def _build_tf(self, samples: list) -> None:
+        opts = self.options
+        self.tf = TfBuffer(max_extrapolation_s=opts.tf_tolerance_s)
+        for static, _fox, parent, child, t, xyz, q in samples:
+            if static:
+                self.tf.add(parent, child, t, xyz, q, static=True)
+        # a PoseStamped names no child: by default it is the pose of the top of the sensor's
+        # static mount (base_link for base_link -> velodyne), or of the sensor when unmounted
+        child_default = opts.pose_child_frame or self.tf.root_of(self.frame_id)
+        fox_children = set()
+        for static, fox, parent, child, t, xyz, q in samples:
+            if static:
+                continue
+            self.tf.add(parent, child or child_default, t, xyz, q)
+            if fox:
+                fox_children.add((child or child_default).lstrip("/"))
+        if fox_children:
+            promoted = self.tf.promote_constant_edges(fox_children)
+            if promoted:
+                self.report.notes.append(
+                    f"foxglove transforms that never change were taken as "
+                    f"static: {', '.join(sorted(promoted))}"
+                )
+        self.report.notes += [f"tf: {w}" for w in self.tf.warnings]
+
+    def _check_tf(self) -> None:
+        opts = self.options
+        if opts.pose_topic is not None and opts.pose_topic not in self.kinds:
+            raise DatasetError(
+                f"{self.path}: no topic {opts.pose_topic!r}; topics: "
+                f"{_describe_topics(self.report.messages, self.kinds)}"
+            )
+        if opts.pose_topic is not None and self.kinds[opts.pose_topic] not in POSE_SCHEMAS:
+            raise DatasetError(
+                f"{self.path}: --pose-topic {opts.pose_topic} carries "
+                f"{self.kinds[opts.pose_topic]}; supported: "
+                f"{', '.join(POSE_SCHEMAS)}"
+            )
+        if self.frame_id.lstrip("/") == opts.map_frame.lstrip("/"):
+            return
+        if not self.tf.can_connect(opts.map_frame, self.frame_id):
+            try:
+                self.tf.lookup(opts.map_frame, self.frame_id, 0)
+            except TfError as e:
+                raise DatasetError(
+                    f"{self.path}: no transform from the map frame "
+                    f"{opts.map_frame!r} to the cloud frame {self.frame_id!r} "
+                    f"(--map-frame, --pose-topic): {e}"
+                ) from None
