@@ -1,4 +1,5 @@
-"""Shared pieces of the benchmarks: where the data is, how scans are replayed, the device line."""
+"""Shared pieces of the benchmarks: where the data is, how scans are replayed, the process's
+memory, the device line."""
 
 from __future__ import annotations
 
@@ -13,6 +14,7 @@ import numpy as np
 from tisem.scan import Scan
 
 KITTI_MINI = Path(__file__).resolve().parents[2] / "shared" / "data" / "semantickitti_08_mini"
+GIB = 1 << 30
 
 
 def add_data_args(p: argparse.ArgumentParser) -> None:
@@ -69,6 +71,28 @@ def replay(scans: list[Scan], n: int, period_s: float = 0.1):
 
 def peak_rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def rss_mb() -> float:
+    import psutil
+
+    return psutil.Process().memory_info().rss / 2**20
+
+
+def vms_mb() -> float:
+    import psutil
+
+    return psutil.Process().memory_info().vms / 2**20
+
+
+def gib_mappings() -> int:
+    """Mappings of 1 GiB or more in this process (taichi's host chunks; Linux only)."""
+    try:
+        with open("/proc/self/maps") as f:
+            spans = (line.split()[0].split("-") for line in f)
+            return sum(1 for a, b in spans if int(b, 16) - int(a, 16) >= GIB)
+    except OSError:
+        return -1
 
 
 def device_line(arch: str) -> str:

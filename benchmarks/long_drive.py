@@ -24,7 +24,6 @@ one, which corrupts memory or crashes); it reports the live leaf blocks at that 
 from __future__ import annotations
 
 import argparse
-import resource
 import sys
 import time
 from pathlib import Path
@@ -34,9 +33,7 @@ import numpy as np
 if not __package__:  # run as `python benchmarks/NAME.py`: import from the checkout
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from benchmarks.common import benchmark_main
-
-GIB = 1 << 30
+from benchmarks.common import benchmark_main, gib_mappings, peak_rss_mb, rss_mb, vms_mb
 
 
 def parse_args(argv=None):
@@ -85,35 +82,6 @@ def parse_args(argv=None):
         help="window half-size (m) for --probe-chunk: big enough to evict nothing",
     )
     return p.parse_args(argv)
-
-
-# --------------------------------------------------------------------------- memory
-
-
-def rss_mb() -> float:
-    import psutil
-
-    return psutil.Process().memory_info().rss / 2**20
-
-
-def vms_mb() -> float:
-    import psutil
-
-    return psutil.Process().memory_info().vms / 2**20
-
-
-def peak_rss_mb() -> float:
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
-
-
-def gib_mappings() -> int:
-    """Mappings of 1 GiB or more in this process (taichi's host chunks; Linux only)."""
-    try:
-        with open("/proc/self/maps") as f:
-            spans = (line.split()[0].split("-") for line in f)
-            return sum(1 for a, b in spans if int(b, 16) - int(a, 16) >= GIB)
-    except OSError:
-        return -1
 
 
 # --------------------------------------------------------------------------- the drive

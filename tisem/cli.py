@@ -18,24 +18,26 @@ results/latest points to it once the run has finished.
 Exit status: 0 done; 1 the run could not finish (a full disk: `RunError`), what it wrote is
 kept; 2 a bad command line, config or input (`AppError`, `ConfigError`, `DatasetError`); 130
 interrupted (Ctrl-C, `RunInterrupted`).
+
+The errors themselves are `tisem.app_errors` (here as `cli.AppError`, `cli.bad_input`), the
+choice of the results folder `tisem.results_dir`.
 """
 
 from __future__ import annotations
 
 import argparse
-import datetime as _dt
 import logging
 import math
-import os
-from collections.abc import Callable, Iterable, Iterator
-from contextlib import contextmanager
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from tisem.app_errors import AppError, BackendError, bad_input  # the apps use cli.AppError
 from tisem.config import MODES, RunConfig, check_run_config, load_config
 from tisem.errors import ConfigError, DatasetError, RunError, RunInterrupted
-from tisem.outputs import clear_previous_run, is_results_folder
+from tisem.outputs import clear_previous_run
+from tisem.results_dir import choose_results_dir, point_latest
 
 if TYPE_CHECKING:  # (the run imports the mapper, which starts Taichi)
     from tisem.checkpoint import Checkpoint
@@ -51,7 +53,6 @@ CONFIG_OPTIONS = {
     "mode": "--mode",
     "classes": "--classes",
 }
-RESULTS_ROOT = "results"
 
 
 # --------------------------------------------------------------------------- options
@@ -166,25 +167,6 @@ def finite_number(flag: str, value: float, low: float = 0.0) -> float:
 
 
 # --------------------------------------------------------------------------- errors
-
-
-class AppError(Exception):
-    """A bad command line or input: the app logs this one line and exits with status 2."""
-
-
-class BackendError(RuntimeError):
-    """The requested Taichi backend cannot start (e.g. --arch cuda without a GPU)."""
-
-
-@contextmanager
-def bad_input(prefix: str = "") -> Iterator[None]:
-    """Inside: the errors that mean 'this input cannot be used' (a config key, a value, a
-    file, a `DatasetError`) become an `AppError` with their message (after `prefix`)."""
-    try:
-        yield
-    except (KeyError, ValueError, OSError) as exc:
-        message = exc.args[0] if isinstance(exc, KeyError) and exc.args else exc
-        raise AppError(f"{prefix}{message}") from None
 
 
 def run_app(
@@ -386,66 +368,3 @@ def init_backend(arch: str, threads: int) -> str:
     except RuntimeError as exc:
         raise BackendError(str(exc)) from None
     return describe()
-
-
-# --------------------------------------------------------------------------- results folder
-
-
-def choose_results_dir(
-    out: Path | None,
-    checkpoint: Checkpoint | None,
-    overwrite: bool,
-    root: str | Path = RESULTS_ROOT,
-) -> tuple[Path, bool]:
-    """The folder the run will write (not made here) and whether results/latest is to point
-    to it: --out; else the resumed run's folder; else a new results/<timestamp>/.
-
-    --out must be a folder that is new or empty, or the folder of the run being resumed, or,
-    with --overwrite, a previous run's results folder; AppError otherwise."""
-    resumed = checkpoint.results_dir.resolve() if checkpoint is not None else None
-    if out is None:
-        if resumed is not None:
-            return checkpoint.results_dir, False
-        return new_timestamped_dir(Path(root)), True
-    out = Path(out)
-    if out.exists() and not out.is_dir():
-        raise AppError(f"--out {out}: is a file, not a folder")
-    if not out.is_dir() or out.resolve() == resumed:
-        return out, False
-    contents = sorted(p.name for p in out.iterdir())
-    if not contents:
-        return out, False
-    shown = ", ".join(contents[:5]) + (", ..." if len(contents) > 5 else "")
-    if not overwrite:
-        raise AppError(
-            f"--out {out}: the folder is not empty ({shown}); give --overwrite to "
-            f"replace a previous run's results there, or another --out"
-        )
-    if not is_results_folder(out):
-        raise AppError(
-            f"--out {out}: the folder is not empty ({shown}) and holds no tisem "
-            f"results (no run.json) for --overwrite to replace; choose another --out"
-        )
-    return out, False
-
-
-def new_timestamped_dir(root: Path) -> Path:
-    """results/<timestamp>/ (with a suffix when taken); not made here."""
-    stamp = _dt.datetime.now().strftime("%Y-%m-%d_%H-%M-%S")
-    out = root / stamp
-    k = 1
-    while out.exists():
-        out = root / f"{stamp}_{k}"
-        k += 1
-    return out
-
-
-def point_latest(out: Path) -> None:
-    """results/latest -> `out` (a sibling), replacing the old link."""
-    latest = out.parent / "latest"
-    try:
-        if latest.is_symlink() or latest.exists():
-            latest.unlink()
-        os.symlink(out.name, latest)
-    except OSError:
-        pass  # a filesystem without links: the timestamped folder is what counts

@@ -16,8 +16,9 @@ The steps (fleet.json records each one's seconds and what it did):
 4. reduce: reducers (Ray tasks) each own a set of tiles and merge them from the task maps
    (`tisem.reduce`); the index is written last. The map of a group that fits
    `max_merged_voxels` is also written as map.npz, map.ply and map_bev.png.
-5. score: each log's scans are looked up in its group's merged map (final-map protocol), one
-   Ray task per log, into the group's metrics.json.
+5. score (`tisem.fleet_report`, with the per-group files and fleet.json): each log's scans
+   are looked up in its group's merged map (final-map protocol), one Ray task per log, into
+   the group's metrics.json.
 A task that fails is retried as Ray allows, then reported (fleet.json "failed" and "missing");
 the others are merged. Task maps of an earlier run of the same plan are kept (`reuse`).
 """
@@ -28,17 +29,16 @@ import dataclasses
 import logging
 import re
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from pathlib import Path
 
 from tisem import cluster
 from tisem.config import RunConfig, to_dict
-from tisem.evaluate import Confusion
+from tisem.fleet_report import fleet_report, report_json, score_groups, write_group_files
 from tisem.fleet_task import MapTask, anchor_of, dilate, map_task
 from tisem.logs import LogSpec, discover_logs, first_pose, log_length
-from tisem.reduce import assign_tiles, reduce_tiles, score_log
-from tisem.report import METRIC_KEYS
-from tisem.tiles import TILE_VOX, TiledMap, TileIndex, is_tiled_map, write_index
+from tisem.reduce import assign_tiles, reduce_tiles
+from tisem.tiles import TILE_VOX, TileIndex, is_tiled_map, write_index
 
 log = logging.getLogger(__name__)
 
@@ -271,14 +271,16 @@ def run_fleet(
         maps, reduction = _reduce(groups, tasks, finals, final_dirs, cfg, options, out_dir)
         seconds["reduce"] = time.perf_counter() - clock
         clock = time.perf_counter()
-        metrics = _score(groups, tasks, finals, maps, cfg) if options.evaluate else {}
+        metrics = score_groups(groups, tasks, finals, maps, cfg) if options.evaluate else {}
         seconds["score"] = time.perf_counter() - clock
     clock = time.perf_counter()
     for name, folder in maps.items():
-        _group_files(folder, groups[name], tasks, finals, failed, metrics.get(name), cfg, options)
+        write_group_files(
+            folder, groups[name], tasks, finals, failed, metrics.get(name), cfg, options
+        )
     seconds["files"] = time.perf_counter() - clock
-    report = _report(options, cfg, tasks, finals, failed, maps, reduction, metrics, seconds)
-    (out_dir / "fleet.json").write_text(_json(report))
+    report = fleet_report(options, cfg, tasks, finals, failed, maps, reduction, metrics, seconds)
+    (out_dir / "fleet.json").write_text(report_json(report))
     return FleetResult(out_dir, maps, report, dict(failed))
 
 
@@ -328,116 +330,3 @@ def _reduce(groups, tasks, finals, final_dirs, cfg, options, out_dir):
             k: {x: v for x, v in r.items() if x != "entries"} for k, r in mine.items()
         }
     return maps, reduction
-
-
-def _score(groups, tasks, finals, maps, cfg) -> dict:
-    """Step 5: {group: {"final": metrics, "input": metrics, "scans": n}}."""
-    refs, of_group = {}, {}
-    for group in maps:
-        for spec in groups[group]:
-            ranges = [
-                (tasks[t].first, tasks[t].last) for t in sorted(finals) if tasks[t].log == spec
-            ]
-            if ranges:
-                key = f"{group}/{spec.name}"
-                of_group[key] = group
-                refs[key] = cluster.submit(
-                    score_log, cpus=1, args=(str(maps[group]), spec, ranges, cfg.input)
-                )
-    done, failed = cluster.gather(refs)
-    metrics = {}
-    for group in maps:
-        final, network = Confusion(cfg.mapper.num_classes), Confusion(cfg.mapper.num_classes)
-        scans = 0
-        for key, r in done.items():
-            if of_group[key] == group:
-                final.merge(Confusion.from_matrix(r["final"]))
-                network.merge(Confusion.from_matrix(r["input"]))
-                scans += r["scans"]
-        metrics[group] = {
-            "scans": scans,
-            "final": _summary(final),
-            "input": _summary(network),
-            "failed": {k: v for k, v in failed.items() if of_group[k] == group},
-        }
-    return metrics
-
-
-def _summary(conf: Confusion) -> dict:
-    m = conf.metrics()
-    return {k: m[k] for k in METRIC_KEYS}
-
-
-def _group_files(folder, members, tasks, finals, failed, metrics, cfg, options) -> None:
-    """metrics.json of a group, and the usual map files when the merged map fits."""
-    tiled = TiledMap.open(folder)
-    mine = [t for t in tasks if tasks[t].log in members]
-    body = {
-        "mode": cfg.mapper.mode,
-        "world_frame": tiled.world_frame,
-        "voxels": tiled.voxels,
-        "tiles": len(tiled.tile_keys),
-        "tasks": sorted(t for t in mine if t in finals),
-        "missing": _missing(tasks, mine, finals, failed),
-        **(metrics or {}),
-        "config": to_dict(cfg),
-    }
-    (folder / "metrics.json").write_text(_json(body))
-    if tiled.voxels > options.max_merged_voxels:
-        log.info("%s: %d voxels > %d: tiles only", folder, tiled.voxels, options.max_merged_voxels)
-        return
-    from tisem.merge_files import write_usual_files
-
-    trajectories = [finals[t]["trajectory_xy"] for t in mine if t in finals]
-    write_usual_files(
-        folder,
-        tiled.snapshot(),
-        to_dict(cfg)["mapper"],
-        {"world_frame": tiled.world_frame},
-        trajectories,
-    )
-
-
-def _missing(tasks, mine, finals, failed) -> list[dict]:
-    """What a group lacks: the scans of failed tasks, and the scans tasks skipped."""
-    out = [
-        {
-            "task": t,
-            "log": tasks[t].log.path,
-            "first": tasks[t].first,
-            "last": tasks[t].last if tasks[t].last < 1 << 62 else None,
-            "reason": failed.get(t, "not run"),
-        }
-        for t in mine
-        if t not in finals
-    ]
-    for t in mine:
-        for s in (finals.get(t) or {}).get("skipped", []):
-            out.append(
-                {"task": t, "log": tasks[t].log.path, "scan": s["index"], "reason": s["reason"]}
-            )
-    return out
-
-
-def _report(options, cfg, tasks, finals, failed, maps, reduction, metrics, seconds) -> dict:
-    return {
-        "options": asdict(options),
-        "mode": cfg.mapper.mode,
-        "tasks": {
-            t: {k: v for k, v in finals[t].items() if k != "trajectory_xy"} for t in sorted(finals)
-        },
-        "failed": dict(failed),
-        "missing": [
-            m for t in tasks if t not in finals for m in _missing(tasks, [t], finals, failed)
-        ],
-        "maps": {g: str(p) for g, p in maps.items()},
-        "reduction": reduction,
-        "metrics": metrics,
-        "seconds": seconds,
-    }
-
-
-def _json(data) -> str:
-    import json
-
-    return json.dumps(data, indent=1, default=str)

@@ -45,6 +45,6 @@ def add_config_args(p: argparse.ArgumentParser) -> None:
 def results_folder(out: Path | None) -> Path:
     """--out as given (a fleet or batch folder is reused on purpose: finished work in it is
     kept), else a new results/<timestamp>/."""
-    from tisem.cli import RESULTS_ROOT, new_timestamped_dir
+    from tisem.results_dir import RESULTS_ROOT, new_timestamped_dir
 
     return Path(out) if out is not None else new_timestamped_dir(Path(RESULTS_ROOT))

@@ -7,7 +7,7 @@ The steps, in order: map every scan (scoring the network's labels and, with `onl
 map right after the scan), saving a checkpoint every N mapped scans; look every mapped scan up
 in the finished map (the final-map protocol), writing its per-point predictions in
 SemanticKITTI layout; write metrics.json; write the map files. config.yaml and run.json are
-written with the first file, so a run that maps nothing leaves no folder behind.
+written with the first file, so a run that maps nothing leaves no folder (`tisem.run_writer`).
 
 Bad scans arrive as `SkippedScan`s, or the pose gate (`tisem.pose_gate`: a pose far from the
 drive) or the mapper refuses them: each is logged once, listed in metrics.json and has no
@@ -31,8 +31,7 @@ import numpy as np
 import taichi as ti
 from tqdm import tqdm
 
-from tisem import outputs
-from tisem.checkpoint import CHECKPOINT_DIR, Checkpoint, open_checkpoint, save_checkpoint
+from tisem.checkpoint import CHECKPOINT_DIR, Checkpoint, open_checkpoint
 from tisem.config import RunConfig
 from tisem.errors import NothingMapped, RunError, RunInterrupted, SkippedScan, os_error_text
 from tisem.evaluate import Confusion, network_labels, score_scan
@@ -43,6 +42,7 @@ from tisem.mapper import Mapper
 from tisem.pose_gate import Anchor, PoseGate, Verdict
 from tisem.progress import RunProgress
 from tisem.report import run_metrics
+from tisem.run_writer import RunWriter
 from tisem.scan import Scan
 
 log = logging.getLogger(__name__)
@@ -112,12 +112,21 @@ class MappingRun:
         self.info = dict(
             source_info or {}, checkpoint_every=self.checkpoint_every, sequence=sequence_name
         )
+        self.files = RunWriter(self.out_dir, cfg, self.info, sequence_name, self.checkpoint_dir)
         self.mapper = mapper or Mapper(cfg.mapper)
         self.progress = progress or RunProgress.start(self.mapper.C)
-        self.checkpointed_index: int | None = None  # last_index of the newest checkpoint
-        self.stopped: str | None = None
-        self._info_written = False
         self._stop = StopRequest()
+
+    # the writer keeps these two, set by the run: a write that fails names them
+    @property
+    def checkpointed_index(self) -> int | None:
+        """`last_index` of the newest checkpoint (None: none yet)."""
+        return self.files.checkpointed_index
+
+    @property
+    def stopped(self) -> str | None:
+        """Why mapping ended before the stream did (None: it did not)."""
+        return self.files.stopped
 
     @classmethod
     def resume(
@@ -171,7 +180,7 @@ class MappingRun:
             progress=progress,
             **options,
         )
-        run.checkpointed_index = progress.last_index
+        run.files.checkpointed_index = progress.last_index
         return run
 
     # ------------------------------------------------------------------ the steps
@@ -195,8 +204,7 @@ class MappingRun:
         metrics = run_metrics(self.progress, final, self.mapper, self.cfg)
         if self.stopped:
             metrics["stopped"] = self.stopped
-        with self._writing("metrics.json"):
-            outputs.write_metrics(self.out_dir, metrics)
+        self.files.write_metrics(metrics)
         result = RunResult(
             metrics,
             self.mapper,
@@ -207,14 +215,7 @@ class MappingRun:
             self.progress,
         )
         if write_map_files:
-            with self._writing("the map files"):
-                outputs.write_map_files(
-                    self.out_dir,
-                    self.mapper,
-                    self.cfg.mapper,
-                    result.trajectory,
-                    progress=show_progress,
-                )
+            self.files.write_map_files(self.mapper, result.trajectory, show_progress)
         return result
 
     def map_scans(
@@ -309,12 +310,11 @@ class MappingRun:
             self._skip(SkippedScan(scan.index, scan.name, str(exc)))
             return False
         except OSError as exc:  # the store's spill folder is full or gone
-            self.stopped = f"at scan {scan.index}: {os_error_text(exc)}"
+            self.files.stopped = f"at scan {scan.index}: {os_error_text(exc)}"
             return False
         self.progress.add_mapped(scan, seconds, report)
         if report.dynamic is not None:  # free space: the scan's dynamic points
-            with self._writing("the dynamic flags"):
-                write_dynamic_flags(self.out_dir, self.sequence_name, scan.index, report.dynamic)
+            self.files.write_dynamic_flags(scan.index, report.dynamic)
         if scan.gt_labels is not None:
             score_scan(self.progress.input, scan, network_labels(scan))
             if self.cfg.online_eval:
@@ -348,30 +348,10 @@ class MappingRun:
         raise RunInterrupted(self.progress.last_index, checkpoint, self.out_dir)
 
     # ------------------------------------------------------------------ writing
-    def _write_info(self) -> None:
-        """config.yaml and run.json, with the first file the run writes."""
-        if not self._info_written:
-            with self._writing("config.yaml and run.json"):
-                outputs.write_run_info(self.out_dir, self.cfg, self.info)
-            self._info_written = True
-
-    def _writing(self, what: str):
-        return _Writing(self, what)
-
     def write_checkpoint(self) -> Path:
         """The map and the progress so far, to `checkpoint_dir` (atomically); a disk that
         cannot take it raises RunError (the previous checkpoint is kept)."""
-        self._write_info()
-        with self._writing("the checkpoint"):
-            path = save_checkpoint(
-                self.checkpoint_dir,
-                self.mapper,
-                self.progress,
-                run_config=self.cfg,
-                source=self.info,
-            )
-        self.checkpointed_index = self.progress.last_index
-        return path
+        return self.files.write_checkpoint(self.mapper, self.progress)
 
     def final_pass(
         self, scans: Iterable[Scan | SkippedScan], show_progress: bool = False
@@ -379,7 +359,7 @@ class MappingRun:
         """The final-map protocol: every mapped scan looked up in the finished map; writes its
         predictions (one label per point of the scan) and returns the pooled confusion.
         Scans that were not mapped are passed over: no predictions file, not scored."""
-        self._write_info()
+        self.files.write_info()
         final = Confusion(self.mapper.C)
         # minutes on a long drive: the bar counts the mapped scans it looks up
         for item in tqdm(
@@ -392,37 +372,9 @@ class MappingRun:
             if not isinstance(item, Scan) or not self.progress.is_mapped(item.index):
                 continue
             labels, _ = self.mapper.query(item.points_world(), with_probs=False)
-            with self._writing("the predictions"):
-                write_predictions(self.out_dir, self.sequence_name, item.index, labels)
+            self.files.write_predictions(item.index, labels)
             if item.gt_labels is not None:
                 score_scan(final, item, labels)
             if self._stop.requested:
                 self._interrupted()
         return final
-
-
-class _Writing:
-    """Inside: an OSError (a full disk, a folder that cannot be written) becomes one RunError
-    line saying what could not be written and what is kept."""
-
-    def __init__(self, run: MappingRun, what: str):
-        self.run, self.what = run, what
-
-    def __enter__(self):
-        return self
-
-    def __exit__(self, kind, exc, tb):
-        if exc is None or not isinstance(exc, OSError):
-            return False
-        run = self.run
-        if run.checkpointed_index is not None:
-            kept = (
-                f"the checkpoint of scan {run.checkpointed_index} is kept: continue with "
-                f"--resume {run.out_dir} once there is room"
-            )
-        else:
-            kept = "no checkpoint to resume from"
-        stopped = f" (mapping had stopped {run.stopped})" if run.stopped else ""
-        raise RunError(
-            f"cannot write {self.what} in {run.out_dir}: {os_error_text(exc)}; {kept}{stopped}"
-        ) from None
