@@ -127,3 +127,15 @@ def test_the_da_bound_counts_dynamic_points_that_share_a_voxel_with_a_static_one
     assert da_bound([first, second], 0.2) == pytest.approx(0.5)
     assert da_bound([first, second], 0.1) == pytest.approx(1.0)  # finer voxels share none
     assert da_bound([_Points(np.zeros((1, 3)), np.array([False]))], 0.2) == 1.0
+
+
+def test_the_first_dynamic_flags_of_a_run_come_with_its_config_and_run_json(tmp_path):
+    from tisem.config import RunConfig
+    from tisem.run_writer import RunWriter
+
+    out = tmp_path / "run"
+    writer = RunWriter(out, RunConfig(), {"data": "synthetic"}, "00", out / "checkpoint")
+    writer.write_dynamic_flags(0, np.array([True, False, True]))
+    assert (out / "config.yaml").is_file()
+    assert json.loads((out / "run.json").read_text()) == {"data": "synthetic"}
+    np.testing.assert_array_equal(read_dynamic_flags(out, "00", 0, 3), [True, False, True])

@@ -36,7 +36,6 @@ from tisem.config import RunConfig
 from tisem.errors import NothingMapped, RunError, RunInterrupted, SkippedScan, os_error_text
 from tisem.evaluate import Confusion, network_labels, score_scan
 from tisem.interrupt import StopRequest
-from tisem.io.kitti_predictions import write_dynamic_flags, write_predictions
 from tisem.io.mapfile import remove_stale_temp_files
 from tisem.mapper import Mapper
 from tisem.pose_gate import Anchor, PoseGate, Verdict

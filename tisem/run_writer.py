@@ -21,7 +21,7 @@ from tisem import outputs
 from tisem.checkpoint import save_checkpoint
 from tisem.config import RunConfig
 from tisem.errors import RunError, os_error_text
-from tisem.io.semantickitti import write_dynamic_flags, write_predictions
+from tisem.io.kitti_predictions import write_dynamic_flags, write_predictions
 
 if TYPE_CHECKING:
     from tisem.mapper import Mapper
@@ -93,7 +93,9 @@ class RunWriter:
         return path
 
     def write_dynamic_flags(self, index: int, dynamic: np.ndarray) -> None:
-        """The scan's per-point dynamic flags, beside its predictions."""
+        """The scan's per-point dynamic flags, beside its predictions (the first of them
+        during mapping, so config.yaml and run.json go with them)."""
+        self.write_info()
         with self.writing("the dynamic flags"):
             write_dynamic_flags(self.out_dir, self.sequence_name, index, dynamic)
 
