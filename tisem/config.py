@@ -54,7 +54,7 @@ __all__ = [
 
 @dataclass
 class MapperConfig:
-    """The method's parameters (SPEC §1). Lengths in metres unless the name says voxels."""
+    """The method's parameters (docs/method.md). Lengths in metres unless the name says voxels."""
 
     mode: str = "st"  # st | adaptive | spatial | bki | csm
     resolution_m: float = 0.2  # voxel edge
