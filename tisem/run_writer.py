@@ -81,11 +81,17 @@ class RunWriter:
                 outputs.write_run_info(self.out_dir, self.cfg, self.info)
             self._info_written = True
 
+    @contextmanager
+    def _file(self, what: str) -> Iterator[None]:
+        """Writing one of the run's files: config.yaml and run.json first, if not yet."""
+        self.write_info()
+        with self.writing(what):
+            yield
+
     def write_checkpoint(self, mapper: Mapper, progress: RunProgress) -> Path:
         """The map and the progress so far, to `checkpoint_dir` (atomically); a disk that
         cannot take it raises RunError (the previous checkpoint is kept)."""
-        self.write_info()
-        with self.writing("the checkpoint"):
+        with self._file("the checkpoint"):
             path = save_checkpoint(
                 self.checkpoint_dir, mapper, progress, run_config=self.cfg, source=self.info
             )
@@ -93,24 +99,22 @@ class RunWriter:
         return path
 
     def write_dynamic_flags(self, index: int, dynamic: np.ndarray) -> None:
-        """The scan's per-point dynamic flags, beside its predictions (the first of them
-        during mapping, so config.yaml and run.json go with them)."""
-        self.write_info()
-        with self.writing("the dynamic flags"):
+        """The scan's per-point dynamic flags, beside its predictions."""
+        with self._file("the dynamic flags"):
             write_dynamic_flags(self.out_dir, self.sequence_name, index, dynamic)
 
     def write_predictions(self, index: int, labels: np.ndarray) -> None:
         """The scan's per-point labels in the final map."""
-        with self.writing("the predictions"):
+        with self._file("the predictions"):
             write_predictions(self.out_dir, self.sequence_name, index, labels)
 
     def write_metrics(self, metrics: dict) -> None:
-        with self.writing("metrics.json"):
+        with self._file("metrics.json"):
             outputs.write_metrics(self.out_dir, metrics)
 
     def write_map_files(self, mapper: Mapper, trajectory: np.ndarray, progress: bool) -> None:
         """map.npz, map.ply, map_bev.png of the finished map (`progress`: a bar over them)."""
-        with self.writing("the map files"):
+        with self._file("the map files"):
             outputs.write_map_files(
                 self.out_dir, mapper, self.cfg.mapper, trajectory, progress=progress
             )

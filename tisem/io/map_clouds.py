@@ -48,20 +48,18 @@ def map_points(snapshot: MapSnapshot) -> np.ndarray:
     return out
 
 
-def checked_mapped(scan: Scan, mapped_labels: np.ndarray) -> np.ndarray:
-    """`mapped_labels` as an array, when it holds one label per point of `scan`; ValueError
-    saying how many it holds otherwise."""
-    mapped_labels = np.asarray(mapped_labels)
-    if mapped_labels.shape != (scan.num_points,):
-        raise ValueError(
-            f"scan {scan.index}: {mapped_labels.shape} mapped labels for {scan.num_points} points"
-        )
-    return mapped_labels
+def checked_per_point(scan: Scan, values: np.ndarray, what: str, dtype=None) -> np.ndarray:
+    """`values` as an array, when it holds one value per point of `scan`; ValueError saying
+    how many `what` it holds otherwise."""
+    values = np.asarray(values, dtype)
+    if values.shape != (scan.num_points,):
+        raise ValueError(f"scan {scan.index}: {values.shape} {what} for {scan.num_points} points")
+    return values
 
 
 def scan_points(scan: Scan, mapped_labels: np.ndarray) -> np.ndarray:
     """One scan in its sensor frame with its mapped labels (colour), input and GT labels."""
-    mapped_labels = checked_mapped(scan, mapped_labels)
+    mapped_labels = checked_per_point(scan, mapped_labels, "mapped labels")
     fields = _POINT + [("input_label", "<u2")]
     if scan.gt_labels is not None:
         fields.append(("gt_label", "<u2"))
@@ -81,11 +79,7 @@ def scan_clouds(
     DYNAMIC_POINTS_TOPIC."""
     clouds = [(SCANS_TOPIC, points)]
     if dynamic is not None:
-        dynamic = np.asarray(dynamic, bool)
-        if dynamic.shape != (scan.num_points,):
-            raise ValueError(
-                f"scan {scan.index}: {dynamic.shape} dynamic flags for {scan.num_points} points"
-            )
+        dynamic = checked_per_point(scan, dynamic, "dynamic flags", bool)
         if dynamic.any():
             clouds.append((DYNAMIC_POINTS_TOPIC, points[dynamic]))
     return clouds

@@ -27,7 +27,7 @@ from tisem.io.map_clouds import (
     DYNAMIC_MAP_TOPIC,
     MAP_TOPIC,
     SCANS_TOPIC,
-    checked_mapped,
+    checked_per_point,
     scan_clouds,
 )
 from tisem.io.pointcloud2 import pack_rgb
@@ -62,7 +62,7 @@ def ros_map_points(snapshot: MapSnapshot) -> np.ndarray:
 
 def ros_scan_points(scan: Scan, mapped_labels: np.ndarray) -> np.ndarray:
     """One scan in the map frame with its mapped labels (and colour), input and GT labels."""
-    mapped_labels = checked_mapped(scan, mapped_labels)
+    mapped_labels = checked_per_point(scan, mapped_labels, "mapped labels")
     names = ["x", "y", "z", "rgb", "label", "input_label"]
     if scan.gt_labels is not None:
         names.append("gt_label")
