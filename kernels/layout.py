@@ -25,6 +25,8 @@ into its world index by unwrapping around the window centre (`unwrap`).
 
 import taichi as ti
 
+from tisem.class_centroids import CENTROID_COLS
+
 LEAF_BITS = 2
 LEAF = 1 << LEAF_BITS  # voxels per leaf block edge
 MID = 8  # leaf blocks per top cell edge
@@ -129,6 +131,7 @@ class MapFields:
         free_space: bool = False,
         empty_evidence: float = 2.0,
         occupancy_cap: float = 4.0,
+        class_centroids: bool = False,
     ):
         for n in extent:
             if n % TOP or n & (n - 1):
@@ -165,6 +168,12 @@ class MapFields:
             self.occupancy = ti.field(ti.f32)
             self.free_stamp = ti.field(ti.i32)
             self.vox.place(self.occupancy, self.free_stamp)
+        # sub-voxel class boundaries (placed only when on, like free space): two slots of
+        # (class, weight, mean offset in the voxel), 40 B per voxel (kernels/centroids.py)
+        self.class_centroids = bool(class_centroids)
+        if self.class_centroids:
+            self.centroids = ti.field(ti.f32)
+            self.vox.dense(ti.l, CENTROID_COLS).place(self.centroids)
         # 1 / tau per class (the per-class decay of movable classes, kernels/fusion.py)
         self.class_inv_tau = ti.field(ti.f32)
         fb.dense(ti.i, self.C).place(self.class_inv_tau)

@@ -4,6 +4,7 @@ import functools
 
 import taichi as ti
 from tisem.kernels.bki import sparse_kernel
+from tisem.kernels.centroids import nearer_class
 
 
 @ti.func
@@ -62,6 +63,7 @@ def answer(
 def lookup(
     m: ti.template(),
     w,
+    x,
     center,
     half,
     p,
@@ -69,21 +71,35 @@ def lookup(
     out_inside: ti.template(),
     out_prob: ti.template(),
     with_prob,
+    res,
+    centroid_ratio,
 ):
-    """Answer query point p, whose world voxel is w: argmax and normalised counters."""
+    """Answer query point p (local coordinates x), whose world voxel is w: the argmax, or with
+    class centroids the nearer of the two leading classes (kernels/centroids.py), and the
+    normalised counters."""
     best = 0
     inside = 0
     if inside_window(w, center, half):
         inside = 1
         u = m.wrap(w)
         best_v = 0.0
+        second = 0
+        second_v = 0.0
         total = 0.0
         for c in ti.static(range(m.C)):
             v = m.counts[u, c]
             total += v
             if v > best_v:
+                second = best
+                second_v = best_v
                 best_v = v
                 best = c
+            elif v > second_v:
+                second = c
+                second_v = v
+        if ti.static(m.class_centroids):
+            if second_v > 0 and second_v >= centroid_ratio * best_v:
+                best = nearer_class(m, u, x - w.cast(ti.f32) * res, best, second, res)
         if m.is_empty(u):  # seen through (free space): it answers as no voxel does
             best = 0
             total = 0.0
@@ -108,6 +124,8 @@ def query_kernel(blend: bool):
         inv_res: ti.f32,
         with_prob: ti.i32,  # 1: write out_prob
         radius_m: ti.f32,  # blend: the query radius
+        res_m: ti.f32,  # the voxel size
+        centroid_ratio: ti.f32,  # class centroids: the second class's share that splits a voxel
         out_label: ti.types.ndarray(dtype=ti.i32, ndim=1),  # (N,) train id, 0: no evidence
         out_inside: ti.types.ndarray(dtype=ti.i32, ndim=1),  # (N,) 1: the window covers it
         out_prob: ti.types.ndarray(dtype=ti.f32, ndim=2),
@@ -122,7 +140,20 @@ def query_kernel(blend: bool):
         for p in range(out_label.shape[0]):
             x = ti.Vector([pts[p, 0], pts[p, 1], pts[p, 2]])
             w = ti.floor(x * inv_res, ti.i32)
-            lookup(m, w, center, half, p, out_label, out_inside, out_prob, with_prob)
+            lookup(
+                m,
+                w,
+                x,
+                center,
+                half,
+                p,
+                out_label,
+                out_inside,
+                out_prob,
+                with_prob,
+                res_m,
+                centroid_ratio,
+            )
             if ti.static(blend):
                 # a point in the window whose voxel has no evidence (label 0: class 0 is never
                 # evidence): the voxels around it; not in a voxel seen to be empty (free

@@ -21,6 +21,8 @@ from tisem.kernels.layout import LAYER_BITS, LEAF, local_of_index, rows_to
 from tisem.kernels.params import ScanParams
 from tisem.kernels.rasterize import EVIDENCE, evidence_array, to_local
 
+from tisem.class_centroids import SLOT
+
 VOXELS = LEAF**3
 
 
@@ -82,9 +84,30 @@ def sort_blocks(
         m.b_layers[i] = sort_block(m, i, min_points, code, perm, perm2)
 
 
+@ti.func
+def top_two(h, num_classes: ti.template()):
+    """(c1, c2): the two classes with the most evidence in histogram h (classes 1..C-1, the
+    lower class first on a tie); c2 = 0 when h has evidence for one class only."""
+    c1 = 0
+    c2 = 0
+    v1 = 0.0
+    v2 = 0.0
+    for c in ti.static(range(1, num_classes)):
+        if h[c] > v1:
+            c2 = c1
+            v2 = v1
+            c1 = c
+            v1 = h[c]
+        elif h[c] > v2:
+            c2 = c
+            v2 = h[c]
+    return c1, c2
+
+
 @functools.cache
-def training_kernel(unit_weight: bool, use_probs: bool):
-    """The kernel that writes the training rows, for a point weighting and a kind of evidence."""
+def training_kernel(unit_weight: bool, use_probs: bool, centroids: bool = False):
+    """The kernel that writes the training rows, for a point weighting and a kind of evidence;
+    `centroids`: also each row's class centroids (kernels/centroids.py)."""
 
     @ti.kernel
     def write_training(
@@ -99,9 +122,11 @@ def training_kernel(unit_weight: bool, use_probs: bool):
         out_hist: ti.types.ndarray(dtype=ti.f32, ndim=2),  # (K, C) class evidence
         out_classes: ti.types.ndarray(dtype=ti.i32, ndim=1),  # (K,) bit c: evidence
         out_single: ti.types.ndarray(dtype=ti.i32, ndim=1),  # (K,) the class or 0
-        out_voxel: ti.types.ndarray(dtype=ti.i32, ndim=1),
-    ):  # (K,) voxel in block
+        out_voxel: ti.types.ndarray(dtype=ti.i32, ndim=1),  # (K,) voxel in block
+        out_cent: ti.types.ndarray(dtype=ti.f32, ndim=2),  # (K, CENTROID_COLS) with centroids
+    ):
         """Write every occupied block's training rows into its slice."""
+        base = ti.floor(s.center_vox / LEAF, ti.i32) - ti.Vector(m.table_half)  # cell 0's block
         for b in range(blocks.shape[0]):
             i = m.cell_of_id(blocks[b])
             if rows_to(m.b_layers[i], LEAF - 1) > 0:
@@ -119,7 +144,53 @@ def training_kernel(unit_weight: bool, use_probs: bool):
                     out_classes,
                     out_single,
                     out_voxel,
+                    (base + i) * LEAF,
+                    out_cent,
                 )
+
+    @ti.func
+    def write_row_centroids(
+        m: ti.template(),
+        s: ti.template(),
+        slot,
+        run,
+        last,
+        corner,
+        hist,
+        pts: ti.template(),
+        evidence: ti.template(),
+        perm2: ti.template(),
+        out_cent: ti.template(),
+    ):
+        """Row `slot`'s class centroids: its voxel's two leading classes in this scan (from
+        `hist`) and the mean offset of their points (perm2[run..last]) from the voxel's low
+        corner `corner`, in metres; a second pass over the run, once its histogram has told
+        which classes lead."""
+        R = s.rotation
+        tr = s.translation_m
+        c1, c2 = top_two(hist, m.C)
+        for r in ti.static(range(2)):
+            cr = c1 if r == 0 else c2
+            w_sum = 0.0
+            x_sum = ti.Vector([0.0, 0.0, 0.0])
+            if cr > 0:
+                for j in range(run, last + 1):
+                    n = perm2[j]
+                    w = 0.0
+                    if ti.static(use_probs):
+                        w = evidence[n, cr]
+                    elif evidence[n] == cr:
+                        w = 1.0
+                    if w > 0:
+                        x = to_local(R, ti.Vector([pts[n, 0], pts[n, 1], pts[n, 2]]), tr)
+                        w_sum += w
+                        x_sum += w * (x - corner)
+            if w_sum > 0:
+                x_sum /= w_sum
+            out_cent[slot, r * SLOT] = ti.cast(cr, ti.f32)
+            out_cent[slot, r * SLOT + 1] = w_sum
+            for a in ti.static(range(3)):
+                out_cent[slot, r * SLOT + 2 + a] = x_sum[a]
 
     @ti.func
     def write_block(
@@ -136,9 +207,11 @@ def training_kernel(unit_weight: bool, use_probs: bool):
         out_classes: ti.template(),
         out_single: ti.template(),
         out_voxel: ti.template(),
+        corner_vox,
+        out_cent: ti.template(),
     ):
         """Sum each voxel's run of points (perm2, sorted by voxel) and write the kept ones' rows
-        from `slot` on."""
+        from `slot` on (`corner_vox`: the block's first world voxel, for the centroids)."""
         # the pose copied once per block, outside the loop over points: where the compiler finds
         # these values decides how fast math associates R @ p + t (keeping the map bitwise
         # stable across refactorings, not only within float tolerance)
@@ -153,6 +226,7 @@ def training_kernel(unit_weight: bool, use_probs: bool):
         first = ti.Vector([0.0, 0.0, 0.0])
         xyz_sum = ti.Vector([0.0, 0.0, 0.0])
         h = ti.Vector([0.0] * m.C)
+        run = start  # the voxel's first point in perm2
         for j in range(start, end):
             n = perm2[j]
             c = code[n]
@@ -185,7 +259,13 @@ def training_kernel(unit_weight: bool, use_probs: bool):
                         out_single,
                         out_voxel,
                     )
+                    if ti.static(centroids):
+                        corner = (corner_vox + local_of_index(q)).cast(ti.f32) * s.resolution_m
+                        write_row_centroids(
+                            m, s, slot, run, j, corner, h, pts, evidence, perm2, out_cent
+                        )
                     slot += 1
+                run = j + 1
                 npts = 0
                 has_evidence = 0
                 xyz_sum = ti.Vector([0.0, 0.0, 0.0])

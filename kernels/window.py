@@ -12,7 +12,7 @@ block SNode yield them; they are unwrapped around a centre (in blocks) like voxe
 """
 
 import taichi as ti
-from tisem.kernels.layout import LEAF, TOP, rows_to
+from tisem.kernels.layout import CENTROID_COLS, LEAF, TOP, rows_to
 from tisem.kernels.params import ScanParams
 from tisem.kernels.query import copy_voxel_out
 
@@ -60,12 +60,14 @@ def export_leaving(
     t_last_rel: ti.types.ndarray(dtype=ti.f32, ndim=1),  # (M,) out
     length_m: ti.types.ndarray(dtype=ti.f32, ndim=1),  # (M,) out
     occupancy: ti.types.ndarray(dtype=ti.f32, ndim=1),  # (M,) out (free space)
-    left: ti.types.ndarray(dtype=ti.i32, ndim=1),
-) -> ti.i32:  # (n_blocks,) out
+    centroids: ti.types.ndarray(dtype=ti.f32, ndim=2),  # (M, CENTROID_COLS) out (centroids)
+    left: ti.types.ndarray(dtype=ti.i32, ndim=1),  # (n_blocks,) out
+) -> ti.i32:
     """Move the live voxels of the listed blocks that lie outside the box out of the field.
 
     Each leaving voxel is written to the outputs (world keys unwrapped at `old_center`; its
-    occupancy evidence only in a map with free space, else `occupancy` may be empty), then
+    occupancy evidence only in a map with free space, its class centroids only in a map that
+    keeps them, else `occupancy` and `centroids` may be empty), then
     zeroed and its bit cleared (a bitmasked cell keeps its data when deactivated, and the next
     voxel there must start from zero). `left[b]` counts block b's voxels that stay.
     """
@@ -83,6 +85,11 @@ def export_leaving(
                         occupancy[idx] = m.occupancy[u]
                     m.occupancy[u] = 0.0
                     m.free_stamp[u] = 0
+                if ti.static(m.class_centroids):
+                    for k in ti.static(range(CENTROID_COLS)):
+                        if idx < keys.shape[0]:
+                            centroids[idx, k] = m.centroids[u, k]
+                        m.centroids[u, k] = 0.0
                 for c in ti.static(range(m.C)):
                     m.counts[u, c] = 0.0
                 m.t_last_rel[u] = 0.0

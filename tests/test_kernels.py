@@ -31,6 +31,7 @@ from helpers import (
 )
 from scipy.spatial import cKDTree
 
+from tisem.class_centroids import CENTROID_COLS, MIN_SEPARATION, SLOT, two_leading
 from tisem.mapper import Mapper
 from tisem.reference import ReferenceMapper, normalized_entropy, sparse_kernel
 from tisem.scan import Scan
@@ -290,7 +291,7 @@ def _check_stages(step, scan, ref, cfg, where):
     np.testing.assert_array_equal(
         layer["labelled"] > 0, hist.sum(axis=1) > 0, err_msg=f"{where}: voxels with class evidence"
     )
-    r_keys, r_centroid, r_h = ref.rasterize(scan)
+    r_keys, r_centroid, r_h, _ = ref.rasterize(scan)
     r_keys = r_keys + ref.origin_vox
     order = np.lexsort(r_keys.T[::-1])
     got = training_points(step)
@@ -354,8 +355,18 @@ def _check_map(mapper, ref, tainted: set, where: str, query_pts):
     )
     tie = good & ~clear
     assert np.all(counts[tie, got[tie]] >= top[tie, 0] - COUNT_RTOL * top[tie, 0] - 2 * COUNT_ATOL)
+    if snap.centroids is not None:
+        _check_centroids(snap.centroids[good], ref.voxel_centroids()[good], where)
     lab, _ = mapper.query(snap.centers(), with_probs=False)  # the query sees every voxel
-    np.testing.assert_array_equal(lab, snap.labels(), err_msg=f"{where}: query vs snapshot")
+    same = np.ones(len(snap), bool)
+    if snap.centroids is not None:  # (kernel and host round the rule's inputs apart)
+        half = np.full((len(snap), 3), 0.5 * ref.res)
+        same = split_is_clear(snap.counts, snap.centroids, half, ref.config)
+    np.testing.assert_array_equal(
+        lab[same],
+        snap.point_labels(snap.centers())[same],
+        err_msg=f"{where}: query vs snapshot",
+    )
     if query_pts is None:
         return good.mean()
     # query: the scan points and random points (many in no voxel)
@@ -366,6 +377,10 @@ def _check_map(mapper, ref, tainted: set, where: str, query_pts):
     vi = np.array([index.get(tuple(k), -1) for k in qk])
     _check_blend(mapper, ref, query_pts, lab, prob, vi < 0, tainted, where)
     sure = (vi >= 0) & clear[np.maximum(vi, 0)]
+    if snap.centroids is not None:  # (and the nearer-centroid rule not on a knife's edge)
+        row = np.maximum(vi, 0)
+        offsets = query_pts - keys[row] * ref.res
+        sure &= split_is_clear(counts[row], ref.voxel_centroids()[row], offsets, ref.config)
     np.testing.assert_array_equal(lab[sure], r_lab[sure], err_msg=f"{where}: query labels")
     ok = (vi >= 0) & good[np.maximum(vi, 0)]
     # counters agree to COUNT_ATOL, so c / total to about that over the voxel's total (a voxel
@@ -379,6 +394,46 @@ def _check_map(mapper, ref, tainted: set, where: str, query_pts):
         f"with total evidence {total[bad[:3]]}"
     )
     return good.mean()
+
+
+def _check_centroids(got: np.ndarray, want: np.ndarray, where: str) -> None:
+    """The class centroid slots of the voxels both maps agree on: the same classes, weights
+    to the counters' tolerance, mean offsets to the training points' (float32 sums)."""
+    np.testing.assert_array_equal(
+        got[:, [0, SLOT]], want[:, [0, SLOT]], err_msg=f"{where}: centroid classes"
+    )
+    weights = [1, SLOT + 1]
+    np.testing.assert_allclose(
+        got[:, weights],
+        want[:, weights],
+        rtol=COUNT_RTOL,
+        atol=COUNT_ATOL,
+        err_msg=f"{where}: centroid weights",
+    )
+    means = [a for a in range(CENTROID_COLS) if a % SLOT >= 2]
+    np.testing.assert_allclose(
+        got[:, means],
+        want[:, means],
+        rtol=0,
+        atol=CENTROID_ATOL_M,
+        err_msg=f"{where}: centroid means",
+    )
+
+
+def split_is_clear(counts, centroids, offsets, cfg) -> np.ndarray:
+    """(N,) whether the nearer-centroid rule decides each point with a margin above float
+    error: its voxel's second class clearly above or below centroid_ratio of the first, and
+    the point clearly nearer one of the two centroids."""
+    best, second = two_leading(counts)
+    rows = np.arange(len(counts))
+    gap = counts[rows, second] - cfg.centroid_ratio * counts[rows, best]
+    ok = np.abs(gap) > COUNT_RTOL * counts[rows, best] + 2 * COUNT_ATOL
+    means = np.stack([centroids[:, 2:SLOT], centroids[:, SLOT + 2 :]], axis=1)
+    d = np.square(offsets[:, None, :] - means).sum(axis=2)
+    sep = np.square(means[:, 0] - means[:, 1]).sum(axis=1)
+    margin = 4 * CENTROID_ATOL_M * cfg.resolution_m
+    ok &= np.abs(sep - (MIN_SEPARATION * cfg.resolution_m) ** 2) > margin
+    return ok & (np.abs(d[:, 0] - d[:, 1]) > margin)
 
 
 def _check_blend(mapper, ref, pts, lab, prob, missing, tainted, where):

@@ -189,7 +189,11 @@ def debug_map():
             out.edge_first_labels = mapper.query(scan.points_world())[0]
         snap = mapper.snapshot()  # the query must see every voxel the map holds
         out.edge_disagree.append(
-            int(np.count_nonzero(mapper.query(snap.centers())[0] != snap.labels()))
+            int(
+                np.count_nonzero(
+                    mapper.query(snap.centers())[0] != snap.point_labels(snap.centers())
+                )
+            )
         )
     out.edge_random = mapper.query(
         base + np.random.default_rng(1).uniform([-60, -60, -20], [60, 60, 30], (20000, 3))

@@ -87,6 +87,13 @@ class MapperConfig:
     # kernel-weighted posterior of the live voxels within query_radius_m (missing), or 0 (off)
     query_blend: str = "missing"
     query_radius_m: float = 0.4
+    # sub-voxel class boundaries: each voxel keeps where the points of its two leading classes
+    # lie (their centroids); a query point in a voxel whose second class holds at least
+    # centroid_ratio of the leading class's evidence takes the class whose centroid is nearer.
+    # A 0.2 m voxel straddling a curb or a car's edge answers each side with its own class
+    # (docs/method.md); off, a voxel answers its argmax everywhere
+    class_centroids: bool = True
+    centroid_ratio: float = 0.5
     # 8. temporal fusion
     tau_s: float = 5.0  # decay time constant (st mode)
     tau_movable_s: float | None = None  # tau of the movable classes (car ... motorcycle,
@@ -218,6 +225,8 @@ MAPPER_RULES = {
     "query_blend": Choice(QUERY_BLENDS, off_word="off"),
     # the blend reads the (2 R / resolution + 1)^3 voxels around a point: a few metres at most
     "query_radius_m": Number(float, 0.0, 5.0, low_open=True, unit="m"),
+    "class_centroids": Flag(),
+    "centroid_ratio": Number(float, 0.0, 1.0),
     # 1/tau is a float32 in the kernels; below 1 us every decay is exp(-1e5) = 0 anyway (mode
     # spatial), and tau = inf is mode adaptive
     "tau_s": Number(float, 1.0e-6, 1.0e12, unit="s"),

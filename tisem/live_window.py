@@ -26,9 +26,10 @@ import numpy as np
 import taichi as ti
 
 from tisem.geometry import MapGeometry
+from tisem.kernels import centroids as kcentroids
 from tisem.kernels import query as kquery
 from tisem.kernels import raycast, window
-from tisem.kernels.layout import LEAF, TOP, MapFields
+from tisem.kernels.layout import CENTROID_COLS, LEAF, TOP, MapFields
 from tisem.scan import finite_rows
 from tisem.snapshot import MapSnapshot
 from tisem.store import KEY_LIMIT, BlockStore
@@ -161,7 +162,7 @@ class LiveWindow:
         m, st = self._fields, self.state
         old_blk = ivec(np.floor_divide(st.center_vox, LEAF))
         box = (ivec(center), ivec(half))
-        done = Evicted(_voxel_arrays(0, m.C), 0, 0, st.top_range)
+        done = Evicted(_voxel_arrays(0, m), 0, 0, st.top_range)
         blocks = np.zeros((max(live_blocks, 1), 3), np.int32)
         n = window.find_leaving_blocks(m, old_blk, *box, blocks)
         if n == 0:
@@ -169,9 +170,10 @@ class LiveWindow:
         if n > len(blocks):  # (live_blocks is exact; this is a guard)
             blocks = np.zeros((n, 3), np.int32)
             n = window.find_leaving_blocks(m, old_blk, *box, blocks)
-        leaving = _voxel_arrays(n * LEAF**3, m.C, m.free_space)
+        leaving = _voxel_arrays(n * LEAF**3, m)
         left = np.zeros(n, np.int32)
         occupancy = leaving.occupancy if m.free_space else np.zeros(0, np.float32)
+        cent = leaving.centroids if m.class_centroids else np.zeros((0, CENTROID_COLS), np.float32)
         nv = window.export_leaving(
             m,
             ivec(st.center_vox),
@@ -183,6 +185,7 @@ class LiveWindow:
             leaving.t_last_rel,
             leaving.length_m,
             occupancy,
+            cent,
             left,
         )
         done.voxels = leaving = leaving.rows(slice(0, nv))
@@ -213,6 +216,13 @@ class LiveWindow:
                 occupancy = v.occupancy if v.occupancy is not None else np.zeros(len(keys))
                 raycast.scatter_occupancy(
                     self._fields, keys, np.ascontiguousarray(occupancy, np.float32)
+                )
+            if self._fields.class_centroids:
+                cent = v.centroids
+                if cent is None:  # (voxels of a map saved without them start with none)
+                    cent = np.zeros((len(keys), CENTROID_COLS), np.float32)
+                kcentroids.scatter_centroids(
+                    self._fields, keys, np.ascontiguousarray(cent, np.float32)
                 )
 
     def _fit_cap(self, center: np.ndarray, live: int) -> np.ndarray:
@@ -283,6 +293,7 @@ class LiveWindow:
         labels: np.ndarray,
         probs: np.ndarray | None,
         blend_radius_m: float = 0.0,
+        centroid_ratio: float = 1.0,
     ) -> None:
         """`lookup` of float64 world points in a map whose local voxel 0 is `origin_vox`: far
         or non-finite points are clamped so that their voxel index fits an int32 in the kernel
@@ -299,6 +310,7 @@ class LiveWindow:
             labels,
             probs,
             blend_radius_m,
+            centroid_ratio,
         )
         if not finite.all():  # (they were looked up at the origin only to keep the index sane)
             labels[~finite] = 0
@@ -312,12 +324,15 @@ class LiveWindow:
         labels: np.ndarray,
         probs: np.ndarray | None,
         blend_radius_m: float = 0.0,
+        centroid_ratio: float = 1.0,
     ) -> None:
         """Fill labels (N,) and, unless None, probs (N, C) of points at float32 local
         coordinates `local` (N, 3): from the field where the window holds their voxel, else
         from the store (`finite`: which points have a voxel at all). `blend_radius_m` > 0: a
         point in the window whose voxel holds no evidence takes the blended posterior of the
-        live voxels within that radius (kernels/query.py)."""
+        live voxels within that radius (kernels/query.py). With class centroids, a voxel whose
+        second class holds `centroid_ratio` of its leading class's evidence answers each point
+        with the class whose centroid is nearer."""
         m, st = self._fields, self.state
         inv_res = 1.0 / self._geometry.resolution_m
         inside = np.zeros(len(local), np.int32)
@@ -330,6 +345,8 @@ class LiveWindow:
             inv_res,
             int(probs is not None),
             blend_radius_m,
+            self._geometry.resolution_m,
+            centroid_ratio,
             labels,
             inside,
             out_prob,
@@ -346,13 +363,17 @@ class LiveWindow:
                 stored[stored[:, m.C] <= -m.empty_evidence] = 0.0
             counts[ok] = stored[:, : m.C]
             snap = MapSnapshot(
-                np.zeros((len(counts), 3), np.int64),
+                vox,
                 counts,
                 np.zeros(len(counts)),
                 np.zeros(len(counts), np.float32),
                 self._geometry.resolution_m,
             )
-            labels[rest] = snap.labels()
+            if m.class_centroids:
+                snap.centroids = np.zeros((len(vox), CENTROID_COLS), np.float32)
+                snap.centroids[ok] = stored[:, -CENTROID_COLS:]
+                snap.centroid_ratio = centroid_ratio
+            labels[rest] = snap.point_labels(local[rest])
             if probs is not None:
                 probs[rest] = snap.probabilities()
 
@@ -360,7 +381,7 @@ class LiveWindow:
         """Every live voxel, in no particular order."""
         m = self._fields
         n = self.live_voxels
-        out = _voxel_arrays(n, m.C, m.free_space)
+        out = _voxel_arrays(n, m)
         if n:
             got = kquery.export_voxels(
                 m, ivec(self.state.center_vox), out.keys, out.counts, out.t_last_rel, out.length_m
@@ -368,6 +389,8 @@ class LiveWindow:
             assert got == n, f"export found {got} voxels, count found {n}"
             if m.free_space:
                 raycast.gather_occupancy(m, out.keys, out.occupancy)
+            if m.class_centroids:
+                kcentroids.gather_centroids(m, out.keys, out.centroids)
         return out
 
     def stored_arrays(self) -> VoxelArrays:
@@ -375,11 +398,13 @@ class LiveWindow:
         return from_store(self.store.arrays(), self._fields.C)
 
 
-def _voxel_arrays(n: int, num_classes: int, free_space: bool = False) -> VoxelArrays:
+def _voxel_arrays(n: int, m: MapFields) -> VoxelArrays:
+    """Room for n voxels of the map with fields `m` (with the columns it keeps)."""
     return VoxelArrays(
         np.zeros((n, 3), np.int32),
-        np.zeros((n, num_classes), np.float32),
+        np.zeros((n, m.C), np.float32),
         np.zeros(n, np.float32),
         np.zeros(n, np.float32),
-        np.zeros(n, np.float32) if free_space else None,
+        np.zeros(n, np.float32) if m.free_space else None,
+        np.zeros((n, CENTROID_COLS), np.float32) if m.class_centroids else None,
     )

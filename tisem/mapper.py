@@ -31,7 +31,7 @@ from tisem.geometry import MapGeometry, block_aligned_origin
 from tisem.integration_report import IntegrationReport
 from tisem.kernel_inputs import kernel_settings, scan_params, set_scan
 from tisem.kernels import bki, table
-from tisem.kernels.layout import MapFields
+from tisem.kernels.layout import CENTROID_COLS, MapFields
 from tisem.live_window import LiveWindow
 from tisem.map_clock import MapClock
 from tisem.mapper_state import check_snapshot, parse_state, relative_arrays
@@ -76,7 +76,10 @@ class Mapper:
         # before the runtime's one map slot is taken: a bad config or a missing store_dir is
         # refused with the runtime still free for another map
         # (with free space the occupancy evidence is the store's last counter column)
-        self.store = BlockStore(cfg.num_classes + int(cfg.free_space), spill_dir=cfg.store_dir)
+        self.store = BlockStore(
+            cfg.num_classes + int(cfg.free_space) + CENTROID_COLS * int(cfg.class_centroids),
+            spill_dir=cfg.store_dir,
+        )
         self._generation = backend.claim_map_slot()
         self.C = cfg.num_classes
         if parallel_loop is None:
@@ -89,6 +92,7 @@ class Mapper:
             cfg.free_space,
             cfg.empty_evidence,
             cfg.occupancy_cap,
+            cfg.class_centroids,
         )
         bki.fill_kernel_table(self._fields)
         self._fields.class_inv_tau.from_numpy(class_inv_tau(cfg))
@@ -270,7 +274,9 @@ class Mapper:
         if self.origin_vox is None or n == 0:
             return labels, probs
         blend = self.config.query_radius_m if self.config.query_blend == "missing" else 0.0
-        self.window.lookup_world(pts, self.origin_vox, labels, probs, blend)
+        self.window.lookup_world(
+            pts, self.origin_vox, labels, probs, blend, self.config.centroid_ratio
+        )
         return labels, probs
 
     @property
@@ -299,9 +305,15 @@ class Mapper:
         return self._snapshot_of(parts)
 
     def _snapshot_of(self, parts: list[VoxelArrays]) -> MapSnapshot:
-        empty = self.config.empty_evidence if self._free is not None else None
+        cfg = self.config
         return snapshot_of(
-            parts, self.origin_vox, self.t0, self.geometry.resolution_m, self.C, empty
+            parts,
+            self.origin_vox,
+            self.t0,
+            self.geometry.resolution_m,
+            self.C,
+            cfg.empty_evidence if self._free is not None else None,
+            cfg.centroid_ratio if cfg.class_centroids else None,
         )
 
     def state(self) -> dict:
@@ -334,8 +346,15 @@ class Mapper:
                 if snapshot.occupancy is None
                 else np.asarray(snapshot.occupancy, np.float32)
             )
+        centroids = None
+        if self.config.class_centroids:  # (a map saved without them starts with none)
+            centroids = (
+                np.zeros((len(snapshot), CENTROID_COLS), np.float32)
+                if snapshot.centroids is None
+                else np.asarray(snapshot.centroids, np.float32)
+            )
         segments = self.store.put(
-            *VoxelArrays(*relative_arrays(snapshot, saved), occupancy).arrays()
+            *VoxelArrays(*relative_arrays(snapshot, saved), occupancy, centroids).arrays()
         )
         try:
             self.window.follow(saved.center_vox)

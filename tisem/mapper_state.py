@@ -14,6 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from tisem.class_centroids import centroid_problem
 from tisem.map_clock import MAX_MAP_SECONDS, MapClock
 from tisem.poses import MAX_POSITION_M
 from tisem.snapshot import MapSnapshot
@@ -120,6 +121,10 @@ def check_snapshot(snapshot: MapSnapshot, num_classes: int, resolution_m: float)
             )
     if np.asarray(snapshot.keys).dtype.kind not in "iu":
         raise ValueError(f"snapshot keys must be integers, got dtype {snapshot.keys.dtype}")
+    if snapshot.centroids is not None:
+        problem = centroid_problem(np.asarray(snapshot.centroids), n, num_classes)
+        if problem is not None:
+            raise ValueError(f"snapshot {problem}")
 
 
 def relative_arrays(snapshot: MapSnapshot, saved: SavedState) -> tuple:

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from tisem.class_centroids import SLOT, merge_slots
 from tisem.snapshot import MapSnapshot
 from tisem.tiles import pack_keys, take_rows
 
@@ -77,7 +78,28 @@ def merge_snapshots(parts: list[MapSnapshot], taus: list[float] | float) -> MapS
     merged = MapSnapshot(keys[order][ends], summed.astype(np.float32), t_last[ends], ell[ends], res)
     if merged.counts.shape[1] != num_classes:
         raise AssertionError("class axis changed in the merge")
+    if all(p.centroids is not None for p, _ in kept):
+        slots = np.concatenate([p.centroids for p, _ in kept])[order]
+        merged.centroids = _merged_centroids(slots, factor, starts, voxel_of_row)
+        merged.centroid_ratio = kept[0][0].centroid_ratio
     return merged
+
+
+def _merged_centroids(
+    slots: np.ndarray, factor: np.ndarray, starts: np.ndarray, voxel_of_row: np.ndarray
+) -> np.ndarray:
+    """Per voxel the class centroid slots of its rows (`slots`, grouped by voxel from
+    `starts`), each row's weights decayed by its `factor` like its counters, folded together
+    row after row (tisem/class_centroids.merge_slots)."""
+    slots = slots.astype(np.float64, copy=True)
+    slots[:, [1, SLOT + 1]] *= factor[:, None]
+    rank = np.arange(len(slots)) - starts[voxel_of_row]
+    out = slots[starts].copy()
+    for r in range(1, int(rank.max()) + 1 if len(rank) else 1):
+        rows = np.flatnonzero(rank == r)
+        voxels = voxel_of_row[rows]
+        out[voxels] = merge_slots(out[voxels], slots[rows])
+    return out.astype(np.float32)
 
 
 def contribution(final: MapSnapshot, seed: MapSnapshot, tau_s: float) -> MapSnapshot:
@@ -98,7 +120,10 @@ def contribution(final: MapSnapshot, seed: MapSnapshot, tau_s: float) -> MapSnap
     counts[had] -= factor[:, None] * seed.counts[rows[had]]
     # float32 rounding of the subtraction leaves tiny negatives where a class got nothing new
     np.maximum(counts, 0.0, out=counts)
-    return MapSnapshot(own.keys, counts.astype(np.float32), own.t_last, own.ell_m, own.resolution_m)
+    out = MapSnapshot(own.keys, counts.astype(np.float32), own.t_last, own.ell_m, own.resolution_m)
+    # (the class centroids stay the final map's: where a voxel's points lie, seed included)
+    out.centroids, out.centroid_ratio = own.centroids, own.centroid_ratio
+    return out
 
 
 def transform_snapshot(
@@ -107,7 +132,8 @@ def transform_snapshot(
     """The map in another world frame: each voxel centre moved by the rigid transform and
     put in the voxel it lands in (voxels landing together are merged as parts of one map
     would be, with the map's `tau_s`). Exact for translations by whole voxels; a rotation
-    resamples the grid."""
+    resamples the grid. The class centroids (positions inside the voxels) do not follow: a
+    moved map answers each voxel's argmax."""
     T = np.asarray(T_target_source, np.float64)
     if T.shape != (4, 4):
         raise ValueError(f"a transform must be 4 x 4, got {T.shape}")

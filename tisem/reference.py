@@ -12,9 +12,11 @@ import math
 import numpy as np
 from scipy.spatial import cKDTree
 
+from tisem.class_centroids import CENTROID_COLS, SLOT, split_labels
 from tisem.config import MapperConfig
 from tisem.geometry import block_aligned_origin
 from tisem.kernels.bki import MIN_UPDATE
+from tisem.labels import MOVABLE_CLASSES
 from tisem.map_clock import MapClock
 from tisem.preprocess import select_points
 from tisem.scan import Scan, scan_label, to_frame
@@ -62,6 +64,79 @@ def voxel_histograms(xyz: np.ndarray, sel, res: float, num_classes: int):
     return keys, npts, centroid, hist
 
 
+def class_centroids_of(
+    local: np.ndarray, sel, keys: np.ndarray, hist: np.ndarray, res: float
+) -> np.ndarray:
+    """(V, CENTROID_COLS): per voxel of `keys` (as `voxel_histograms` returns them, with its
+    class evidence `hist`) its two leading classes (the lower on a tie) with their evidence
+    and the mean offset of their points from the voxel's low corner."""
+    inv = np.unique(np.floor(local / res).astype(np.int64), axis=0, return_inverse=True)[1]
+    inv = inv.reshape(-1)
+    order = np.argsort(-hist[:, 1:], axis=1, kind="stable")[:, :2] + 1
+    out = np.zeros((len(keys), CENTROID_COLS))
+    rows = np.arange(len(keys))
+    for k in range(2):
+        c = order[:, k]
+        w_vox = hist[rows, c]
+        c = np.where(w_vox > 0, c, 0)
+        if sel.labels is not None:
+            w = (sel.labels == c[inv]).astype(np.float64)
+        else:
+            w = sel.probs[np.arange(len(inv)), c[inv]].astype(np.float64)
+        w[c[inv] == 0] = 0.0
+        wsum = np.bincount(inv, w, len(keys))
+        off = local - keys[inv] * res
+        mean = np.stack([np.bincount(inv, w * off[:, a], len(keys)) for a in range(3)], 1)
+        mean = np.divide(mean, wsum[:, None], out=np.zeros_like(mean), where=wsum[:, None] > 0)
+        out[:, k * SLOT] = c
+        out[:, k * SLOT + 1] = wsum
+        out[:, k * SLOT + 2 : k * SLOT + 5] = mean
+    return out
+
+
+def merge_scan_slots(
+    slots: np.ndarray, scan: np.ndarray, dt: np.ndarray, cfg: MapperConfig
+) -> np.ndarray:
+    """The map's slots of some voxels (rows of `slots`) after folding in one scan's (`scan`,
+    from `class_centroids_of`), `dt` seconds after each voxel's last update: the rule of
+    kernels/centroids.py, one voxel at a time."""
+    out = np.array(slots, dtype=np.float64, copy=True)
+    tau = [
+        cfg.movable_tau_s if c in MOVABLE_CLASSES else cfg.decay_tau_s
+        for c in range(cfg.num_classes)
+    ]
+    for i in range(len(out)):
+        cls = [int(out[i, 0]), int(out[i, SLOT])]
+        wgt = []
+        for k in range(2):
+            t = tau[cls[k]]
+            a = 0.0 if t == 0 else 1.0 if math.isinf(t) else math.exp(-max(dt[i], 0.0) / t)
+            wgt.append(a * out[i, k * SLOT + 1])
+        pos = [out[i, 2:SLOT].copy(), out[i, SLOT + 2 :].copy()]
+        for r in range(2):
+            c, w = int(scan[i, r * SLOT]), scan[i, r * SLOT + 1]
+            mean = scan[i, r * SLOT + 2 : r * SLOT + 5]
+            if w <= 0:
+                continue
+            if c in cls:
+                k = cls.index(c)
+                pos[k] = (pos[k] * wgt[k] + mean * w) / (wgt[k] + w)
+                wgt[k] += w
+                continue
+            j = 0 if wgt[0] <= wgt[1] else 1
+            if w >= wgt[j]:
+                cls[j], wgt[j], pos[j] = c, w, mean.copy()
+            else:
+                wgt[j] -= w
+        for k in range(2):
+            if wgt[k] <= 0:
+                cls[k], wgt[k] = 0, 0.0
+            out[i, k * SLOT] = cls[k]
+            out[i, k * SLOT + 1] = wgt[k]
+            out[i, k * SLOT + 2 : k * SLOT + 5] = pos[k]
+    return out
+
+
 class ReferenceMapper:
     """Same interface as `Mapper` for integrate/query/snapshot-like access (no window)."""
 
@@ -75,6 +150,7 @@ class ReferenceMapper:
         self.counts = np.zeros((0, self.C))
         self.t_last_rel = np.zeros(0)
         self.length_m = np.zeros(0)
+        self.centroids = np.zeros((0, CENTROID_COLS))  # class centroids (class_centroids)
         self.origin_vox = None
         self.clock = MapClock(self.config.decay_tau_s)  # the mapper's map time
 
@@ -95,10 +171,12 @@ class ReferenceMapper:
             self.counts = np.vstack([self.counts, np.zeros((n, self.C))])
             self.t_last_rel = np.concatenate([self.t_last_rel, np.zeros(n)])
             self.length_m = np.concatenate([self.length_m, np.zeros(n)])
+            self.centroids = np.vstack([self.centroids, np.zeros((n, CENTROID_COLS))])
         return ids
 
     def rasterize(self, scan: Scan):
-        """Steps 1-3: the kept voxels' keys, centroids and (weighted) class evidence."""
+        """Steps 1-3: the kept voxels' keys, centroids and (weighted) class evidence, and
+        their class centroids (`class_centroids_of`; None when the map keeps none)."""
         cfg = self.config
         sel = select_points(scan, cfg)
         T = scan.T_world_sensor
@@ -108,10 +186,13 @@ class ReferenceMapper:
         keys, npts, centroid, hist = voxel_histograms(local, sel, self.res, self.C)
         total = hist.sum(axis=1)
         keep = (npts >= cfg.min_points) & (total > 0)
+        slots = None
+        if cfg.class_centroids:
+            slots = class_centroids_of(local, sel, keys, hist, self.res)[keep]
         h = hist[keep]
         if cfg.point_weight == "unit":
             h = h / total[keep, None]
-        return keys[keep], centroid[keep], h
+        return keys[keep], centroid[keep], h, slots
 
     @property
     def t0(self) -> float | None:
@@ -119,8 +200,12 @@ class ReferenceMapper:
 
     def integrate(self, scan: Scan) -> None:
         t_rel = self.clock.time_of(scan.stamp_s, scan_label(scan.index, scan.name))
-        keys, centroid, h = self.rasterize(scan)
+        keys, centroid, h, slots = self.rasterize(scan)
         self.clock.advance(scan.stamp_s, t_rel)
+        if slots is not None:  # (before the fusion: it reads each voxel's previous time)
+            ids = self._voxel_ids(keys)
+            dt = t_rel - self.t_last_rel[ids]
+            self.centroids[ids] = merge_scan_slots(self.centroids[ids], slots, dt, self.config)
         self._fuse(keys, centroid, h, t_rel)
 
     def _fuse(self, keys: np.ndarray, centroid: np.ndarray, h: np.ndarray, t_rel: float) -> None:
@@ -178,6 +263,17 @@ class ReferenceMapper:
                 labels[i] = int(np.argmax(self.counts[j]))
                 probs[i] = self.counts[j] / self.counts[j].sum()
                 missing[i] = False
+        if self.config.class_centroids:
+            rows = np.array([self.index.get(k, -1) for k in map(tuple, keys)])
+            at = rows >= 0
+            labels[at] = split_labels(
+                self.counts[rows[at]],
+                self.centroids[rows[at]],
+                pts[at] - (keys[at] + self.origin_vox) * self.res,
+                self.config.centroid_ratio,
+                labels[at],
+                self.res,
+            )
         if self.config.query_blend == "missing" and missing.any():
             blend = self.blended_posterior(pts[missing])
             total = blend.sum(axis=1)
@@ -201,6 +297,11 @@ class ReferenceMapper:
                 d = np.linalg.norm(centres[near] - points_world[i], axis=1)
                 out[i] = (sparse_kernel(d / radius)[:, None] * posterior[near]).sum(axis=0)
         return out
+
+    def voxel_centroids(self) -> np.ndarray:
+        """(M, CENTROID_COLS) class centroids in the order of `voxels()`."""
+        g = self.keys + self.origin_vox
+        return self.centroids[np.lexsort((g[:, 2], g[:, 1], g[:, 0]))]
 
     def voxels(self):
         """(global keys, counts, t_last, ell_m) sorted by key, like `Mapper.snapshot()`."""

@@ -9,6 +9,8 @@ from typing import NamedTuple
 
 import numpy as np
 
+from tisem.class_centroids import CENTROID_COLS
+
 
 class ScanPoints(NamedTuple):
     """Per point: table cell, voxel code (kernels/rasterize.py), the points in block order and
@@ -29,6 +31,7 @@ class TrainingRows(NamedTuple):
     classes: np.ndarray  # (K,) bit c: evidence for class c
     single: np.ndarray  # (K,) the one class, or 0
     voxel: np.ndarray  # (K,) the voxel's index in its leaf block
+    cent: np.ndarray  # (K, CENTROID_COLS) class centroids (written with class_centroids on)
 
 
 @dataclass
@@ -52,5 +55,6 @@ class ScanBuffers:
                 np.zeros((cap, 3), np.float32),
                 np.zeros((cap, num_classes), np.float32),
                 *(np.zeros(cap, np.int32) for _ in range(3)),
+                np.zeros((cap, CENTROID_COLS), np.float32),
             )
         return self.rows

@@ -17,7 +17,7 @@ from tisem.config import MapperConfig
 from tisem.geometry import MapGeometry
 from tisem.integration_report import IntegrationReport
 from tisem.kernel_inputs import KernelSettings
-from tisem.kernels import bki, entropy, fusion, rasterize, table, training
+from tisem.kernels import bki, centroids, entropy, fusion, rasterize, table, training
 from tisem.kernels.layout import MapFields
 from tisem.live_window import LiveWindow
 from tisem.preprocess import CheckedScan
@@ -102,7 +102,7 @@ class ScanIntegrator:
         n = table.column_slots(m, table.rows_in, m.b_start, False)
         report.training_voxels = int(n)
         rows = self._buf.training(max(n, 1), self._num_classes)
-        training.training_kernel(self._settings.unit_weight, checked.use_probs)(
+        training.training_kernel(self._settings.unit_weight, checked.use_probs, m.class_centroids)(
             m,
             self._params,
             checked.points_sensor,
@@ -173,6 +173,8 @@ class ScanIntegrator:
         """Steps 6-8: the kernel update of every live voxel within reach of the n_rows training
         points and its fusion; csm (no kernel) adds each training voxel's own histogram."""
         m, p, settings = self._fields, self._params, self._settings
+        if m.class_centroids:  # (before the update: it reads each voxel's previous time)
+            centroids.merge_kernel(settings.decay)(m, p, pts.blocks, rows.voxel, rows.cent)
         if not settings.uses_kernel:
             fusion.fuse_histograms(m, p, pts.blocks, rows.voxel, rows.hist)
         elif n_rows:

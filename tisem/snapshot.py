@@ -6,6 +6,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from tisem.class_centroids import split_labels
+
 
 @dataclass
 class MapSnapshot:
@@ -18,6 +20,10 @@ class MapSnapshot:
     occupancy: (M,) float32 occupancy evidence (hits minus crossings by rays, decayed like
         sigma), only in a map with free space; a voxel at or below -empty_evidence is empty
         space: no label, no probabilities, and not in the static map.
+    centroids: (M, CENTROID_COLS) float32 class centroids (tisem/class_centroids.py), only in a
+        map that keeps them; a point in a voxel whose second class holds at least
+        `centroid_ratio` of the leading class's evidence takes the nearer class
+        (`point_labels`). A voxel's own label stays its argmax.
     """
 
     keys: np.ndarray
@@ -27,6 +33,8 @@ class MapSnapshot:
     resolution_m: float
     occupancy: np.ndarray | None = None
     empty_evidence: float = float("inf")
+    centroids: np.ndarray | None = None
+    centroid_ratio: float = 1.0
 
     def __len__(self) -> int:
         return int(self.keys.shape[0])
@@ -54,9 +62,22 @@ class MapSnapshot:
         total[self.empty()] = 0.0
         return np.divide(self.counts, total, out=np.zeros_like(self.counts), where=total > 0)
 
+    def point_labels(self, points_world: np.ndarray) -> np.ndarray:
+        """(N,) int32 labels of N world points, row i of this snapshot being point i's voxel:
+        the voxel's label, split by its class centroids where the map keeps them."""
+        lab = self.labels()
+        if self.centroids is None or not len(lab):
+            return lab
+        # (in float64 first: world coordinates may be far from the origin)
+        offsets = np.asarray(points_world, np.float64) - self.keys * self.resolution_m
+        return split_labels(
+            self.counts, self.centroids, offsets, self.centroid_ratio, lab, self.resolution_m
+        )
+
     def subset(self, keep: np.ndarray) -> MapSnapshot:
         """The voxels `keep` selects (a mask or indices), in order."""
         occ = None if self.occupancy is None else self.occupancy[keep]
+        cent = None if self.centroids is None else self.centroids[keep]
         return MapSnapshot(
             self.keys[keep],
             self.counts[keep],
@@ -65,6 +86,8 @@ class MapSnapshot:
             self.resolution_m,
             occ,
             self.empty_evidence,
+            cent,
+            self.centroid_ratio,
         )
 
     def static_map(self) -> MapSnapshot:

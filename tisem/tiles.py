@@ -75,10 +75,9 @@ def empty_snapshot(num_classes: int, resolution_m: float) -> MapSnapshot:
 
 
 def take_rows(snap: MapSnapshot, rows: np.ndarray) -> MapSnapshot:
-    """The voxels `rows` (indices or a mask) of `snap`, in that order."""
-    return MapSnapshot(
-        snap.keys[rows], snap.counts[rows], snap.t_last[rows], snap.ell_m[rows], snap.resolution_m
-    )
+    """The voxels `rows` (indices or a mask) of `snap`, in that order, with what they keep
+    besides their counters (occupancy evidence, class centroids)."""
+    return snap.subset(rows)
 
 
 def concat_snapshots(
@@ -95,6 +94,12 @@ def concat_snapshots(
         np.concatenate([p.ell_m for p in parts]),
         resolution_m,
     )
+    if all(p.occupancy is not None for p in parts):
+        snap.occupancy = np.concatenate([p.occupancy for p in parts])
+        snap.empty_evidence = parts[0].empty_evidence
+    if all(p.centroids is not None for p in parts):
+        snap.centroids = np.concatenate([p.centroids for p in parts])
+        snap.centroid_ratio = parts[0].centroid_ratio
     return take_rows(snap, MapSnapshot.sort_order(snap.keys))
 
 
@@ -305,7 +310,7 @@ class TiledMap:
             found = packed[pos] == wanted
             rows, target = pos[found], finite[at][found]
             voxels = take_rows(snap, rows)
-            labels[target] = voxels.labels()
+            labels[target] = voxels.point_labels(pts[target])
             if with_probs:
                 probs[target] = voxels.probabilities()
         return labels, probs

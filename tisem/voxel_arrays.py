@@ -8,6 +8,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from tisem.class_centroids import CENTROID_COLS
 from tisem.snapshot import MapSnapshot
 
 
@@ -20,40 +21,53 @@ class VoxelArrays:
     t_last_rel: np.ndarray  # (M,) float32 seconds since t0
     length_m: np.ndarray  # (M,) float32 kernel length
     occupancy: np.ndarray | None = None  # (M,) float32 occupancy evidence (free space)
+    centroids: np.ndarray | None = None  # (M, CENTROID_COLS) float32 class centroids
 
     def __len__(self) -> int:
         return len(self.keys)
 
     def arrays(self) -> tuple:
         """(keys, counts, t_last_rel, length_m) as the store takes them: with free space the
-        occupancy evidence travels as one more counter column (the store keeps any column
-        count, and its non-zero encoding costs nothing for a voxel never seen through)."""
-        counts = self.counts
-        if self.occupancy is not None:
-            counts = np.concatenate([counts, self.occupancy[:, None]], axis=1)
+        occupancy evidence travels as one more counter column, then with class centroids their
+        CENTROID_COLS columns (the store keeps any column count, and its non-zero encoding
+        costs little for columns that are mostly zero)."""
+        extra = [a for a in (self._occupancy_column(), self.centroids) if a is not None]
+        counts = np.concatenate([self.counts, *extra], axis=1) if extra else self.counts
         return self.keys, counts, self.t_last_rel, self.length_m
+
+    def _occupancy_column(self) -> np.ndarray | None:
+        return None if self.occupancy is None else self.occupancy[:, None]
 
     def rows(self, keep: np.ndarray) -> VoxelArrays:
         return VoxelArrays(
             *(
                 None if a is None else a[keep]
-                for a in (self.keys, self.counts, self.t_last_rel, self.length_m, self.occupancy)
+                for a in (
+                    self.keys,
+                    self.counts,
+                    self.t_last_rel,
+                    self.length_m,
+                    self.occupancy,
+                    self.centroids,
+                )
             )
         )
 
 
 def from_store(arrays: tuple, num_classes: int) -> VoxelArrays:
-    """VoxelArrays of what the store gave back (`VoxelArrays.arrays` in reverse)."""
+    """VoxelArrays of what the store gave back (`VoxelArrays.arrays` in reverse): the columns
+    past the class counters are the occupancy evidence (one) and the class centroids
+    (CENTROID_COLS), each when the map keeps it."""
     keys, counts, t_last_rel, length_m = arrays
-    if counts.shape[1] == num_classes:
-        return VoxelArrays(keys, counts, t_last_rel, length_m)
-    return VoxelArrays(
-        keys,
-        np.ascontiguousarray(counts[:, :num_classes]),
-        t_last_rel,
-        length_m,
-        np.ascontiguousarray(counts[:, num_classes]),
-    )
+    extra = counts.shape[1] - num_classes
+    occupancy = centroids = None
+    if extra in (1, 1 + CENTROID_COLS):
+        occupancy = np.ascontiguousarray(counts[:, num_classes])
+    if extra >= CENTROID_COLS:
+        centroids = np.ascontiguousarray(counts[:, -CENTROID_COLS:])
+    if extra:
+        counts = np.ascontiguousarray(counts[:, :num_classes])
+    return VoxelArrays(keys, counts, t_last_rel, length_m, occupancy, centroids)
 
 
 def snapshot_of(
@@ -63,10 +77,12 @@ def snapshot_of(
     resolution_m: float,
     num_classes: int,
     empty_evidence: float | None = None,
+    centroid_ratio: float | None = None,
 ) -> MapSnapshot:
     """The voxels of all `parts` as one snapshot, sorted by key (no parts: an empty one).
     `empty_evidence` (free space on; None: off) adds the voxels' occupancy evidence and the
-    threshold at which a voxel counts as empty."""
+    threshold at which a voxel counts as empty; `centroid_ratio` (class centroids on; None:
+    off) their class centroids and the share that splits a voxel."""
     if parts:
         keys = np.concatenate([p.keys for p in parts]).astype(np.int64) + origin_vox
         order = MapSnapshot.sort_order(keys)
@@ -90,4 +106,10 @@ def snapshot_of(
         occupancy = [p.occupancy for p in parts]
         snap.occupancy = np.concatenate(occupancy)[order] if parts else np.zeros(0, np.float32)
         snap.empty_evidence = empty_evidence
+    if centroid_ratio is not None:
+        cent = [p.centroids for p in parts]
+        snap.centroids = (
+            np.concatenate(cent)[order] if parts else np.zeros((0, CENTROID_COLS), np.float32)
+        )
+        snap.centroid_ratio = centroid_ratio
     return snap

@@ -26,6 +26,7 @@ from typing import BinaryIO
 import numpy as np
 import yaml
 
+from tisem.class_centroids import centroid_problem
 from tisem.config import MapperConfig
 from tisem.labels import CLASS_COLORS_RGB, CLASS_NAMES, LEARNING_MAP_INV
 from tisem.snapshot import MapSnapshot
@@ -169,6 +170,9 @@ def save_map(
     if snapshot.occupancy is not None:  # free space: the occupancy evidence, optional
         arrays["occupancy"] = np.asarray(snapshot.occupancy, dtype=np.float32)
         arrays["empty_evidence"] = np.array(snapshot.empty_evidence, dtype=np.float64)
+    if snapshot.centroids is not None:  # class centroids, optional
+        arrays["centroids"] = np.asarray(snapshot.centroids, dtype=np.float32)
+        arrays["centroid_ratio"] = np.array(snapshot.centroid_ratio, dtype=np.float64)
     savez = np.savez_compressed if compress else np.savez
     atomic_write(path, lambda f: savez(f, **arrays))
     return path
@@ -205,7 +209,8 @@ def load_map_file(path: str | os.PathLike) -> tuple[MapSnapshot, dict, dict]:
                 )
             version = int(npz["format_version"])
             data = {k: npz[k] for k in _REQUIRED}
-            for k in ("occupancy", "empty_evidence"):  # free space, when the map had it
+            # free space and class centroids, when the map had them
+            for k in ("occupancy", "empty_evidence", "centroids", "centroid_ratio"):
                 if k in npz.files:
                     data[k] = npz[k]
             class_names = npz["class_names"] if "class_names" in npz.files else None
@@ -279,6 +284,16 @@ def load_map_file(path: str | os.PathLike) -> tuple[MapSnapshot, dict, dict]:
             )
         snapshot.occupancy = occupancy
         snapshot.empty_evidence = float(data["empty_evidence"])
+    if "centroids" in data:
+        centroids = np.asarray(data["centroids"], np.float32)
+        ratio = float(data.get("centroid_ratio", np.nan))
+        problem = centroid_problem(centroids, m, counts.shape[1])
+        if problem is None and not 0.0 <= ratio <= 1.0:
+            problem = f"centroid_ratio must lie in [0, 1], got {ratio!r}"
+        if problem is not None:
+            raise MapFileError(f"{path}: damaged tisem map file, {problem}")
+        snapshot.centroids = centroids
+        snapshot.centroid_ratio = ratio
     return snapshot, config, meta
 
 
