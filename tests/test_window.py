@@ -21,7 +21,6 @@ from tisem.config import MapperConfig, RunConfig
 from tisem.mapper import Mapper
 from tisem.reference import sparse_kernel as kernel_g
 from tisem.scan import Scan
-from tisem.snapshot import MapSnapshot
 from tisem.store import pack
 
 ROAD, SIDEWALK, BUILDING, VEGETATION, POLE = 9, 11, 13, 15, 18
@@ -131,12 +130,13 @@ def assert_same_voxels(a, b, rtol=0.0, atol=0.0):
     np.testing.assert_allclose(a.t_last, b.t_last, rtol=0, atol=atol)
     np.testing.assert_allclose(a.ell_m, b.ell_m, rtol=rtol, atol=atol)
     np.testing.assert_array_equal(a.labels(), b.labels())
+    assert (a.centroids is None) == (b.centroids is None)
+    if a.centroids is not None:  # (class centroids travel with their voxels)
+        np.testing.assert_allclose(a.centroids, b.centroids, rtol=rtol, atol=atol)
 
 
 def subset(snap, rows):
-    return MapSnapshot(
-        snap.keys[rows], snap.counts[rows], snap.t_last[rows], snap.ell_m[rows], snap.resolution_m
-    )
+    return snap.subset(rows)
 
 
 def rows_of(snap, keys):
