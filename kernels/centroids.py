@@ -45,43 +45,43 @@ def merge_kernel(decay: str):
 
     @ti.func
     def merge_row(m: ti.template(), s: ti.template(), u, row, cent: ti.template()):
+        # (reads and writes only what changes: most rows bring the class a slot already
+        # holds, and every access walks the sparse tree)
         dt = s.time_rel_s - m.t_last_rel[u]
         alpha = decay_factor(dt, s.inv_tau, decay)
-        cls = ti.Vector([0, 0])
+        cls = ti.Vector([ti.cast(m.centroids[u, 0], ti.i32), ti.cast(m.centroids[u, SLOT], ti.i32)])
         wgt = ti.Vector([0.0, 0.0])
-        pos = ti.Matrix.zero(ti.f32, 2, 3)
         for k in ti.static(range(2)):
-            cls[k] = ti.cast(m.centroids[u, k * SLOT], ti.i32)
             a = alpha
             if ti.static(decay == PER_CLASS):
                 a = ti.exp(-ti.max(dt, 0.0) * m.class_inv_tau[cls[k]])
             wgt[k] = a * m.centroids[u, k * SLOT + 1]
-            for d in ti.static(range(3)):
-                pos[k, d] = m.centroids[u, k * SLOT + 2 + d]
         # (a FORGET map keeps this scan's slots only: every weight decayed to 0 above)
         for r in ti.static(range(2)):
             w = cent[row, r * SLOT + 1]
             if w > 0:
                 c = ti.cast(cent[row, r * SLOT], ti.i32)
-                mean = ti.Vector([cent[row, r * SLOT + 2 + d] for d in ti.static(range(3))])
                 k = -1
                 if cls[0] == c:
                     k = 0
                 elif cls[1] == c:
                     k = 1
-                if k >= 0:
+                if k >= 0:  # the class holds a slot: its mean moves, weighted
                     total = wgt[k] + w
                     for d in ti.static(range(3)):
-                        pos[k, d] = (pos[k, d] * wgt[k] + mean[d] * w) / total
+                        at = k * SLOT + 2 + d
+                        m.centroids[u, at] = (
+                            m.centroids[u, at] * wgt[k] + cent[row, r * SLOT + 2 + d] * w
+                        ) / total
                     wgt[k] = total
                 else:
                     j = 0 if wgt[0] <= wgt[1] else 1  # the empty or lighter slot
-                    if w >= wgt[j]:
+                    if w >= wgt[j]:  # taken over
                         cls[j] = c
                         wgt[j] = w
                         for d in ti.static(range(3)):
-                            pos[j, d] = mean[d]
-                    else:
+                            m.centroids[u, j * SLOT + 2 + d] = cent[row, r * SLOT + 2 + d]
+                    else:  # worn down
                         wgt[j] -= w
         for k in ti.static(range(2)):
             if wgt[k] <= 0:  # worn down to nothing: an empty slot
@@ -89,8 +89,6 @@ def merge_kernel(decay: str):
                 wgt[k] = 0.0
             m.centroids[u, k * SLOT] = ti.cast(cls[k], ti.f32)
             m.centroids[u, k * SLOT + 1] = wgt[k]
-            for d in ti.static(range(3)):
-                m.centroids[u, k * SLOT + 2 + d] = pos[k, d]
 
     def merge_centroids(
         m: MapFields,
