@@ -217,13 +217,9 @@ class LiveWindow:
                 raycast.scatter_occupancy(
                     self._fields, keys, np.ascontiguousarray(occupancy, np.float32)
                 )
-            if self._fields.class_centroids:
-                cent = v.centroids
-                if cent is None:  # (voxels of a map saved without them start with none)
-                    cent = np.zeros((len(keys), CENTROID_COLS), np.float32)
-                kcentroids.scatter_centroids(
-                    self._fields, keys, np.ascontiguousarray(cent, np.float32)
-                )
+            if self._fields.class_centroids:  # (the store keeps them for every voxel)
+                cent = np.ascontiguousarray(v.centroids, np.float32)
+                kcentroids.scatter_centroids(self._fields, keys, cent)
 
     def _fit_cap(self, center: np.ndarray, live: int) -> np.ndarray:
         """Half-size of the window for a scan at `center` under the block cap.
@@ -356,26 +352,27 @@ class LiveWindow:
             # the voxel index exactly as the kernel computes it (float32 local * 1/res), so a
             # point on a voxel face finds the same voxel live or stored
             vox = np.floor(local[rest] * np.float32(inv_res)).astype(np.int64)
-            ok = np.all(np.abs(vox) <= KEY_LIMIT, axis=1)
-            counts = np.zeros((len(vox), m.C), np.float32)
-            stored, _ = self.store.lookup(vox[ok])
-            if m.free_space:  # (an empty voxel answers as no voxel does, as in the field)
-                stored[stored[:, m.C] <= -m.empty_evidence] = 0.0
-            counts[ok] = stored[:, : m.C]
-            snap = MapSnapshot(
-                vox,
-                counts,
-                np.zeros(len(counts)),
-                np.zeros(len(counts), np.float32),
-                self._geometry.resolution_m,
-            )
-            if m.class_centroids:
-                snap.centroids = np.zeros((len(vox), CENTROID_COLS), np.float32)
-                snap.centroids[ok] = stored[:, -CENTROID_COLS:]
-                snap.centroid_ratio = centroid_ratio
+            snap = self._stored(vox, centroid_ratio)
             labels[rest] = snap.point_labels(local[rest])
             if probs is not None:
                 probs[rest] = snap.probabilities()
+
+    def _stored(self, vox: np.ndarray, centroid_ratio: float) -> MapSnapshot:
+        """The stored voxels of local keys `vox`, a row per key: zeros where the store holds
+        none (or a key beyond its range), and where the voxel is empty space (free space: it
+        answers as no voxel does, as in the field)."""
+        m = self._fields
+        ok = np.all(np.abs(vox) <= KEY_LIMIT, axis=1)
+        found, _ = self.store.lookup(vox[ok])
+        columns = np.zeros((len(vox), found.shape[1]), np.float32)
+        columns[ok] = found
+        v = from_store((vox, columns, np.zeros(len(vox)), np.zeros(len(vox))), m.C)
+        if v.occupancy is not None:
+            v.counts[v.occupancy <= -m.empty_evidence] = 0.0
+        res = self._geometry.resolution_m
+        snap = MapSnapshot(vox, v.counts, v.t_last_rel, v.length_m, res, centroids=v.centroids)
+        snap.centroid_ratio = centroid_ratio
+        return snap
 
     def live_arrays(self) -> VoxelArrays:
         """Every live voxel, in no particular order."""
@@ -400,11 +397,4 @@ class LiveWindow:
 
 def _voxel_arrays(n: int, m: MapFields) -> VoxelArrays:
     """Room for n voxels of the map with fields `m` (with the columns it keeps)."""
-    return VoxelArrays(
-        np.zeros((n, 3), np.int32),
-        np.zeros((n, m.C), np.float32),
-        np.zeros(n, np.float32),
-        np.zeros(n, np.float32),
-        np.zeros(n, np.float32) if m.free_space else None,
-        np.zeros((n, CENTROID_COLS), np.float32) if m.class_centroids else None,
-    )
+    return VoxelArrays.zeros(n, m.C, m.free_space, m.class_centroids)

@@ -23,6 +23,20 @@ class VoxelArrays:
     occupancy: np.ndarray | None = None  # (M,) float32 occupancy evidence (free space)
     centroids: np.ndarray | None = None  # (M, CENTROID_COLS) float32 class centroids
 
+    @classmethod
+    def zeros(
+        cls, n: int, num_classes: int, free_space: bool, class_centroids: bool
+    ) -> VoxelArrays:
+        """Room for n voxels, with the columns a map of these settings keeps."""
+        return cls(
+            np.zeros((n, 3), np.int32),
+            np.zeros((n, num_classes), np.float32),
+            np.zeros(n, np.float32),
+            np.zeros(n, np.float32),
+            np.zeros(n, np.float32) if free_space else None,
+            np.zeros((n, CENTROID_COLS), np.float32) if class_centroids else None,
+        )
+
     def __len__(self) -> int:
         return len(self.keys)
 
