@@ -42,7 +42,7 @@ if not __package__:  # run as `python benchmarks/NAME.py`: import from the check
 from benchmarks.common import KITTI_MINI, benchmark_main, device_line  # noqa: E402
 from tisem.backend import init_taichi  # noqa: E402
 from tisem.config import MapperConfig, RunConfig, set_value  # noqa: E402
-from tisem.evaluate import Confusion  # noqa: E402
+from tisem.evaluate import Confusion, online_labels  # noqa: E402
 from tisem.labels import MOVABLE_CLASSES  # noqa: E402
 from tisem.mapper import Mapper  # noqa: E402
 from tisem.scan import Scan  # noqa: E402
@@ -135,11 +135,11 @@ def run_method(scans: list[Scan], cfg: MapperConfig) -> dict:
         if k == WARMUP_SCANS:
             mapper.stage_seconds = dict.fromkeys(mapper.stage_seconds, 0.0)
         t = time.perf_counter()
-        mapper.integrate(scan)
+        report = mapper.integrate(scan)
         if k >= WARMUP_SCANS:
             seconds.append(time.perf_counter() - t)
         labels, _ = mapper.query(scan.points_world(), with_probs=False)
-        online.add(scan.gt_labels, labels)
+        online.add(scan.gt_labels, online_labels(labels, scan, report.dynamic))
     timed = max(len(seconds), 1)
     snap = mapper.snapshot()
     static = snap.static_map()
@@ -188,6 +188,7 @@ def run_method(scans: list[Scan], cfg: MapperConfig) -> dict:
         "iou_person_online": iou.get("person"),
         "miou_final_static": fin["miou"],
         "accuracy_final_static": fin["accuracy"],
+        "per_class_iou_final_static": fin["per_class_iou"],
         "seconds_per_scan": float(np.mean(seconds)) if seconds else float("nan"),
         "stages_ms": {s: v / timed * 1000 for s, v in mapper.stage_seconds.items()},
         "static_points": n_static,
