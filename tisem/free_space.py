@@ -21,13 +21,14 @@ counters fade with their own tau, so a parked car's evidence yields to what is s
 
 from __future__ import annotations
 
+import collections
 import dataclasses
 
 import numpy as np
 from taichi.lang.argpack import ArgPack
 
 from tisem.config import MapperConfig
-from tisem.kernels import raycast
+from tisem.kernels import raycast, seen_empty
 from tisem.kernels.layout import MapFields
 from tisem.kernels.params import EXPONENTIAL, FORGET, PER_CLASS
 from tisem.labels import MOVABLE_CLASSES
@@ -68,12 +69,19 @@ def without_moving(checked: CheckedScan, moving: np.ndarray) -> CheckedScan:
 class FreeSpace:
     """The free-space step of one map (its fields and config)."""
 
-    def __init__(self, fields: MapFields, cfg: MapperConfig, decay: str):
+    def __init__(
+        self, fields: MapFields, cfg: MapperConfig, decay: str, window_half_vox: np.ndarray
+    ):
         self._fields = fields
         self._margin_m = float(cfg.free_margin_m)
         self._margin_fraction = float(cfg.free_margin_fraction)
         self._stride = int(cfg.free_ray_stride)
         self._mark_hits, self._cast_free = raycast.free_space_kernels(decay)
+        self._memory_s = fields.seen_empty_s
+        # the sensor's voxel at the scans whose rays the memory may still hold, and how far it
+        # may move from them before a storage cell of the memory could stand for another place
+        self._recent: collections.deque = collections.deque()
+        self._slack_vox = np.array(fields.N) - 2 * np.asarray(window_half_vox)
 
     def flag_points(
         self, params: ArgPack, checked: CheckedScan, half_vox: np.ndarray, moving: np.ndarray | None
@@ -92,14 +100,31 @@ class FreeSpace:
         if n_rows == 0:
             return 0
         self._mark_hits(self._fields, params, rows.xyz, n_rows)
-        return int(
-            self._cast_free(
-                self._fields,
-                params,
-                rows.xyz,
-                n_rows,
-                self._stride,
-                self._margin_m,
-                self._margin_fraction,
-            )
+        freed = self._cast_free(
+            self._fields,
+            params,
+            rows.xyz,
+            n_rows,
+            self._stride,
+            self._margin_m,
+            self._margin_fraction,
         )
+        return int(freed)
+
+    def forget(self, time_rel_s: float, center_vox: np.ndarray) -> int:
+        """After a scan's rays: the memory of space seen empty forgets what expired (all of it
+        when the sensor has moved so far that the toroidal storage would alias); returns the
+        blocks it holds."""
+        if self._memory_s <= 0:
+            return 0
+        recent = self._recent
+        while recent and recent[0][0] + self._memory_s <= time_rel_s:
+            recent.popleft()
+        center = np.asarray(center_vox, np.int64)
+        if any(np.any(np.abs(center - c) >= self._slack_vox) for _, c in recent):
+            self._fields.seen_top.deactivate_all()
+            recent.clear()
+        recent.append((time_rel_s, center))
+        kept = int(seen_empty.forget_expired_blocks(self._fields, time_rel_s))
+        seen_empty.forget_empty_tops(self._fields)
+        return kept
