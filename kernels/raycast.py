@@ -150,9 +150,12 @@ def free_space_kernels(decay: str):
                         m.occupancy[u] = ti.max(m.occupancy[u] - 1.0, -m.occupancy_cap)
                         ti.atomic_add(m.counter[None], 1)
         elif ti.static(m.seen_empty_s > 0):
-            # space the map holds nothing in: remembered as seen empty (every ray through it
-            # writes the same time)
-            m.empty_until[u] = s.time_rel_s + m.seen_empty_s
+            # space the map holds nothing in: remembered as seen empty (read first: most
+            # voxels near the sensor are crossed by many rays of a scan, and a read of a
+            # block that is not there allocates nothing)
+            until = s.time_rel_s + m.seen_empty_s
+            if m.empty_until[u] != until:
+                m.empty_until[u] = until
 
     @ti.kernel
     def mark_hits(

@@ -101,7 +101,7 @@ class MapperConfig:
     occupancy_cap: float = 4.0  # occupancy evidence is clamped to +-this
     # space a ray saw empty where the map holds no voxel is remembered this long: whatever
     # lands there meanwhile is dynamic (0: no such memory)
-    seen_empty_s: float = 2.0
+    seen_empty_s: float = 4.0
     # live window (toroidal storage; blocks outside the box leave the field)
     window_xy_m: float = 100.0  # half-size of the live window around the sensor; must
     # hold max_range + kernel reach + 0.8 m. 100 m keeps even

@@ -82,6 +82,8 @@ class FreeSpace:
         # may move from them before a storage cell of the memory could stand for another place
         self._recent: collections.deque = collections.deque()
         self._slack_vox = np.array(fields.N) - 2 * np.asarray(window_half_vox)
+        self._next_forget_s = -np.inf
+        self._blocks = 0  # the memory's blocks after its last pass
 
     def flag_points(
         self, params: ArgPack, checked: CheckedScan, half_vox: np.ndarray, moving: np.ndarray | None
@@ -111,12 +113,12 @@ class FreeSpace:
         )
         return int(freed)
 
-    def forget(self, time_rel_s: float, center_vox: np.ndarray) -> int:
-        """After a scan's rays: the memory of space seen empty forgets what expired (all of it
-        when the sensor has moved so far that the toroidal storage would alias); returns the
-        blocks it holds."""
+    def forget_if_wrapped(self, time_rel_s: float, center_vox: np.ndarray) -> None:
+        """Before a scan's flags: forget the whole memory of space seen empty when the sensor
+        is so far from where it was at a scan the memory may still hold that a storage cell
+        (toroidal, like the map's) would stand for another place."""
         if self._memory_s <= 0:
-            return 0
+            return
         recent = self._recent
         while recent and recent[0][0] + self._memory_s <= time_rel_s:
             recent.popleft()
@@ -124,7 +126,15 @@ class FreeSpace:
         if any(np.any(np.abs(center - c) >= self._slack_vox) for _, c in recent):
             self._fields.seen_top.deactivate_all()
             recent.clear()
+            self._blocks = 0
         recent.append((time_rel_s, center))
-        kept = int(seen_empty.forget_expired_blocks(self._fields, time_rel_s))
-        seen_empty.forget_empty_tops(self._fields)
-        return kept
+
+    def forget(self, time_rel_s: float) -> int:
+        """After a scan's rays: the memory forgets what expired, in a pass over its blocks
+        every quarter of its span (so it holds at most 5/4 of it); returns the blocks it held
+        after the last pass."""
+        if self._memory_s > 0 and time_rel_s >= self._next_forget_s:
+            self._next_forget_s = time_rel_s + self._memory_s / 4
+            self._blocks = int(seen_empty.forget_expired_blocks(self._fields, time_rel_s))
+            seen_empty.forget_empty_tops(self._fields)
+        return self._blocks

@@ -140,6 +140,7 @@ class Mapper:
             timer("window")
             if self._free is not None:
                 # what lands in space seen empty is dynamic; moving points add no evidence
+                self._free.forget_if_wrapped(map_time, center_vox)
                 checked = self._flag_dynamic(scan, checked, report)
                 timer("free_space")
             # 2. downsample / voxelize: range and window checks, the points sorted by leaf block
@@ -165,7 +166,7 @@ class Mapper:
                 report.freed_voxels = self._free.integrate(
                     self._params, rows, report.training_voxels
                 )
-                report.seen_empty_blocks = self._free.forget(map_time, center_vox)
+                report.seen_empty_blocks = self._free.forget(map_time)
                 timer("free_space")
             table.clear_table(self._fields)  # the scan's table, empty again for the next scan
             timer("clear")
