@@ -5,8 +5,9 @@ without free space and per-class decay, and csm as the floor.
     python benchmarks/dynamic.py --data ../shared/data/semantickitti_08_mini
 
 Ground truth: which points are dynamic (SemanticKITTI's moving ids 252-259; on the synthetic
-street with its extra movers, points on a mover that is elsewhere at the end). The maps are fed
-the labels alone (the input's motion labels are withheld, so that motion is found, not read).
+street with its extra movers, points on a mover that is under way or elsewhere at the end). The
+maps are fed the labels alone (the input's motion labels are withheld, so that motion is found,
+not read).
 
 * sa / da / aa: every ground-truth point of every scan is kept when its voxel is in the final
   static map (a voxel with evidence, not seen empty); SA = static points kept, DA = dynamic
@@ -15,7 +16,8 @@ the labels alone (the input's motion labels are withheld, so that motion is foun
   was once and no object of such a class is at the end (no static point of one in any scan,
   none in the last scan).
 * miou_online / accuracy_online: every point scored right after its scan is fused (moving
-  points when they were seen); iou_car_online / iou_person_online alone. miou_final_static /
+  points when they were seen; a point the map flagged dynamic with the network's label, as a
+  run scores it); iou_car_online / iou_person_online alone. miou_final_static /
   accuracy_final_static: the static points on the final map. The final-map protocol alone
   rewards keeping ghosts (a trail holds the class its points had), so both are reported.
 * da_bound (once per data set): the highest DA any map of voxels at this resolution can reach

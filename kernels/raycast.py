@@ -11,10 +11,11 @@ an edge or a corner) step together, so no voxel the ray only touches is visited.
 
 Crossed voxels that exist lose occupancy evidence; a voxel the scan hits gains it. Both decay
 with the voxel's counters (kernels/fusion.py) and are clamped to +-cap, so a long-parked car
-clears after a bounded number of scans once it is gone. Free space never allocates: a ray
-through space the map holds no voxel in changes nothing. Each voxel changes at most once per
-scan (`free_stamp`), whatever the number of rays through it, and a voxel hit by the scan is not
-made free by it (a ray grazing a surface it also hits).
+clears after a bounded number of scans once it is gone. Free space never makes a map voxel
+live: a ray through space the map holds no voxel in only writes the memory of space seen empty
+(kernels/seen_empty.py, when seen_empty_s > 0), a tree of its own. Each voxel changes at most
+once per scan (`free_stamp`), whatever the number of rays through it, and neither a voxel hit
+by the scan nor one next to it is made free by it (a ray grazing a surface it also hits).
 """
 
 import functools

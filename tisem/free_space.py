@@ -2,18 +2,22 @@
 
 Per scan, with `free_space: true`:
 
-* before the scan changes the map, its points that land in a live voxel observed empty are
-  flagged dynamic (DUFOMap's rule: space seen empty at one time makes anything in it at another
-  time dynamic), and so are the points the input's motion labels call moving (`Scan.moving`):
-  those add no evidence to the map, so a car the labels say is driving leaves no trail;
+* before the scan changes the map, its points that land in a live voxel observed empty, or
+  where the map holds no voxel in space a ray crossed less than seen_empty_s ago (unless they
+  border space no ray has seen: kernels/raycast.py), are flagged dynamic (DUFOMap's rule: space
+  seen empty at one time makes anything in it at another time dynamic), and so are the points
+  the input's motion labels call moving (`Scan.moving`): flagged points add no evidence to the
+  map, so what drives through space seen empty leaves no trail;
 * after the kernel update, every voxel holding a training point gains a hit, and one ray per
   `free_ray_stride` training points, from the sensor to a margin before it, takes occupancy
   evidence from every live voxel it crosses (kernels/raycast.py). A voxel at or below
   -empty_evidence is empty: queries answer it as no voxel, exports leave it out of the static
   map.
 
-Free space never makes a voxel live, so the map's memory is what it is without it; the
-occupancy evidence travels with the voxel to the store, checkpoints and map files.
+Free space never makes a voxel live, so the map's memory is what it is without it, plus the
+memory of space seen empty (kernels/seen_empty.py: seconds of it, forgotten in passes, never
+stored); the occupancy evidence travels with the voxel to the store, checkpoints and map
+files.
 
 Per-class decay (`tau_movable_s`, st mode) is independent of free space: the movable classes'
 counters fade with their own tau, so a parked car's evidence yields to what is seen there next.
