@@ -23,6 +23,7 @@ Every step of `tisem.mapper.Mapper.integrate` (steps 2-8 run by
 | 9. query                                  | query.py     | query, lookup                   |
 | free space (optional): dynamic points,    | raycast.py   | flag_dynamic, mark_hits,        |
 |    hits, rays that clear what they cross  |              | cast_free, traverse (3-D DDA)   |
+|    the memory of space seen empty         | seen_empty.py| forget_expired_blocks, ...      |
 | the live window (eviction, reload)        | window.py    | find_leaving_blocks, ...        |
 | the SNode tree and the scan's table       | layout.py    | MapFields, table limits         |
 | a scan's constants, the kernels' settings | params.py    | ScanParams, KernelSettings      |

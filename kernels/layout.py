@@ -132,6 +132,7 @@ class MapFields:
         empty_evidence: float = 2.0,
         occupancy_cap: float = 4.0,
         class_centroids: bool = False,
+        seen_empty_s: float = 0.0,
     ):
         for n in extent:
             if n % TOP or n & (n - 1):
@@ -174,6 +175,17 @@ class MapFields:
         if self.class_centroids:
             self.centroids = ti.field(ti.f32)
             self.vox.dense(ti.l, CENTROID_COLS).place(self.centroids)
+        # the memory of space seen empty where the map holds no voxel (free space with
+        # seen_empty_s > 0): per voxel, the map time until which what lands there is dynamic
+        # (0: none), in a tree of its own, so that a ray through air makes no map voxel live.
+        # Its blocks go once they expire (kernels/seen_empty.py): it holds at most the space
+        # the rays of the last seen_empty_s seconds crossed, 256 B per leaf block.
+        self.seen_empty_s = float(seen_empty_s) if self.free_space else 0.0
+        if self.seen_empty_s > 0:
+            self.empty_until = ti.field(ti.f32)
+            self.seen_top = fb.pointer(ti.ijk, self.N_top)
+            self.seen_blk = self.seen_top.pointer(ti.ijk, MID)
+            self.seen_blk.dense(ti.ijk, LEAF).place(self.empty_until)
         # 1 / tau per class (the per-class decay of movable classes, kernels/fusion.py)
         self.class_inv_tau = ti.field(ti.f32)
         fb.dense(ti.i, self.C).place(self.class_inv_tau)

@@ -11,10 +11,11 @@ an edge or a corner) step together, so no voxel the ray only touches is visited.
 
 Crossed voxels that exist lose occupancy evidence; a voxel the scan hits gains it. Both decay
 with the voxel's counters (kernels/fusion.py) and are clamped to +-cap, so a long-parked car
-clears after a bounded number of scans once it is gone. Free space never allocates: a ray
-through space the map holds no voxel in changes nothing. Each voxel changes at most once per
-scan (`free_stamp`), whatever the number of rays through it, and a voxel hit by the scan is not
-made free by it (a ray grazing a surface it also hits).
+clears after a bounded number of scans once it is gone. Free space never makes a map voxel
+live: a ray through space the map holds no voxel in only writes the memory of space seen empty
+(kernels/seen_empty.py, when seen_empty_s > 0), a tree of its own. Each voxel changes at most
+once per scan (`free_stamp`), whatever the number of rays through it, and neither a voxel hit
+by the scan nor one next to it is made free by it (a ray grazing a surface it also hits).
 """
 
 import functools
@@ -107,6 +108,31 @@ def trace_rays(
         traverse(o * inv_res, e * inv_res, t_stop, _record, out_voxels, out_count, r)
 
 
+# A live voxel's free_stamp: 2 * scan + 1 when the scan hit it, 2 * scan when its rays crossed
+# it (a hit outranks a crossing under atomic_max)
+@ti.func
+def hit_stamp(stamp):
+    return 2 * stamp + 1
+
+
+@ti.func
+def crossed_stamp(stamp):
+    return 2 * stamp
+
+
+@ti.func
+def beside_hit(m: ti.template(), w, hit):
+    """Whether a voxel next to world voxel w (of the 26) was hit by the scan (free_stamp ==
+    hit). A ray that passes a surface the scan hits crosses the voxels it is partly in (a
+    voxel is more than the surface in it: a pole, a trunk, an edge): those keep their
+    evidence, as DUFOMap keeps the voxels next to a hit out of its free space."""
+    near = False
+    for o in ti.grouped(ti.ndrange((-1, 2), (-1, 2), (-1, 2))):
+        if m.free_stamp[m.wrap(w + o)] == hit:  # (0 in a voxel that is not live)
+            near = True
+    return near
+
+
 @functools.cache
 def free_space_kernels(decay: str):
     """The map's free-space kernels for one decay rule (kernels/params.py)."""
@@ -115,11 +141,22 @@ def free_space_kernels(decay: str):
     def make_free(m: ti.template(), s: ti.template(), r, v):
         u = m.wrap(v)
         if ti.is_active(m.vox, u):
-            # the first ray of the scan through u changes it, the others find its stamp
-            if ti.atomic_max(m.free_stamp[u], s.stamp) < s.stamp:
-                decay_voxel_to(m, u, s.time_rel_s, s.inv_tau, decay)
-                m.occupancy[u] = ti.max(m.occupancy[u] - 1.0, -m.occupancy_cap)
-                ti.atomic_add(m.counter[None], 1)
+            # the first ray of the scan through u decides, the others find its stamp (a voxel
+            # the scan hit holds the higher one)
+            crossed = crossed_stamp(s.stamp)
+            if m.free_stamp[u] < crossed:
+                if ti.atomic_max(m.free_stamp[u], crossed) < crossed:
+                    if not beside_hit(m, v, hit_stamp(s.stamp)):
+                        decay_voxel_to(m, u, s.time_rel_s, s.inv_tau, decay)
+                        m.occupancy[u] = ti.max(m.occupancy[u] - 1.0, -m.occupancy_cap)
+                        ti.atomic_add(m.counter[None], 1)
+        elif ti.static(m.seen_empty_s > 0):
+            # space the map holds nothing in: remembered as seen empty (read first: most
+            # voxels near the sensor are crossed by many rays of a scan, and a read of a
+            # block that is not there allocates nothing)
+            until = s.time_rel_s + m.seen_empty_s
+            if m.empty_until[u] != until:
+                m.empty_until[u] = until
 
     @ti.kernel
     def mark_hits(
@@ -137,7 +174,7 @@ def free_space_kernels(decay: str):
             if ti.is_active(m.vox, u):
                 decay_voxel_to(m, u, s.time_rel_s, s.inv_tau, decay)
                 m.occupancy[u] = ti.min(m.occupancy[u] + 1.0, m.occupancy_cap)
-                m.free_stamp[u] = s.stamp
+                m.free_stamp[u] = hit_stamp(s.stamp)
 
     @ti.kernel
     def cast_free(
@@ -163,6 +200,21 @@ def free_space_kernels(decay: str):
     return mark_hits, cast_free
 
 
+@ti.func
+def beside_unseen(m: ti.template(), s: ti.template(), w):
+    """1 when a voxel next to world voxel w (of the 26) is neither in the map nor remembered
+    as seen empty. A surface is seen from one side: the space behind it is never crossed, so a
+    voxel a ray crossed in front of a surface (a voxel is more than the surface in it) borders
+    unseen space, while an object that moves into space seen empty is surrounded by it."""
+    near = 0
+    for o in ti.grouped(ti.ndrange((-1, 2), (-1, 2), (-1, 2))):
+        u = m.wrap(w + o)
+        if not ti.is_active(m.vox, u):
+            if m.empty_until[u] <= s.time_rel_s:
+                near = 1
+    return near
+
+
 @ti.kernel
 def flag_dynamic(
     m: ti.template(),
@@ -171,7 +223,8 @@ def flag_dynamic(
     half: ti.types.vector(3, ti.i32),  # the live window's half-size
     out: ti.types.ndarray(dtype=ti.i8, ndim=1),
 ) -> ti.i32:  # (N,) out: 1 dynamic
-    """Flag the points that land in a live voxel observed empty (before this scan's evidence);
+    """Flag the points that land in a live voxel observed empty, or where the map holds no
+    voxel in space a ray saw empty less than seen_empty_s ago (before this scan's rays);
     returns how many."""
     n = 0
     R = s.rotation
@@ -181,10 +234,14 @@ def flag_dynamic(
         flag = 0
         # (compared as floats first: a far point's voxel index would not fit an int32)
         if ti.abs(rel[0]) <= half[0] and ti.abs(rel[1]) <= half[1] and ti.abs(rel[2]) <= half[2]:
-            u = m.wrap(ti.floor(x * s.inv_resolution, ti.i32))
+            w = ti.floor(x * s.inv_resolution, ti.i32)
+            u = m.wrap(w)
             if ti.is_active(m.vox, u):
                 if m.is_empty(u):
                     flag = 1
+            elif ti.static(m.seen_empty_s > 0):
+                if m.empty_until[u] > s.time_rel_s:  # (0 where no ray has been)
+                    flag = 1 - beside_unseen(m, s, w)
         out[p] = ti.cast(flag, ti.i8)
         n += flag
     return n

@@ -10,7 +10,16 @@ import math
 
 import numpy as np
 import pytest
-from helpers import BUILDING, C, away_from_faces, fresh_runtime, pose, scan_from_world, small_config
+from helpers import (
+    BUILDING,
+    POLE,
+    C,
+    away_from_faces,
+    fresh_runtime,
+    pose,
+    scan_from_world,
+    small_config,
+)
 
 from tisem.mapper import Mapper
 
@@ -215,3 +224,85 @@ def test_movable_classes_fade_with_their_own_tau(taichi_cpu):
         )
         winners.append(int(mapper.query(voxel)[0][0]))
     assert winners == [CAR, BUILDING]
+
+
+# a wall tall enough that rays to it see all around a car in front of it (rays stop
+# max(0.5 m, 15 %) before it, well behind CAR_X)
+TALL_WALL = plane_x(WALL_X, (-6.0, 6.0), (-2.0, 2.0))
+
+
+def wall_then(mapper, k, t, extra=None, extra_label=CAR):
+    """Scan k at time t: the tall wall (whole: its voxels are live), plus `extra` points."""
+    pts, labels = TALL_WALL, np.full(len(TALL_WALL), BUILDING)
+    if extra is not None:
+        pts = np.vstack([pts, extra])
+        labels = np.r_[labels, np.full(len(extra), extra_label)]
+    report = mapper.integrate(scan_from_world(pts, pose(), t, labels=labels, index=k))
+    return report, labels
+
+
+def test_an_object_entering_space_seen_empty_is_flagged_at_once(taichi_cpu):
+    """Rays to a wall cross the space in front of it, where the map holds no voxel; a car that
+    appears there is dynamic in its first scan and leaves nothing in the map. Without the
+    memory of space seen empty (seen_empty_s = 0) nothing flags it."""
+    flagged = []
+    for memory in (4.0, 0.0):
+        fresh_runtime()
+        mapper = Mapper(free_config(seen_empty_s=memory))
+        for k in range(2):
+            wall_then(mapper, k, DT * k)
+        report, labels = wall_then(mapper, 2, 2 * DT, car_at(0.0))
+        assert not report.dynamic[labels == BUILDING].any()
+        flagged.append(float(report.dynamic[labels == CAR].mean()))
+        if memory:
+            assert report.seen_empty_blocks > 0
+            assert car_labels(mapper)[CAR] == 0  # no evidence, no voxel
+    assert flagged == [1.0, 0.0]
+
+
+def test_the_memory_of_space_seen_empty_lasts_seen_empty_s(taichi_cpu):
+    cfg = free_config(seen_empty_s=1.0)
+    mapper = Mapper(cfg)
+    for k in range(2):
+        report, _ = wall_then(mapper, k, DT * k)
+    held = report.seen_empty_blocks
+    car = car_at(0.0)
+    labels = np.full(len(car), CAR)
+    # the last rays through the car's place were at DT: it is dynamic until DT + 1 s ...
+    early = mapper.integrate(scan_from_world(car, pose(), DT + 0.95, labels=labels, index=2))
+    assert early.dynamic.all()
+    # ... and static after; the memory, pruned every quarter of its span, then holds only
+    # what the rays to the car crossed
+    late = mapper.integrate(scan_from_world(car, pose(), DT + 1.3, labels=labels, index=3))
+    assert not late.dynamic.any()
+    assert 0 < late.seen_empty_blocks < held / 2
+    assert car_labels(mapper)[CAR] == len(car)
+
+
+def test_a_jump_as_far_as_the_storage_wraps_forgets_the_memory(taichi_cpu):
+    """The memory is stored modulo the storage extent: after a jump of exactly that much, a
+    place never seen shares the cells of the space seen empty, and must not be flagged."""
+    mapper = Mapper(free_config())
+    for k in range(2):
+        wall_then(mapper, k, DT * k)
+    wrap_m = mapper.geometry.storage_extent[0] * RES
+    car = car_at(0.0) + np.array([wrap_m, 0.0, 0.0])
+    report = mapper.integrate(
+        scan_from_world(car, pose(x=wrap_m), 2 * DT, labels=np.full(len(car), CAR), index=2)
+    )
+    assert not report.dynamic.any()
+
+
+def test_a_pole_the_rays_pass_beside_is_kept(taichi_cpu):
+    """A pole thinner than a voxel, seen whole once and then a third of its voxels per scan,
+    with rays to a wall passing through the rest of its voxels: a voxel next to one the scan
+    hits keeps its evidence. (Without that rule each voxel gains one scan in three and loses
+    two, and the pole is gone within a dozen scans.)"""
+    rows = np.arange(-5, 5)
+    pole = away_from_faces(np.column_stack([np.full(10, 5.02), np.full(10, 0.02), rows * RES]), RES)
+    mapper = Mapper(free_config())
+    for k in range(15):
+        part = pole if k == 0 else pole[rows % 3 == k % 3]
+        wall_then(mapper, k, DT * k, part, POLE)
+    labels, _ = mapper.query(pole)
+    assert (labels == POLE).all()

@@ -13,7 +13,7 @@ import pytest
 from tisem.io.kitti_predictions import read_dynamic_flags, write_dynamic_flags
 from tisem.io.mapfile import load_map_file, save_map
 from tisem.snapshot import MapSnapshot
-from tisem.synth.movers import STILL_M, Mover, street_movers
+from tisem.synth.movers import FIRST_INSTANCE, STILL_M, Mover, StreetMovers, street_movers
 
 ROOT = Path(__file__).resolve().parents[1]
 CAR, ROAD = 1, 9
@@ -75,6 +75,12 @@ def test_movers_ground_truth_knows_who_is_where_at_the_end():
     assert abs(parks.s(6.0) - parks.s(t_end)) <= STILL_M  # parked: static from then on
     assert abs(parks.s(1.0) - parks.s(t_end)) > STILL_M  # still driving in
     assert abs(leaves.s(0.0) - leaves.s(t_end)) > STILL_M  # parked, but gone by the end
+    assert parks.moving(1.0) and not parks.moving(6.0) and leaves.moving(t_end)
+    movers = StreetMovers(None, (parks, leaves))
+    instance = np.array([0, FIRST_INSTANCE, FIRST_INSTANCE + 1])
+    # on the last scan: the parked car is static, the one still under way dynamic
+    assert movers.dynamic(instance, t_end, t_end).tolist() == [False, False, True]
+    assert movers.dynamic(instance, 1.0, t_end).tolist() == [False, True, True]
     kinds = {m.kind for m in street_movers()}
     speeds = [m.speed for m in street_movers() if m.kind == "car"]
     assert kinds == {"car", "cyclist", "person"} and min(speeds) < 0 < max(speeds)

@@ -106,6 +106,9 @@ class MapperConfig:
     free_ray_stride: int = 4  # one ray per this many hit voxels (rays cost per voxel)
     empty_evidence: float = 2.0  # a voxel seen through this much more than hit is empty
     occupancy_cap: float = 4.0  # occupancy evidence is clamped to +-this
+    # space a ray saw empty where the map holds no voxel is remembered this long: whatever
+    # lands there meanwhile is dynamic (0: no such memory)
+    seen_empty_s: float = 4.0
     # live window (toroidal storage; blocks outside the box leave the field)
     window_xy_m: float = 100.0  # half-size of the live window around the sensor; must
     # hold max_range + kernel reach + 0.8 m. 100 m keeps even
@@ -237,6 +240,7 @@ MAPPER_RULES = {
     "free_margin_fraction": Number(float, 0.0, 1.0),
     "empty_evidence": Number(float, 0.0, 1.0e6, low_open=True),
     "occupancy_cap": Number(float, 0.0, 1.0e6, low_open=True),
+    "seen_empty_s": Number(float, 0.0, 1.0e6, unit="s"),
     "window_xy_m": Number(float, 0.0, 1.0e5, low_open=True, unit="m"),
     "window_z_m": Number(float, 0.0, 1.0e5, low_open=True, unit="m"),
     "max_live_blocks": Number(int, 1, 2**31 - 1),

@@ -170,6 +170,16 @@ def network_labels(scan: Scan) -> np.ndarray:
     return labels
 
 
+def online_labels(map_labels: np.ndarray, scan: Scan, dynamic: np.ndarray | None) -> np.ndarray:
+    """A scan's answer right after it is mapped: the map's label per point, and for the points
+    free space flagged dynamic the network's own (the map keeps nothing of them)."""
+    if dynamic is None or not dynamic.any():
+        return map_labels
+    out = np.array(map_labels, copy=True)
+    out[dynamic] = network_labels(scan)[dynamic]
+    return out
+
+
 def score_scan(conf: Confusion, scan: Scan, labels: np.ndarray) -> None:
     """Add one answer per point of `scan` to `conf`; non-finite points are no measurement, so
     they are not scored (the mapper drops them by the same rule, `finite_rows`)."""

@@ -2,18 +2,22 @@
 
 Per scan, with `free_space: true`:
 
-* before the scan changes the map, its points that land in a live voxel observed empty are
-  flagged dynamic (DUFOMap's rule: space seen empty at one time makes anything in it at another
-  time dynamic), and so are the points the input's motion labels call moving (`Scan.moving`):
-  those add no evidence to the map, so a car the labels say is driving leaves no trail;
+* before the scan changes the map, its points that land in a live voxel observed empty, or
+  where the map holds no voxel in space a ray crossed less than seen_empty_s ago (unless they
+  border space no ray has seen: kernels/raycast.py), are flagged dynamic (DUFOMap's rule: space
+  seen empty at one time makes anything in it at another time dynamic), and so are the points
+  the input's motion labels call moving (`Scan.moving`): flagged points add no evidence to the
+  map, so what drives through space seen empty leaves no trail;
 * after the kernel update, every voxel holding a training point gains a hit, and one ray per
   `free_ray_stride` training points, from the sensor to a margin before it, takes occupancy
   evidence from every live voxel it crosses (kernels/raycast.py). A voxel at or below
   -empty_evidence is empty: queries answer it as no voxel, exports leave it out of the static
   map.
 
-Free space never makes a voxel live, so the map's memory is what it is without it; the
-occupancy evidence travels with the voxel to the store, checkpoints and map files.
+Free space never makes a voxel live, so the map's memory is what it is without it, plus the
+memory of space seen empty (kernels/seen_empty.py: seconds of it, forgotten in passes, never
+stored); the occupancy evidence travels with the voxel to the store, checkpoints and map
+files.
 
 Per-class decay (`tau_movable_s`, st mode) is independent of free space: the movable classes'
 counters fade with their own tau, so a parked car's evidence yields to what is seen there next.
@@ -21,13 +25,14 @@ counters fade with their own tau, so a parked car's evidence yields to what is s
 
 from __future__ import annotations
 
+import collections
 import dataclasses
 
 import numpy as np
 from taichi.lang.argpack import ArgPack
 
 from tisem.config import MapperConfig
-from tisem.kernels import raycast
+from tisem.kernels import raycast, seen_empty
 from tisem.kernels.layout import MapFields
 from tisem.kernels.params import EXPONENTIAL, FORGET, PER_CLASS
 from tisem.labels import MOVABLE_CLASSES
@@ -68,12 +73,21 @@ def without_moving(checked: CheckedScan, moving: np.ndarray) -> CheckedScan:
 class FreeSpace:
     """The free-space step of one map (its fields and config)."""
 
-    def __init__(self, fields: MapFields, cfg: MapperConfig, decay: str):
+    def __init__(
+        self, fields: MapFields, cfg: MapperConfig, decay: str, window_half_vox: np.ndarray
+    ):
         self._fields = fields
         self._margin_m = float(cfg.free_margin_m)
         self._margin_fraction = float(cfg.free_margin_fraction)
         self._stride = int(cfg.free_ray_stride)
         self._mark_hits, self._cast_free = raycast.free_space_kernels(decay)
+        self._memory_s = fields.seen_empty_s
+        # the sensor's voxel at the scans whose rays the memory may still hold, and how far it
+        # may move from them before a storage cell of the memory could stand for another place
+        self._recent: collections.deque = collections.deque()
+        self._slack_vox = np.array(fields.N) - 2 * np.asarray(window_half_vox)
+        self._next_forget_s = -np.inf
+        self._blocks = 0  # the memory's blocks after its last pass
 
     def flag_points(
         self, params: ArgPack, checked: CheckedScan, half_vox: np.ndarray, moving: np.ndarray | None
@@ -92,14 +106,39 @@ class FreeSpace:
         if n_rows == 0:
             return 0
         self._mark_hits(self._fields, params, rows.xyz, n_rows)
-        return int(
-            self._cast_free(
-                self._fields,
-                params,
-                rows.xyz,
-                n_rows,
-                self._stride,
-                self._margin_m,
-                self._margin_fraction,
-            )
+        freed = self._cast_free(
+            self._fields,
+            params,
+            rows.xyz,
+            n_rows,
+            self._stride,
+            self._margin_m,
+            self._margin_fraction,
         )
+        return int(freed)
+
+    def forget_if_wrapped(self, time_rel_s: float, center_vox: np.ndarray) -> None:
+        """Before a scan's flags: forget the whole memory of space seen empty when the sensor
+        is so far from where it was at a scan the memory may still hold that a storage cell
+        (toroidal, like the map's) would stand for another place."""
+        if self._memory_s <= 0:
+            return
+        recent = self._recent
+        while recent and recent[0][0] + self._memory_s <= time_rel_s:
+            recent.popleft()
+        center = np.asarray(center_vox, np.int64)
+        if any(np.any(np.abs(center - c) >= self._slack_vox) for _, c in recent):
+            self._fields.seen_top.deactivate_all()
+            recent.clear()
+            self._blocks = 0
+        recent.append((time_rel_s, center))
+
+    def forget(self, time_rel_s: float) -> int:
+        """After a scan's rays: the memory forgets what expired, in a pass over its blocks
+        every quarter of its span (so it holds at most 5/4 of it); returns the blocks it held
+        after the last pass."""
+        if self._memory_s > 0 and time_rel_s >= self._next_forget_s:
+            self._next_forget_s = time_rel_s + self._memory_s / 4
+            self._blocks = int(seen_empty.forget_expired_blocks(self._fields, time_rel_s))
+            seen_empty.forget_empty_tops(self._fields)
+        return self._blocks

@@ -24,4 +24,6 @@ class IntegrationReport:
     reloaded_voxels: int = 0
     dynamic_points: int = 0  # free space: points flagged dynamic
     freed_voxels: int = 0  # free space: voxels the scan's rays took evidence from
+    seen_empty_blocks: int = 0  # free space: leaf blocks of the memory of space seen empty
+    # after its last pass (one every quarter of seen_empty_s)
     dynamic: np.ndarray | None = None  # free space: (points,) bool, which points are dynamic

@@ -92,11 +92,16 @@ class Mapper:
             cfg.free_space,
             cfg.empty_evidence,
             cfg.occupancy_cap,
-            cfg.class_centroids,
+            class_centroids=cfg.class_centroids,
+            seen_empty_s=cfg.seen_empty_s,
         )
         bki.fill_kernel_table(self._fields)
         self._fields.class_inv_tau.from_numpy(class_inv_tau(cfg))
-        self._free = FreeSpace(self._fields, cfg, self._settings.decay) if cfg.free_space else None
+        self._free = None
+        if cfg.free_space:
+            self._free = FreeSpace(
+                self._fields, cfg, self._settings.decay, self.geometry.window_half_vox
+            )
         self.window = LiveWindow(self._fields, self.store, self.geometry, cfg.max_live_blocks)
         self._params = scan_params(cfg, self.geometry)
         self._steps = ScanIntegrator(
@@ -139,6 +144,7 @@ class Mapper:
             timer("window")
             if self._free is not None:
                 # what lands in space seen empty is dynamic; moving points add no evidence
+                self._free.forget_if_wrapped(map_time, center_vox)
                 checked = self._flag_dynamic(scan, checked, report)
                 timer("free_space")
             # 2. downsample / voxelize: range and window checks, the points sorted by leaf block
@@ -164,6 +170,7 @@ class Mapper:
                 report.freed_voxels = self._free.integrate(
                     self._params, rows, report.training_voxels
                 )
+                report.seen_empty_blocks = self._free.forget(map_time)
                 timer("free_space")
             table.clear_table(self._fields)  # the scan's table, empty again for the next scan
             timer("clear")
@@ -228,12 +235,12 @@ class Mapper:
         self, scan: Scan, checked: CheckedScan, report: IntegrationReport
     ) -> CheckedScan:
         """The free-space flags of the scan's points (before it changes the map), and the scan
-        without its moving points' evidence."""
+        without the evidence of the points flagged dynamic."""
         report.dynamic = self._free.flag_points(
             self._params, checked, self.window.half_vox, scan.moving
         )
         report.dynamic_points = int(report.dynamic.sum())
-        return checked if scan.moving is None else without_moving(checked, scan.moving)
+        return without_moving(checked, report.dynamic)
 
     def _check_alive(self) -> None:
         if self._generation != backend.generation():

@@ -34,7 +34,7 @@ from tqdm import tqdm
 from tisem.checkpoint import CHECKPOINT_DIR, Checkpoint, open_checkpoint
 from tisem.config import RunConfig
 from tisem.errors import NothingMapped, RunError, RunInterrupted, SkippedScan, os_error_text
-from tisem.evaluate import Confusion, network_labels, score_scan
+from tisem.evaluate import Confusion, network_labels, online_labels, score_scan
 from tisem.interrupt import StopRequest
 from tisem.io.mapfile import remove_stale_temp_files
 from tisem.mapper import Mapper
@@ -318,7 +318,7 @@ class MappingRun:
             score_scan(self.progress.input, scan, network_labels(scan))
             if self.cfg.online_eval:
                 labels, _ = self.mapper.query(scan.points_world(), with_probs=False)
-                score_scan(self.progress.online, scan, labels)
+                score_scan(self.progress.online, scan, online_labels(labels, scan, report.dynamic))
         return True
 
     def _skip(self, skipped: SkippedScan) -> None:

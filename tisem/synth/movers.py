@@ -3,9 +3,10 @@
 Beside the street's own moving car and walking person (`World.actors`): oncoming cars, a
 cyclist, a group of pedestrians, a car that arrives and parks, and one that leaves its parking
 spot (the hard case: static for a while, then gone). Every mover has a position per time; a
-point on it is dynamic when the mover is not where it was by the end of the drive (more than
-`STILL_M` away), which is what a static map must then not hold: the parking car's points once
-it has stopped are static, the leaving car's points dynamic from the first scan.
+point on it is dynamic when the mover is under way, or not where it was by the end of the drive
+(more than `STILL_M` away), which is what a static map must then not hold: the parking car's
+points once it has stopped are static, the leaving car's points dynamic from the first scan,
+and a mover still under way at the end is dynamic in its last scan too.
 
     movers = StreetMovers(world)
     shapes = movers.shapes(t)                     # ShapeSet of the movers at time t
@@ -50,6 +51,12 @@ class Mover:
     t_stop: float = math.inf
     period_s: float = 0.0
 
+    def moving(self, t: float) -> bool:
+        """Whether it is under way at time t."""
+        if self.speed == 0:
+            return False
+        return self.period_s > 0 or self.t_start <= t < self.t_stop
+
     def s(self, t: float) -> float:
         if self.period_s > 0:
             t0 = math.floor(t / self.period_s) * self.period_s
@@ -93,8 +100,10 @@ class StreetMovers:
         return b.build(self.world.route)
 
     def dynamic(self, instance: np.ndarray, t: float, t_end: float) -> np.ndarray:
-        """(N,) bool: points on a mover that is elsewhere (> STILL_M) at t_end than at t."""
-        moved = np.array([abs(m.s(t) - m.s(t_end)) > STILL_M for m in self.movers])
+        """(N,) bool: points on a mover that is under way at t (as SemanticKITTI's moving
+        labels have it), or that is elsewhere (> STILL_M) at t_end than at t (it parked, and
+        left by the end)."""
+        moved = np.array([m.moving(t) or abs(m.s(t) - m.s(t_end)) > STILL_M for m in self.movers])
         idx = instance.astype(np.int64) - FIRST_INSTANCE
         mine = (idx >= 0) & (idx < len(self.movers))
         out = np.zeros(len(instance), bool)
