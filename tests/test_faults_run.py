@@ -279,10 +279,10 @@ def error_lines(done: subprocess.CompletedProcess) -> list[str]:
 
 @pytest.mark.slow
 def test_a_full_disk_while_checkpointing_keeps_the_previous_checkpoint(tmp_path):
-    """The first checkpoint (~1.2 MB) fits, the second (~2 MB) does not."""
+    """The first checkpoint (~1.6 MB) fits, the second (~2.7 MB) does not."""
     seq = tiny_sequence(tmp_path / "00", 4)
     out = tmp_path / "out"
-    done = run_with_file_limit(1_600_000, "--data", seq, "--out", out, "--checkpoint-every", 2)
+    done = run_with_file_limit(2_100_000, "--data", seq, "--out", out, "--checkpoint-every", 2)
     assert done.returncode == 1, done.stderr
     lines = error_lines(done)
     assert len(lines) == 1 and f"cannot write the checkpoint in {out}" in lines[0], lines
