@@ -5,7 +5,8 @@ answers one class for both sides, and the network's own per-point labels beat th
 So each voxel keeps two slots, (class, weight, mean position in the voxel), fed by the voxel's
 own points (never by the kernel's spread evidence): per scan the training pass finds the two
 classes with the most evidence in each voxel and the mean offset of their points from the
-voxel's corner (kernels/training.py), and `merge_centroids` folds them into the map's slots.
+voxel's corner (kernels/training.py), and `merge_row` folds them into the map's slots in the
+length pass over the same voxels (kernels/entropy.py).
 A query point then takes the nearer class's label when the voxel's second class holds at least
 `centroid_ratio` of its leading class's evidence and both have a slot (`nearer_class`).
 
@@ -22,29 +23,22 @@ low corner in metres, in [0, resolution); class 0 and weight 0: an empty slot.
 
 import functools
 
-import numpy as np
 import taichi as ti
-from taichi.lang.argpack import ArgPack
 from tisem.kernels.fusion import decay_factor
-from tisem.kernels.layout import MapFields
 from tisem.kernels.params import PER_CLASS
-from tisem.kernels.training import visit_training_voxels
 
 from tisem.class_centroids import CENTROID_COLS, MIN_SEPARATION, SLOT
 
 
 @functools.cache
-def merge_kernel(decay: str):
-    """The pass that folds a scan's per-voxel class centroids into the map's slots, for one
-    decay rule (kernels/params.py). Runs before the kernel update, while each voxel's
-    t_last_rel is still its previous update."""
+def merge_row(decay: str):
+    """The ti.func that folds training row `row`'s class centroids (`cent`) into the slots of
+    its map voxel u, for one decay rule (kernels/params.py). kernels/entropy.py calls it from
+    the length pass over the scan's training voxels, before the kernel update, while each
+    voxel's t_last_rel is still its previous update."""
 
     @ti.func
-    def no_block_work(m: ti.template(), s: ti.template(), i):
-        pass
-
-    @ti.func
-    def merge_row(m: ti.template(), s: ti.template(), u, row, cent: ti.template()):
+    def merge(m: ti.template(), s: ti.template(), u, row, cent: ti.template()):
         # (reads and writes only what changes: most rows bring the class a slot already
         # holds, and every access walks the sparse tree)
         dt = s.time_rel_s - m.t_last_rel[u]
@@ -90,16 +84,7 @@ def merge_kernel(decay: str):
             m.centroids[u, k * SLOT] = ti.cast(cls[k], ti.f32)
             m.centroids[u, k * SLOT + 1] = wgt[k]
 
-    def merge_centroids(
-        m: MapFields,
-        s: ArgPack,
-        blocks: np.ndarray,  # (B,) occupied cells
-        voxel: np.ndarray,  # (K,) voxel in block
-        cent: np.ndarray,  # (K, CENTROID_COLS) the training rows' class centroids
-    ) -> None:
-        visit_training_voxels(m, s, blocks, voxel, cent, no_block_work, merge_row)
-
-    return merge_centroids
+    return merge
 
 
 @ti.func

@@ -12,6 +12,7 @@ import math
 import numpy as np
 import taichi as ti
 from taichi.lang.argpack import ArgPack
+from tisem.kernels import centroids
 from tisem.kernels.fusion import decay_factor
 from tisem.kernels.layout import MapFields, pending_length
 from tisem.kernels.params import ADAPTIVE_LENGTH, NO_KERNEL
@@ -120,8 +121,11 @@ def fresh_length(
 
 
 @functools.cache
-def _length_visitors(kernel_length: str):
-    """The per-block and per-row work of `assign_lengths` for one kernel-length rule."""
+def _length_visitors(kernel_length: str, centroid_decay: str | None):
+    """The per-block and per-row work of `assign_lengths` for one kernel-length rule, and with
+    `centroid_decay` (a decay rule) the class centroids' merge of the same rows."""
+    merges = centroid_decay is not None
+    merge = centroids.merge_row(centroid_decay) if merges else None
 
     @ti.func
     def mark_reach(m: ti.template(), s: ti.template(), i):
@@ -129,7 +133,9 @@ def _length_visitors(kernel_length: str):
             mark_near(m, i, s.stamp, s.reach_blk)
 
     @ti.func
-    def assign(m: ti.template(), s: ti.template(), u, row, hist: ti.template()):
+    def assign(m: ti.template(), s: ti.template(), u, row, cent: ti.template()):
+        if ti.static(merges):  # (before anything below touches the voxel)
+            merge(m, s, u, row, cent)
         if ti.static(kernel_length == ADAPTIVE_LENGTH):
             m.length[u] = pending_length(row)
         else:
@@ -162,10 +168,14 @@ def assign_lengths(
     s: ArgPack,
     blocks: np.ndarray,
     voxel: np.ndarray,
-    hist: np.ndarray,
+    cent: np.ndarray,
     kernel_length: str,
+    decay: str,
 ) -> None:
     """Steps 4-5 for every voxel the scan's training rows fall in: its kernel length under
     `kernel_length` (kernels/params.py), and the map blocks within kernel reach of it marked for
-    the update. `voxel`, `hist`: the training rows' voxel indices and evidence."""
-    visit_training_voxels(m, s, blocks, voxel, hist, *_length_visitors(kernel_length))
+    the update; in a map with class centroids, in the same pass over the rows, each row's
+    class centroids (`cent`, rows of the training pass) folded into its voxel's slots with the
+    map's `decay` rule. `voxel`: the training rows' voxel indices."""
+    visitors = _length_visitors(kernel_length, decay if m.class_centroids else None)
+    visit_training_voxels(m, s, blocks, voxel, cent, *visitors)

@@ -17,7 +17,7 @@ from tisem.config import MapperConfig
 from tisem.geometry import MapGeometry
 from tisem.integration_report import IntegrationReport
 from tisem.kernel_inputs import KernelSettings
-from tisem.kernels import bki, centroids, entropy, fusion, rasterize, table, training
+from tisem.kernels import bki, entropy, fusion, rasterize, table, training
 from tisem.kernels.layout import MapFields
 from tisem.live_window import LiveWindow
 from tisem.preprocess import CheckedScan
@@ -159,22 +159,21 @@ class ScanIntegrator:
 
     def assign_lengths(self, pts: ScanPoints, rows: TrainingRows) -> None:
         """Steps 4-5: the semantic uncertainty and kernel length of the voxels the training
-        points hit."""
+        points hit (and, with class centroids, where in them each class's points lie)."""
         entropy.assign_lengths(
             self._fields,
             self._params,
             pts.blocks,
             rows.voxel,
-            rows.hist,
+            rows.cent,
             self._settings.kernel_length,
+            self._settings.decay,
         )
 
     def update(self, pts: ScanPoints, rows: TrainingRows, n_rows: int) -> None:
         """Steps 6-8: the kernel update of every live voxel within reach of the n_rows training
         points and its fusion; csm (no kernel) adds each training voxel's own histogram."""
         m, p, settings = self._fields, self._params, self._settings
-        if m.class_centroids:  # (before the update: it reads each voxel's previous time)
-            centroids.merge_kernel(settings.decay)(m, p, pts.blocks, rows.voxel, rows.cent)
         if not settings.uses_kernel:
             fusion.fuse_histograms(m, p, pts.blocks, rows.voxel, rows.hist)
         elif n_rows:
