@@ -157,6 +157,8 @@ def training_kernel(unit_weight: bool, use_probs: bool, centroids: bool = False)
         last,
         corner,
         hist,
+        centroid,
+        npts,
         pts: ti.template(),
         evidence: ti.template(),
         perm2: ti.template(),
@@ -165,15 +167,22 @@ def training_kernel(unit_weight: bool, use_probs: bool, centroids: bool = False)
         """Row `slot`'s class centroids: its voxel's two leading classes in this scan (from
         `hist`) and the mean offset of their points (perm2[run..last]) from the voxel's low
         corner `corner`, in metres; a second pass over the run, once its histogram has told
-        which classes lead."""
+        which classes lead, unless every point of the voxel has the one class (most voxels):
+        then that class's points are all the voxel's, and their mean its `centroid`."""
         R = s.rotation
         tr = s.translation_m
         c1, c2 = top_two(hist, m.C)
+        alone = False
+        if ti.static(not use_probs):
+            alone = c2 == 0 and hist[c1] == ti.cast(npts, ti.f32)
         for r in ti.static(range(2)):
             cr = c1 if r == 0 else c2
             w_sum = 0.0
             x_sum = ti.Vector([0.0, 0.0, 0.0])
-            if cr > 0:
+            if alone and r == 0:
+                w_sum = hist[c1]
+                x_sum = (centroid - corner) * w_sum
+            elif cr > 0:
                 for j in range(run, last + 1):
                     n = perm2[j]
                     w = 0.0
@@ -247,11 +256,12 @@ def training_kernel(unit_weight: bool, use_probs: bool, centroids: bool = False)
                 next_q = code[perm2[j + 1]] % EVIDENCE
             if next_q != q:  # the voxel's last point
                 if voxel_kept(npts, has_evidence, s.min_points):
+                    centroid = first + xyz_sum / ti.cast(npts, ti.f32)
                     write_training_row(
                         m,
                         slot,
                         q,
-                        first + xyz_sum / ti.cast(npts, ti.f32),
+                        centroid,
                         h,
                         out_xyz,
                         out_hist,
@@ -262,7 +272,19 @@ def training_kernel(unit_weight: bool, use_probs: bool, centroids: bool = False)
                     if ti.static(centroids):
                         corner = (corner_vox + local_of_index(q)).cast(ti.f32) * s.resolution_m
                         write_row_centroids(
-                            m, s, slot, run, j, corner, h, pts, evidence, perm2, out_cent
+                            m,
+                            s,
+                            slot,
+                            run,
+                            j,
+                            corner,
+                            h,
+                            centroid,
+                            npts,
+                            pts,
+                            evidence,
+                            perm2,
+                            out_cent,
                         )
                     slot += 1
                 run = j + 1
