@@ -15,6 +15,7 @@ from tisem.class_centroids import CENTROID_COLS, SLOT, merge_slots, split_labels
 from tisem.config import MapperConfig
 from tisem.io.mapfile import MapFileError, load_map_file, save_map
 from tisem.mapper import Mapper
+from tisem.merge import merge_snapshots
 from tisem.reference import merge_scan_slots
 from tisem.snapshot import MapSnapshot
 
@@ -148,3 +149,27 @@ def test_map_file_keeps_centroids_and_refuses_damaged_ones(tmp_path):
         with pytest.raises(MapFileError) as e:
             load_map_file(path)
         assert said in str(e.value) and "\n" not in str(e.value) and str(path) in str(e.value)
+
+
+def test_merged_maps_fold_their_slots_decayed_like_their_counters():
+    """Two maps of one voxel: the older map's slot weights decay by exp(-dt / tau) to the
+    newer's time, as its counters do, before the slots fold together."""
+
+    def one_voxel(t_last, cent):
+        snap = MapSnapshot(
+            np.array([[40, 0, 0]]),
+            np.eye(20, dtype=np.float32)[[ROAD]] * 4,
+            np.array([t_last]),
+            np.full(1, 0.4, np.float32),
+            RES,
+        )
+        snap.centroids, snap.centroid_ratio = cent.astype(np.float32), 0.5
+        return snap
+
+    old = one_voxel(0.0, slots((ROAD, 4.0, (0.0, 0.1, 0.1))))
+    new = one_voxel(1.0, slots((ROAD, 4.0, (0.1, 0.1, 0.1)), (1, 2.0, (0.15, 0.1, 0.1))))
+    merged = merge_snapshots([old, new], 1.0)
+    w_old = 4.0 / np.e
+    want = slots((ROAD, w_old + 4.0, ((0.4 / (w_old + 4.0)), 0.1, 0.1)), (1, 2.0, (0.15, 0.1, 0.1)))
+    np.testing.assert_allclose(merged.centroids, want, rtol=1e-6)
+    assert merged.centroid_ratio == 0.5

@@ -116,15 +116,13 @@ def merge_slots(a: np.ndarray, b: np.ndarray) -> np.ndarray:
             )
             wgt[:, i] = total
             wgt[same, j] = 0.0
-    order = np.argsort(-wgt, axis=1, kind="stable")[:, :2]
-    rows = np.arange(m)[:, None]
+    order = np.argsort(-wgt, axis=1, kind="stable")[:, :2]  # the two heaviest
+    rows = np.arange(m)
     out = np.zeros((m, CENTROID_COLS), np.float32)
     for k in range(2):
-        w = wgt[rows[:, 0], order[:, k]]
-        keep = w > 0
-        out[:, k * SLOT] = np.where(keep, cls[rows[:, 0], order[:, k]], 0)
-        out[:, k * SLOT + 1] = np.where(keep, w, 0.0)
-        out[:, k * SLOT + 2 : k * SLOT + 5] = np.where(
-            keep[:, None], pos[rows[:, 0], order[:, k]], 0
-        )
+        pick = order[:, k]
+        keep = wgt[rows, pick] > 0
+        out[:, k * SLOT] = np.where(keep, cls[rows, pick], 0)
+        out[:, k * SLOT + 1] = np.where(keep, wgt[rows, pick], 0.0)
+        out[:, k * SLOT + 2 : k * SLOT + 5] = np.where(keep[:, None], pos[rows, pick], 0.0)
     return out
