@@ -230,6 +230,8 @@ def test_continuous_query_blends_the_voxels_within_reach(taichi_cpu):
         ("thin_classes=[pole,pole]", "named twice"),
         ("query_blend=all", "expected one of missing, off"),
         ("query_radius_m=0", "query_radius_m = 0: out of range"),
+        ("centroid_ratio=1.5", "centroid_ratio = 1.5: out of range"),
+        ("class_centroids=maybe", "expected true or false"),
     ],
 )
 def test_bad_accuracy_options_are_one_line(assignment, said):

@@ -149,6 +149,14 @@ def test_map_file_keeps_centroids_and_refuses_damaged_ones(tmp_path):
         with pytest.raises(MapFileError) as e:
             load_map_file(path)
         assert said in str(e.value) and "\n" not in str(e.value) and str(path) in str(e.value)
+    # a file whose centroids are no numbers at all (written by other code)
+    with np.load(path) as npz:
+        arrays = {k: npz[k] for k in npz.files}
+    arrays["centroids"] = np.array([["a"] * CENTROID_COLS])
+    np.savez(path, **arrays)
+    with pytest.raises(MapFileError) as e:
+        load_map_file(path)
+    assert "must be numbers" in str(e.value) and "\n" not in str(e.value)
 
 
 def test_merged_maps_fold_their_slots_decayed_like_their_counters():

@@ -285,8 +285,12 @@ def load_map_file(path: str | os.PathLike) -> tuple[MapSnapshot, dict, dict]:
         snapshot.occupancy = occupancy
         snapshot.empty_evidence = float(data["empty_evidence"])
     if "centroids" in data:
-        centroids = np.asarray(data["centroids"], np.float32)
-        ratio = float(data.get("centroid_ratio", np.nan))
+        raw, ratio = data["centroids"], data.get("centroid_ratio", np.array(np.nan))
+        if raw.dtype.kind not in "iuf" or ratio.dtype.kind not in "iuf" or ratio.ndim:
+            raise MapFileError(
+                f"{path}: damaged tisem map file, centroids and centroid_ratio must be numbers"
+            )
+        centroids, ratio = np.asarray(raw, np.float32), float(ratio)
         problem = centroid_problem(centroids, m, counts.shape[1])
         if problem is None and not 0.0 <= ratio <= 1.0:
             problem = f"centroid_ratio must lie in [0, 1], got {ratio!r}"
