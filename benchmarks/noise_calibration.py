@@ -26,6 +26,7 @@ if not __package__:  # run as `python benchmarks/NAME.py`: import from the check
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from benchmarks.common import KITTI_MINI, benchmark_main
+from tisem.synth.split_voxels import SplitVoxels
 
 TOP_CONFUSIONS = 12
 MIN_CLASS_POINTS = 500  # confusion entries are listed for classes with this many points
@@ -71,7 +72,8 @@ def run(args) -> dict:
     from tisem.synth.sequence import SyntheticSequence
 
     data = args.data or KITTI_MINI
-    real = calibration.measure(calibration.read_folder(data))
+    split = {"real": SplitVoxels(), "synthetic": SplitVoxels()}
+    real = calibration.measure(split["real"].counting(calibration.read_folder(data)))
     if args.write_counts:
         write_counts_module(
             real, args.write_counts, f"Error counts of a real segmentation network on {data.name}."
@@ -81,13 +83,16 @@ def run(args) -> dict:
         seq = SyntheticSequence(
             args.synthetic_scans, seed=seed, route=args.route, points_per_ring=args.points_per_ring
         )
-        synthetic.merge(calibration.measure(calibration.from_synth_frames(seq)))
+        frames = split["synthetic"].counting(calibration.from_synth_frames(seq))
+        synthetic.merge(calibration.measure(frames))
     seeds = ", ".join(str(s) for s in args.seeds)
     names = (
         f"real ({data.name})",
         f"synthetic ({args.route}, {args.synthetic_scans} scans per seed, seeds {seeds})",
     )
     result = {"names": names, "real": summarize(real), "synthetic": summarize(synthetic)}
+    for side in ("real", "synthetic"):
+        result[side]["split_voxels"] = [split[side].points, *split[side].shares()]
     result["markdown"] = format_markdown(result, real, synthetic)
     if args.markdown:
         args.markdown.parent.mkdir(parents=True, exist_ok=True)
@@ -314,6 +319,23 @@ def format_markdown(result: dict, real, synthetic) -> str:
     out += _table(
         ["accuracy", "as labelled"] + [f"vote within {r:g} m" for r in cal.VOTE_RADII_M],
         [[name, _f(v[0])] + [_f(x) for x in v[1]] for name, v in zip(("real", "synthetic"), votes)],
+    )
+
+    out += [
+        "### Split voxels: where inside a 0.2 m voxel the network puts each of two classes",
+        "",
+        "Voxels (per scan, sensor frame) whose second label holds at least half the points of "
+        "the first: the share of their points the leading label gets right, and the share the "
+        "label whose points lie nearer gets right (the class centroids' rule).",
+        "",
+    ]
+    out += _table(
+        ["", "points in split voxels", "leading label right", "nearer label right"],
+        [
+            [name, result[name]["split_voxels"][0]]
+            + [_f(v) for v in result[name]["split_voxels"][1:]]
+            for name in ("real", "synthetic")
+        ],
     )
 
     out += ["### Moving objects and their static classes: what the network says", ""]
