@@ -115,10 +115,11 @@ class MapperConfig:
     # the densest stretch of the synthetic loop at <= 58k
     # blocks (docs/long_drive.md)
     window_z_m: float = 24.0
-    max_live_blocks: int = 65_536  # hard cap on live 4^3 leaf blocks (~5.6 KB each). taichi
-    # 1.7.4 maps a 2nd 1 GiB host chunk (unsafe: its allocator
-    # bug) at 147,456 live blocks, measured (docs/long_drive.md);
-    # this leaves over half of that for a scan's growth
+    max_live_blocks: int = 65_536  # hard cap on live 4^3 leaf blocks (~5.6 KB each, ~8.2 KB
+    # with class centroids). taichi 1.7.4 maps a 2nd 1 GiB host
+    # chunk (unsafe: its allocator bug) at 147,456 live blocks,
+    # 106,482 with class centroids, measured (docs/long_drive.md);
+    # this leaves a third of that or more for a scan's growth
     store_dir: str | None = None  # where the host store keeps the voxels that left the
     # window (~35 B each, in an unnamed temp file that goes
     # with the process); None: the system temp dir. A place
