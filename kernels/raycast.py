@@ -214,34 +214,6 @@ def beside_unseen(m: ti.template(), s: ti.template(), w):
     return near
 
 
-# points per task of flag_dynamic: a scan's points come in the sensor's order, and most share
-# the voxel of the point before them (58 % on SemanticKITTI), whose flag the task then knows
-FLAG_RUN = 64
-
-
-@ti.func
-def voxel_flag(m: ti.template(), s: ti.template(), w):
-    """1 when a point in world voxel w is dynamic: the voxel is live and observed empty, or
-    the map holds none there and a ray saw it empty less than seen_empty_s ago (before this
-    scan's rays), unless it borders space no ray has seen."""
-    u = m.wrap(w)
-    flag = 0
-    if ti.is_active(m.vox, u):
-        if m.is_empty(u):
-            flag = 1
-    elif ti.static(m.seen_empty_s > 0):
-        if m.empty_until[u] > s.time_rel_s:  # (0 where no ray has been)
-            flag = 1 - beside_unseen(m, s, w)
-    return flag
-
-
-@ti.func
-def in_window(rel, half):
-    """Whether a point `rel` voxels from the window's centre lies in the live window (compared
-    as floats: a far point's voxel index would not fit an int32)."""
-    return ti.abs(rel[0]) <= half[0] and ti.abs(rel[1]) <= half[1] and ti.abs(rel[2]) <= half[2]
-
-
 @ti.kernel
 def flag_dynamic(
     m: ti.template(),
@@ -250,26 +222,27 @@ def flag_dynamic(
     half: ti.types.vector(3, ti.i32),  # the live window's half-size
     out: ti.types.ndarray(dtype=ti.i8, ndim=1),
 ) -> ti.i32:  # (N,) out: 1 dynamic
-    """Flag the points whose voxel_flag is 1 (within the live window); returns how many."""
+    """Flag the points that land in a live voxel observed empty, or where the map holds no
+    voxel in space a ray saw empty less than seen_empty_s ago (before this scan's rays);
+    returns how many."""
     n = 0
     R = s.rotation
-    n_pts = pts.shape[0]
-    for run in range((n_pts + FLAG_RUN - 1) // FLAG_RUN):
-        last = ti.Vector([0, 0, 0])
-        last_flag = -1  # (no voxel looked up yet)
-        flagged = 0
-        for p in range(run * FLAG_RUN, ti.min(run * FLAG_RUN + FLAG_RUN, n_pts)):
-            x = to_local(R, ti.Vector([pts[p, 0], pts[p, 1], pts[p, 2]]), s.translation_m)
-            flag = 0
-            if in_window(x * s.inv_resolution - s.center_vox, half):
-                w = ti.floor(x * s.inv_resolution, ti.i32)
-                if last_flag < 0 or (w != last).any():
-                    last_flag = voxel_flag(m, s, w)
-                    last = w
-                flag = last_flag
-            out[p] = ti.cast(flag, ti.i8)
-            flagged += flag
-        n += flagged
+    for p in range(pts.shape[0]):
+        x = to_local(R, ti.Vector([pts[p, 0], pts[p, 1], pts[p, 2]]), s.translation_m)
+        rel = x * s.inv_resolution - s.center_vox
+        flag = 0
+        # (compared as floats first: a far point's voxel index would not fit an int32)
+        if ti.abs(rel[0]) <= half[0] and ti.abs(rel[1]) <= half[1] and ti.abs(rel[2]) <= half[2]:
+            w = ti.floor(x * s.inv_resolution, ti.i32)
+            u = m.wrap(w)
+            if ti.is_active(m.vox, u):
+                if m.is_empty(u):
+                    flag = 1
+            elif ti.static(m.seen_empty_s > 0):
+                if m.empty_until[u] > s.time_rel_s:  # (0 where no ray has been)
+                    flag = 1 - beside_unseen(m, s, w)
+        out[p] = ti.cast(flag, ti.i8)
+        n += flag
     return n
 
 

@@ -260,23 +260,6 @@ def test_an_object_entering_space_seen_empty_is_flagged_at_once(taichi_cpu):
     assert flagged == [1.0, 0.0]
 
 
-def test_the_flags_do_not_depend_on_the_order_of_the_points(taichi_cpu):
-    """A point's flag is its voxel's, looked up once for a run of points in one voxel: a car
-    in space seen empty and a box just above it, where no ray went (in the same columns of
-    voxels), their points shuffled among the wall's so that the flag changes from point to
-    point, are flagged as in the sensor's order: the car alone."""
-    mapper = Mapper(free_config())
-    for k in range(2):
-        wall_then(mapper, k, DT * k)
-    car, box = car_at(0.0), car_at(0.0) + np.array([0.0, 0.0, 2.0])  # (rays reach z < 1 m)
-    pts = np.vstack([TALL_WALL, box, car])
-    labels = np.r_[np.full(len(TALL_WALL) + len(box), BUILDING), np.full(len(car), CAR)]
-    order = np.random.default_rng(0).permutation(len(pts))
-    scan = scan_from_world(pts[order], pose(), 2 * DT, labels=labels[order], index=2)
-    report = mapper.integrate(scan)
-    assert (report.dynamic == (labels[order] == CAR)).all()
-
-
 def test_the_memory_of_space_seen_empty_lasts_seen_empty_s(taichi_cpu):
     cfg = free_config(seen_empty_s=1.0)
     mapper = Mapper(cfg)
