@@ -162,10 +162,11 @@ class MapFields:
         # memory): the voxel's occupancy evidence, hits minus crossings by rays, decayed with
         # the counters to t_last_rel and clamped (kernels/raycast.py), and the last scan whose
         # rays or hits changed it (one change per voxel and scan, whatever the rays crossing it).
-        # Both sit on the block, beside the bitmask, not under it: taichi sets a voxel's bit
-        # with an atomic OR on every write to a field under it, and free space writes a stamp
-        # per hit voxel every scan (the atomics made those writes 8x slower). Like `length`,
-        # they hold 0 where no voxel is live (window.py zeroes what leaves).
+        # Both sit on the block, beside the bitmask, not under it (like `length`): taichi sets a
+        # voxel's bit with an atomic OR on every write to a field under it, and a block's 64
+        # evidences share 4 cache lines, which flag_dynamic reads for every point (19 % faster;
+        # docs/dynamic.md, Speed). They hold 0 where no voxel is live (window.py zeroes what
+        # leaves).
         self.free_space = bool(free_space)
         self.empty_evidence = float(empty_evidence)  # (constants the kernels compile in)
         self.occupancy_cap = float(occupancy_cap)
