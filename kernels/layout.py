@@ -164,7 +164,7 @@ class MapFields:
         # rays or hits changed it (one change per voxel and scan, whatever the rays crossing it).
         # Both sit on the block, beside the bitmask, not under it (like `length`): taichi sets a
         # voxel's bit with an atomic OR on every write to a field under it, and a block's 64
-        # evidences share 4 cache lines, which flag_dynamic reads for every point (19 % faster;
+        # evidences share 4 cache lines, read by flag_dynamic for most points (19 % faster;
         # docs/dynamic.md, Speed). They hold 0 where no voxel is live (window.py zeroes what
         # leaves).
         self.free_space = bool(free_space)
