@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 
-from benchmarks import kernel_length, modes, peers, throughput
+from benchmarks import free_space, kernel_length, modes, peers, throughput
 from tisem.mapper import STAGES
 
 REPO = Path(__file__).resolve().parents[1]
@@ -65,6 +65,20 @@ def test_throughput_benchmark_runs(tiny_sequence, tmp_path, capsys):
         r["reference_seconds_per_scan"] / r["seconds_per_scan"]
     )
     assert "| **mapping, end to end** |" in capsys.readouterr().out
+
+
+@pytest.mark.slow
+def test_free_space_benchmark_runs(tiny_sequence, tmp_path, capsys):
+    out = tmp_path / "f.json"
+    args = ["--data", str(tiny_sequence), "--scans", "3", "--json", str(out)]
+    assert free_space.main(args) == 0
+    r = json.loads(out.read_text())
+    assert set(r["kernels_ms"]) == set(free_space.KERNELS)
+    assert r["kernels_ms"]["cast_free"] > 0 and r["threads"] == 2
+    n = r["per_scan"]
+    assert n["rays"] > 0 and n["steps"] >= n["steps_live_blocks"] >= n["steps_live_voxels"]
+    assert 0 < n["memory_writes"] <= n["steps"] - n["steps_live_voxels"]
+    assert "| cast_free |" in capsys.readouterr().out
 
 
 @pytest.mark.slow
