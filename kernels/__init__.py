@@ -21,6 +21,9 @@ Every step of `tisem.mapper.Mapper.integrate` (steps 2-8 run by
 |    csm: the voxel's own histogram         | fusion.py    | fuse_histograms                 |
 | 8. temporal fusion (lazy decay)           | fusion.py    | fuse_voxel, decay_factor        |
 | 9. query                                  | query.py     | query, lookup                   |
+|    class centroids: where in its voxel    | training.py  | training_kernel (per row)       |
+|    each of the two leading classes lies   | centroids.py | merge_row (length pass),        |
+|                                           |              | nearer_class                    |
 | free space (optional): dynamic points,    | raycast.py   | flag_dynamic, mark_hits,        |
 |    hits, rays that clear what they cross  |              | cast_free, traverse (3-D DDA)   |
 |    the memory of space seen empty         | seen_empty.py| forget_expired_blocks, ...      |
