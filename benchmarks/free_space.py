@@ -25,7 +25,7 @@ import numpy as np
 
 from benchmarks.common import add_data_args, benchmark_main, device_line, load_scans, replay
 
-KERNELS = ("flag_dynamic", "mark_hits", "cast_free", "forget_expired_blocks")
+KERNELS = ("flag_dynamic", "mark_hits", "cast_free", "clear_crossed", "forget_expired_blocks")
 COUNTS = ("rays", "steps", "steps_live_blocks", "steps_live_voxels", "memory_writes")
 
 
@@ -72,6 +72,7 @@ def time_kernels(args, cfg, scans) -> dict:
     seen_empty.forget_expired_blocks = _timed(times, "forget_expired_blocks", saved[1])
     free._mark_hits = _timed(times, "mark_hits", free._mark_hits)
     free._cast_free = _timed(times, "cast_free", free._cast_free)
+    free._clear_crossed = _timed(times, "clear_crossed", free._clear_crossed)
     try:
         for scan in stream:
             mapper.integrate(scan)

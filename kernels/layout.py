@@ -32,6 +32,7 @@ LEAF = 1 << LEAF_BITS  # voxels per leaf block edge
 MID = 8  # leaf blocks per top cell edge
 TOP = LEAF * MID
 KERNEL_TABLE = 4096  # samples of the sparse kernel over r^2 in [0, 1]
+CROSSED_CAPACITY = 1 << 16  # live voxels one scan's rays cross (7.9k on a real scan, 12 B each)
 NEAR = 2  # table cells (leaf blocks) per edge of a cell of the coarse `near` table
 LAYER_BITS = 8  # per z layer of a block in b_layers: up to 64 rows (LEAF^3 voxels)
 EMPTY_LO = 1 << 30  # col_lo of a column without points (any z cell is below it)
@@ -133,6 +134,8 @@ class MapFields:
         occupancy_cap: float = 4.0,
         class_centroids: bool = False,
         seen_empty_s: float = 0.0,
+        spare_beside_unseen: bool = False,
+        spare_static_beside_own: bool = False,
     ):
         for n in extent:
             if n % TOP or n & (n - 1):
@@ -191,6 +194,22 @@ class MapFields:
             self.seen_top = fb.pointer(ti.ijk, self.N_top)
             self.seen_blk = self.seen_top.pointer(ti.ijk, MID)
             self.seen_blk.dense(ti.ijk, LEAF).place(self.empty_until)
+        # per class, 1 for a class that cannot move (spare_static_beside_own): its points in
+        # space seen empty next to a live voxel it leads are not flagged (kernels/raycast.py)
+        self.spare_static_beside_own = bool(spare_static_beside_own) and self.seen_empty_s > 0
+        if self.spare_static_beside_own:
+            self.static_class = ti.field(ti.i32)
+            fb.dense(ti.i, self.C).place(self.static_class)
+        # the live voxels the scan's rays crossed (spare_beside_unseen): a crossed voxel next to
+        # space no ray has seen (neither live nor in the memory) holds a surface seen from one
+        # side, which the rays graze, and keeps its evidence; that is decided after every ray
+        # of the scan has written the memory, so the list keeps them until then
+        self.spare_beside_unseen = bool(spare_beside_unseen) and self.seen_empty_s > 0
+        if self.spare_beside_unseen:
+            self.crossed = ti.Vector.field(3, ti.i32)
+            self.n_crossed = ti.field(ti.i32)
+            fb.dense(ti.i, CROSSED_CAPACITY).place(self.crossed)
+            fb.place(self.n_crossed)
         # 1 / tau per class (the per-class decay of movable classes, kernels/fusion.py)
         self.class_inv_tau = ti.field(ti.f32)
         fb.dense(ti.i, self.C).place(self.class_inv_tau)

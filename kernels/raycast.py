@@ -138,6 +138,13 @@ def free_space_kernels(decay: str):
     """The map's free-space kernels for one decay rule (kernels/params.py)."""
 
     @ti.func
+    def lose_evidence(m: ti.template(), s: ti.template(), u):
+        """Live voxel u was seen through by the scan: one less occupancy evidence."""
+        decay_voxel_to(m, u, s.time_rel_s, s.inv_tau, decay)
+        m.occupancy[u] = ti.max(m.occupancy[u] - 1.0, -m.occupancy_cap)
+        ti.atomic_add(m.counter[None], 1)
+
+    @ti.func
     def make_free(m: ti.template(), s: ti.template(), r, v):
         u = m.wrap(v)
         if ti.is_active(m.vox, u):
@@ -147,9 +154,15 @@ def free_space_kernels(decay: str):
             if m.free_stamp[u] < crossed:
                 if ti.atomic_max(m.free_stamp[u], crossed) < crossed:
                     if not beside_hit(m, v, hit_stamp(s.stamp)):
-                        decay_voxel_to(m, u, s.time_rel_s, s.inv_tau, decay)
-                        m.occupancy[u] = ti.max(m.occupancy[u] - 1.0, -m.occupancy_cap)
-                        ti.atomic_add(m.counter[None], 1)
+                        if ti.static(m.spare_beside_unseen):
+                            # decided by clear_crossed, once every ray has written the memory
+                            i = ti.atomic_add(m.n_crossed[None], 1)
+                            if i < m.crossed.shape[0]:
+                                m.crossed[i] = v
+                            else:  # (more than the list holds: these go without the check)
+                                lose_evidence(m, s, u)
+                        else:
+                            lose_evidence(m, s, u)
         elif ti.static(m.seen_empty_s > 0):
             # space the map holds nothing in: remembered as seen empty. Written without reading
             # first: every ray writes the same value, the first one through a voxel allocates
@@ -196,7 +209,19 @@ def free_space_kernels(decay: str):
             traverse(o * s.inv_resolution, e * s.inv_resolution, t_stop, make_free, m, s, r)
         return m.counter[None]
 
-    return mark_hits, cast_free
+    @ti.kernel
+    def clear_crossed(m: ti.template(), s: ScanParams) -> ti.i32:
+        """After the scan's rays (spare_beside_unseen): the live voxels they crossed lose
+        evidence, except those next to space no ray has seen; returns how many lost it."""
+        m.counter[None] = 0
+        for i in range(ti.min(m.n_crossed[None], m.crossed.shape[0])):
+            v = m.crossed[i]
+            if not beside_unseen(m, s, v):
+                lose_evidence(m, s, m.wrap(v))
+        m.n_crossed[None] = 0
+        return m.counter[None]
+
+    return mark_hits, cast_free, clear_crossed
 
 
 @ti.func
@@ -214,17 +239,45 @@ def beside_unseen(m: ti.template(), s: ti.template(), w):
     return near
 
 
+@ti.func
+def leading_class(m: ti.template(), u):
+    """The class with the most evidence in live voxel u (0 when it holds none)."""
+    best = 0
+    top = 0.0
+    for c in ti.static(range(1, m.C)):
+        if m.counts[u, c] > top:
+            top = m.counts[u, c]
+            best = c
+    return best
+
+
+@ti.func
+def beside_own_class(m: ti.template(), w, c):
+    """Whether a live voxel next to world voxel w (of the 26) is led by class c (a static
+    structure goes on there: what moves into space seen empty is surrounded by it, or by
+    voxels of other classes, like a car by the road under it)."""
+    near = False
+    for o in ti.grouped(ti.ndrange((-1, 2), (-1, 2), (-1, 2))):
+        u = m.wrap(w + o)
+        if ti.is_active(m.vox, u):
+            if leading_class(m, u) == c:
+                near = True
+    return near
+
+
 @ti.kernel
 def flag_dynamic(
     m: ti.template(),
     s: ScanParams,
     pts: ti.types.ndarray(dtype=ti.f32, ndim=2),  # (N, 3) sensor frame
+    labels: ti.types.ndarray(dtype=ti.i32, ndim=1),  # (N,) the points' classes
     half: ti.types.vector(3, ti.i32),  # the live window's half-size
     out: ti.types.ndarray(dtype=ti.i8, ndim=1),
 ) -> ti.i32:  # (N,) out: 1 dynamic
     """Flag the points that land in a live voxel observed empty, or where the map holds no
-    voxel in space a ray saw empty less than seen_empty_s ago (before this scan's rays);
-    returns how many."""
+    voxel in space a ray saw empty less than seen_empty_s ago (before this scan's rays), except
+    next to space no ray has seen, and (spare_static_beside_own) a point of a class that
+    cannot move next to a live voxel its class leads; returns how many."""
     n = 0
     R = s.rotation
     for p in range(pts.shape[0]):
@@ -241,6 +294,12 @@ def flag_dynamic(
             elif ti.static(m.seen_empty_s > 0):
                 if m.empty_until[u] > s.time_rel_s:  # (0 where no ray has been)
                     flag = 1 - beside_unseen(m, s, w)
+                    if ti.static(m.spare_static_beside_own):
+                        # a pole or a trunk sampled sparsely: rays passed beside it through
+                        # voxels it is partly in, before a scan hit it there
+                        if flag == 1 and m.static_class[labels[p]] == 1:
+                            if beside_own_class(m, w, labels[p]):
+                                flag = 0
         out[p] = ti.cast(flag, ti.i8)
         n += flag
     return n

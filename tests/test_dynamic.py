@@ -19,6 +19,7 @@ from helpers import (
     pose,
     scan_from_world,
     small_config,
+    voxel_keys,
 )
 
 from tisem.mapper import Mapper
@@ -39,7 +40,9 @@ def plane_x(x, y_range, z_range):
     return away_from_faces(np.column_stack([np.full(Y.size, x), Y.ravel(), Z.ravel()]), RES)
 
 
-WALL = plane_x(WALL_X, (-6.0, 6.0), (-1.0, 1.0))  # rays to it cross |y| < 3 at CAR_X
+# rays to the wall cross |y| < 3, |z| < 1 at CAR_X: all around a car there (they stop
+# max(0.5 m, 15 %) before the wall, well behind CAR_X)
+WALL = plane_x(WALL_X, (-6.0, 6.0), (-2.0, 2.0))
 
 
 def car_at(y):
@@ -226,14 +229,9 @@ def test_movable_classes_fade_with_their_own_tau(taichi_cpu):
     assert winners == [CAR, BUILDING]
 
 
-# a wall tall enough that rays to it see all around a car in front of it (rays stop
-# max(0.5 m, 15 %) before it, well behind CAR_X)
-TALL_WALL = plane_x(WALL_X, (-6.0, 6.0), (-2.0, 2.0))
-
-
 def wall_then(mapper, k, t, extra=None, extra_label=CAR):
     """Scan k at time t: the tall wall (whole: its voxels are live), plus `extra` points."""
-    pts, labels = TALL_WALL, np.full(len(TALL_WALL), BUILDING)
+    pts, labels = WALL, np.full(len(WALL), BUILDING)
     if extra is not None:
         pts = np.vstack([pts, extra])
         labels = np.r_[labels, np.full(len(extra), extra_label)]
@@ -306,3 +304,73 @@ def test_a_pole_the_rays_pass_beside_is_kept(taichi_cpu):
         wall_then(mapper, k, DT * k, part, POLE)
     labels, _ = mapper.query(pole)
     assert (labels == POLE).all()
+
+
+def box_seen_from_the_front(with_roof):
+    """(points, labels): a car-sized box whose front face is at CAR_X and whose roof, below the
+    sensor, reaches 2 m back, and the wall behind it minus what the box hides. `with_roof`:
+    the roof's points too (a scan whose rings miss the roof has the rest only)."""
+    top, back, half_y = -0.39, CAR_X + 2.0, 1.0  # (a roof low in its voxel layer)
+    front = plane_x(CAR_X, (-half_y, half_y), (-2.0, top))
+    xs = np.arange(CAR_X + SPACING / 2, back, SPACING)
+    ys = np.arange(-half_y + SPACING / 2, half_y, SPACING)
+    X, Y = np.meshgrid(xs, ys, indexing="ij")
+    roof = away_from_faces(np.column_stack([X.ravel(), Y.ravel(), np.full(X.size, top)]), RES)
+    # a wall point is hidden when its ray meets the front face or the roof
+    x_top = np.where(WALL[:, 2] < 0, top * WALL_X / np.minimum(WALL[:, 2], -1e-9), np.inf)
+    by_front = (np.abs(WALL[:, 1] * CAR_X / WALL_X) < half_y) & (WALL[:, 2] * CAR_X / WALL_X < top)
+    by_roof = (x_top >= CAR_X) & (x_top <= back) & (np.abs(WALL[:, 1] * x_top / WALL_X) < half_y)
+    wall = WALL[~(by_front | by_roof)]
+    parts = [(wall, BUILDING), (front, CAR)] + ([(roof, CAR)] if with_roof else [])
+    return (
+        np.vstack([p for p, _ in parts]),
+        np.concatenate([np.full(len(p), c) for p, c in parts]),
+        roof,
+    )
+
+
+@pytest.mark.parametrize("spare", [True, False])
+def test_a_roof_the_rays_graze_is_kept(taichi_cpu, spare):
+    """A parked car's roof seen from above at a shallow angle, then scans whose rings miss it
+    while rays to the wall behind pass just over it, through the roof's voxels: each of those
+    voxels borders the inside of the car, which no ray has seen, so it keeps its evidence
+    (spare_beside_unseen). Without that rule the rays wear the far end of the roof away."""
+    fresh_runtime()
+    mapper = Mapper(free_config(spare_beside_unseen=spare))
+    for k in range(16):
+        pts, labels, roof = box_seen_from_the_front(with_roof=k < 4)
+        mapper.integrate(scan_from_world(pts, pose(), DT * k, labels=labels, index=k))
+    kept = mapper.query(roof)[0] == CAR
+    if spare:
+        assert kept.all()
+    else:
+        assert (~kept).sum() > 0.05 * len(roof)
+
+
+@pytest.mark.parametrize(("label", "spare"), [(POLE, True), (POLE, False), (CAR, True)])
+def test_a_pole_seen_first_in_part_grows_into_space_seen_empty(taichi_cpu, label, spare):
+    """A pole whose lower half is seen first while rays to the wall pass through the voxels
+    of its upper half (remembered as seen empty), then whole: each scan its points next to
+    its live voxels are not flagged (spare_static_beside_own), so it grows a voxel a scan to
+    its top. A car in its place is flagged (a movable class gets no such rule: a car that
+    drives into space seen empty beside a parked one is dynamic), and so is the pole without
+    the rule."""
+    fresh_runtime()
+    rows = np.arange(-4, 4)  # (z within the rays to the wall: no voxel of it borders unseen space)
+    pole = away_from_faces(np.column_stack([np.full(8, 5.02), np.full(8, 0.02), rows * RES]), RES)
+    upper = rows >= 0
+    mapper = Mapper(free_config(spare_static_beside_own=spare))
+    wall_then(mapper, 0, 0.0, pole[~upper], label)
+    flagged = []
+    for k in range(1, 8):
+        report, labels = wall_then(mapper, k, DT * k, pole, label)
+        flagged.append(int(report.dynamic[labels == label].sum()))
+    live = {tuple(k) for k in mapper.snapshot().keys.tolist()}
+    in_map = np.array([tuple(k) in live for k in voxel_keys(pole, RES).tolist()])
+    if label == POLE and spare:
+        # one row more of the upper half is live each scan: 3, 2, 1 of its 4 rows flagged
+        assert flagged == [3, 2, 1, 0, 0, 0, 0]
+        assert in_map.all() and (mapper.query(pole)[0] == POLE).all()
+    else:
+        assert flagged == [4] * 7
+        assert in_map[~upper].all() and not in_map[upper].any()

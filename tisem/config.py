@@ -109,6 +109,15 @@ class MapperConfig:
     # space a ray saw empty where the map holds no voxel is remembered this long: whatever
     # lands there meanwhile is dynamic (0: no such memory)
     seen_empty_s: float = 4.0
+    # a live voxel next to space no ray has seen (neither in the map nor in that memory) keeps
+    # its evidence when rays cross it: it holds a surface seen from one side (a car's roof),
+    # which rays that pass it graze (needs seen_empty_s > 0)
+    spare_beside_unseen: bool = True
+    # a point of a class that cannot move (not tisem.labels.MOVABLE_CLASSES), in space seen
+    # empty next to a live voxel its class leads, is not flagged dynamic: a pole or a trunk
+    # sampled sparsely, beside which rays passed before a scan hit it there (needs
+    # seen_empty_s > 0)
+    spare_static_beside_own: bool = True
     # live window (toroidal storage; blocks outside the box leave the field)
     window_xy_m: float = 100.0  # half-size of the live window around the sensor; must
     # hold max_range + kernel reach + 0.8 m. 100 m keeps even
@@ -236,6 +245,8 @@ MAPPER_RULES = {
     "tau_s": Number(float, 1.0e-6, 1.0e12, unit="s"),
     "tau_movable_s": Number(float, 1.0e-6, 1.0e12, unit="s", optional=True),
     "free_space": Flag(),
+    "spare_beside_unseen": Flag(),
+    "spare_static_beside_own": Flag(),
     "free_margin_m": Number(float, 0.0, 100.0, unit="m"),
     "free_ray_stride": Number(int, 1, 1_000_000),
     "free_margin_fraction": Number(float, 0.0, 1.0),

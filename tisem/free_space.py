@@ -4,13 +4,16 @@ Per scan, with `free_space: true`:
 
 * before the scan changes the map, its points that land in a live voxel observed empty, or
   where the map holds no voxel in space a ray crossed less than seen_empty_s ago (unless they
-  border space no ray has seen: kernels/raycast.py), are flagged dynamic (DUFOMap's rule: space
+  border space no ray has seen, or are of a class that cannot move next to a live voxel their
+  class leads: kernels/raycast.py), are flagged dynamic (DUFOMap's rule: space
   seen empty at one time makes anything in it at another time dynamic), and so are the points
   the input's motion labels call moving (`Scan.moving`): flagged points add no evidence to the
   map, so what drives through space seen empty leaves no trail;
 * after the kernel update, every voxel holding a training point gains a hit, and one ray per
   `free_ray_stride` training points, from the sensor to a margin before it, takes occupancy
-  evidence from every live voxel it crosses (kernels/raycast.py). A voxel at or below
+  evidence from every live voxel it crosses, except voxels next to a hit of the scan and
+  (spare_beside_unseen) voxels next to space no ray has seen (kernels/raycast.py). A voxel at
+  or below
   -empty_evidence is empty: queries answer it as no voxel, exports leave it out of the static
   map.
 
@@ -61,6 +64,13 @@ def class_inv_tau(cfg: MapperConfig) -> np.ndarray:
     return out
 
 
+def static_classes(num_classes: int) -> np.ndarray:
+    """(C,) int32: 1 for a class that cannot move, 0 for the movable ones and class 0."""
+    out = np.ones(num_classes, np.int32)
+    out[[c for c in (0, *MOVABLE_CLASSES) if c < num_classes]] = 0
+    return out
+
+
 def without_moving(checked: CheckedScan, moving: np.ndarray) -> CheckedScan:
     """The scan with its moving points' evidence taken away (they still count as points)."""
     if not moving.any():
@@ -77,10 +87,12 @@ class FreeSpace:
         self, fields: MapFields, cfg: MapperConfig, decay: str, window_half_vox: np.ndarray
     ):
         self._fields = fields
+        if fields.spare_static_beside_own:
+            fields.static_class.from_numpy(static_classes(cfg.num_classes))
         self._margin_m = float(cfg.free_margin_m)
         self._margin_fraction = float(cfg.free_margin_fraction)
         self._stride = int(cfg.free_ray_stride)
-        self._mark_hits, self._cast_free = raycast.free_space_kernels(decay)
+        self._mark_hits, self._cast_free, self._clear_crossed = raycast.free_space_kernels(decay)
         self._memory_s = fields.seen_empty_s
         # the sensor's voxel at the scans whose rays the memory may still hold, and how far it
         # may move from them before a storage cell of the memory could stand for another place
@@ -94,7 +106,12 @@ class FreeSpace:
     ) -> np.ndarray:
         """(N,) bool: which points of the scan are dynamic, before the scan changes the map."""
         flags = np.zeros(len(checked.points_sensor), np.int8)
-        raycast.flag_dynamic(self._fields, params, checked.points_sensor, ivec(half_vox), flags)
+        ev = checked.evidence
+        labels = ev if not checked.use_probs else np.argmax(ev, axis=1)
+        labels = np.ascontiguousarray(labels, np.int32)
+        raycast.flag_dynamic(
+            self._fields, params, checked.points_sensor, labels, ivec(half_vox), flags
+        )
         dynamic = flags.astype(bool)
         if moving is not None:
             dynamic |= moving
@@ -115,6 +132,8 @@ class FreeSpace:
             self._margin_m,
             self._margin_fraction,
         )
+        if self._fields.spare_beside_unseen:
+            freed += self._clear_crossed(self._fields, params)
         return int(freed)
 
     def forget_if_wrapped(self, time_rel_s: float, center_vox: np.ndarray) -> None:

@@ -94,6 +94,8 @@ class Mapper:
             cfg.occupancy_cap,
             class_centroids=cfg.class_centroids,
             seen_empty_s=cfg.seen_empty_s,
+            spare_beside_unseen=cfg.spare_beside_unseen,
+            spare_static_beside_own=cfg.spare_static_beside_own,
         )
         bki.fill_kernel_table(self._fields)
         self._fields.class_inv_tau.from_numpy(class_inv_tau(cfg))
