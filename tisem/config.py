@@ -104,8 +104,8 @@ class MapperConfig:
     free_margin_m: float = 0.5  # a ray stops this far before its hit, or
     free_margin_fraction: float = 0.15  # this part of its range, whichever is more
     free_ray_stride: int = 4  # one ray per this many hit voxels (rays cost per voxel)
-    empty_evidence: float = 2.0  # a voxel seen through this much more than hit is empty
-    occupancy_cap: float = 4.0  # occupancy evidence is clamped to +-this
+    empty_evidence: float = 1.0  # a voxel seen through this much more than hit is empty
+    occupancy_cap: float = 3.0  # occupancy evidence is clamped to +-this
     # space a ray saw empty where the map holds no voxel is remembered this long: whatever
     # lands there meanwhile is dynamic (0: no such memory)
     seen_empty_s: float = 4.0
