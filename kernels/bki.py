@@ -226,7 +226,7 @@ def update_kernel(settings: KernelSettings):
                     # limit, receivers within NEAR + reach of one, their kernels within reach
                     # more; the table's margin (layout.table_half_blocks) is wider than that.
                     # Checked under ti.init(debug=True) only: taichi compiles an assert into
-                    # release kernels too, a call per column that cost ~5 % of the scan
+                    # release kernels too, a call per column (1-3 ms per real scan)
                     if ti.static(ti.lang.impl.current_cfg().debug):
                         assert m.in_table(ti.Vector([tx, ty, 0]))
                     col_lo = m.col_lo[tx, ty]

@@ -73,13 +73,21 @@ def free_config(**kw):
     return small_config(free_space=True, free_ray_stride=1, **kw)
 
 
-def scans_to_clear(hit_scans, cfg):
-    """Scans of rays (one per scan after the object left) until a voxel hit `hit_scans`
-    times in a row is empty, by the closed form of its occupancy evidence."""
+def occupancy_after_hits(hit_scans, cfg):
+    """A voxel's occupancy evidence after `hit_scans` scans in a row hit it: +1 after each
+    scan's decay, clamped."""
     alpha = math.exp(-DT / cfg.tau_s)
     occ = 0.0
     for _ in range(hit_scans):
         occ = min(alpha * occ + 1.0, cfg.occupancy_cap)
+    return occ
+
+
+def scans_to_clear(hit_scans, cfg):
+    """Scans of rays (one per scan after the object left) until a voxel hit `hit_scans`
+    times in a row is empty, by the closed form of its occupancy evidence."""
+    alpha = math.exp(-DT / cfg.tau_s)
+    occ = occupancy_after_hits(hit_scans, cfg)
     n = 0
     while occ > -cfg.empty_evidence:
         occ = max(alpha * occ - 1.0, -cfg.occupancy_cap)
@@ -176,11 +184,7 @@ def test_without_rays_through_the_map_free_space_changes_nothing(taichi_cpu):
         assert np.array_equal(getattr(off, name), getattr(on, name)), name
     for name in ("counts", "ell_m"):
         np.testing.assert_allclose(getattr(on, name), getattr(off, name), rtol=1e-5, atol=1e-5)
-    cfg = small_config()
-    alpha, expected = math.exp(-DT / cfg.tau_s), 0.0
-    for _ in range(4):  # hit every scan: +1 after the decay, clamped
-        expected = min(alpha * expected + 1.0, cfg.occupancy_cap)
-    assert np.allclose(on.occupancy, expected)
+    assert np.allclose(on.occupancy, occupancy_after_hits(4, small_config()))  # hit every scan
 
 
 def test_occupancy_travels_through_the_store_and_a_restore(taichi_cpu):
