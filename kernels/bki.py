@@ -2,7 +2,8 @@
 with the adaptive length of step 5 computed in the same pass for the voxels the scan hit.
 
 Gather form: each live map voxel v near the scan sums k(v, p) * h(p) over the training points
-within its own kernel length L(v), then folds the sum into its counters. The work per voxel
+within its own kernel length L(v) (within `kernel_cutoff` of it: the kernel's last stretch
+holds next to nothing, docs/method.md), then folds the sum into its counters. The work per voxel
 grows with L(v)^3, so low-entropy voxels (short kernels) are cheap: the adaptive kernel pays
 only where the map is uncertain. No atomics: each voxel is written by one thread.
 
@@ -180,6 +181,7 @@ def update_kernel(settings: KernelSettings):
         prior,
         ell_min,
         ell_max,
+        cutoff,
         xyz: ti.template(),
         hist: ti.template(),
         classes: ti.template(),
@@ -188,7 +190,7 @@ def update_kernel(settings: KernelSettings):
     ):
         """One live voxel (`stored` = m.length[u]: its kernel length, or a pending mark): its
         length if the scan brought it evidence, the kernel-weighted sum over the training
-        points within that length, and the fusion.
+        points within `cutoff` times that length, and the fusion.
 
         The scan's constants come by value (copied per voxel, before the loops): where the
         compiler finds them decides how fast math associates the sums, and this keeps the map
@@ -201,14 +203,16 @@ def update_kernel(settings: KernelSettings):
                 )
                 m.length[u] = ell
         if ell > 0:
-            ell2 = ell * ell
-            inv_ell2 = 1.0 / ell2
+            inv_ell2 = 1.0 / (ell * ell)  # the kernel's argument is d^2 / L^2
+            # the points the sum takes lie within reach (cutoff 1: reach is ell, bitwise)
+            reach = ell * cutoff
+            reach2 = reach * reach
             inv_blk = 1.0 / blk_m
             inv_res = LEAF * inv_blk
-            lo = ti.floor((centre - ell) * inv_blk, ti.i32)
-            hi = ti.floor((centre + ell) * inv_blk, ti.i32)
+            lo = ti.floor((centre - reach) * inv_blk, ti.i32)
+            hi = ti.floor((centre + reach) * inv_blk, ti.i32)
             acc = ti.Vector([0.0] * m.C)
-            hit_p = ti.Vector([0] * HITS, dt=ti.i32)  # training rows within L(v), their d^2
+            hit_p = ti.Vector([0] * HITS, dt=ti.i32)  # training rows within reach, their d^2
             hit_r2 = ti.Vector([0.0] * HITS)
             n_hits = 0
             # plain nested loops (ti.ndrange would flatten them with an integer division and
@@ -233,8 +237,8 @@ def update_kernel(settings: KernelSettings):
                     col_hi = m.col_hi[tx, ty]
                     # a column the sphere reaches and that holds points of the scan (most that a
                     # sphere reaches hold none: this test first spares them the rest)
-                    if gxy < ell2 and col_lo <= col_hi:
-                        dz = ti.sqrt(ell2 - gxy)
+                    if gxy < reach2 and col_lo <= col_hi:
+                        dz = ti.sqrt(reach2 - gxy)
                         # the lowest and highest voxel layer the sphere reaches here, clipped to
                         # the cells that hold the scan's points
                         zlo, llo = cell_and_layer(centre[2] - dz, inv_res, base[2])
@@ -258,7 +262,7 @@ def update_kernel(settings: KernelSettings):
                                 d2 = d.dot(d)
                                 hit_p[n_hits] = p
                                 hit_r2[n_hits] = d2
-                                n_hits += ti.cast(d2 < ell2, ti.i32)
+                                n_hits += ti.cast(d2 < reach2, ti.i32)
                                 if n_hits == HITS:
                                     add_hits(
                                         m,
@@ -319,6 +323,7 @@ def update_kernel(settings: KernelSettings):
                         s.prior,
                         s.length_min_m,
                         s.length_max_m,
+                        s.kernel_cutoff,
                         xyz,
                         hist,
                         classes,
@@ -351,6 +356,7 @@ def update_kernel(settings: KernelSettings):
                                 s.prior,
                                 s.length_min_m,
                                 s.length_max_m,
+                                s.kernel_cutoff,
                                 xyz,
                                 hist,
                                 classes,

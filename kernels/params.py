@@ -44,6 +44,7 @@ ScanParams = ti.types.argpack(
     length_max_m=ti.f32,
     prior=ti.f32,  # pseudo-count of every class in the entropy's p(c|v)
     sigma0=ti.f32,  # the sparse kernel's scale
+    kernel_cutoff=ti.f32,  # the update's pairs lie within this fraction of the kernel length
     inv_tau=ti.f32,  # 1 / tau of the decay (0 for tau = inf: plain accumulation)
 )
 

@@ -201,14 +201,38 @@ def test_rasterize_filter_entropy_query_on_known_points(taichi_cpu):
     assert not prob[3:].any()
 
 
+@pytest.mark.parametrize("cutoff", [0.85, 1.0])
+def test_kernel_cutoff_drops_exactly_the_pairs_beyond_it(taichi_cpu, cutoff):
+    """A voxel of class 9, then one point of class 13 at 0.8 L and one at 0.9 L from its
+    centre (fixed L = 0.8 m, plain accumulation): the voxel gains sigma0 g(0.8) from the first,
+    and sigma0 g(0.9) from the second only when the cutoff lies beyond 0.9 L."""
+    res, ell = 0.2, 0.8
+    cfg = small_config(mode="bki", ell_fixed_vox=ell / res, thin_classes=[], kernel_cutoff=cutoff)
+    mapper = Mapper(cfg)
+    T = pose(x=-6.0)
+    centre = np.array([0.1, 0.1, 0.1])  # voxel (0, 0, 0)
+    mapper.integrate(scan_from_world(centre[None], T, 1.0, labels=np.array([9], np.int32)))
+    near_far = centre + np.array([[0.8 * ell, 0.0, 0.0], [0.0, 0.9 * ell, 0.0]])
+    scan = scan_from_world(near_far, T, 1.1, labels=np.array([13, 13], np.int32), index=1)
+    mapper.integrate(scan)
+    snap = mapper.snapshot()
+    row = np.flatnonzero((snap.keys == 0).all(axis=1))
+    assert len(row) == 1 and len(snap.keys) == 3
+    want = cfg.sigma0 * (sparse_kernel(0.8) + (sparse_kernel(0.9) if cutoff > 0.9 else 0.0))
+    assert sparse_kernel(0.9) > 50 * 1e-6  # far above the table's error: the test can see it
+    assert snap.counts[row[0], 13] == pytest.approx(want, abs=1e-6)
+    assert snap.counts[row[0], 9] == pytest.approx(cfg.sigma0, abs=1e-6)
+
+
 # --------------------------------------------------------------------------- vs reference
 
 # Each mode runs with a different weighting / filter so that every branch meets the oracle.
 MODE_CONFIGS = {
     "csm": dict(point_weight="unit"),
     "bki": dict(point_weight="count", min_points=2, ell_fixed_vox=4.0),
-    # (the one mode mapped without evidence caps and query blend: the other path of each)
-    "adaptive": dict(point_weight="unit", thin_classes=[], query_blend="off"),
+    # (the one mode mapped without evidence caps, query blend and kernel cutoff: the other path
+    # of each)
+    "adaptive": dict(point_weight="unit", thin_classes=[], query_blend="off", kernel_cutoff=1.0),
     "spatial": dict(point_weight="count"),
     "st": dict(point_weight="count", min_points=2, tau_s=0.5),
 }

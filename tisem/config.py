@@ -77,6 +77,11 @@ class MapperConfig:
     ell_min_m: float = 0.4
     ell_max_m: float = 1.2
     ell_fixed_vox: float = 4.0  # bki: fixed kernel length, in voxels
+    # the update takes a point into a voxel's sum only within this fraction of the voxel's
+    # kernel length: beyond 0.85 L the kernel is below 6.3e-4 of its peak and holds under
+    # 6e-4 of its mass, while the shell from 0.85 L to L is 39 % of the sphere's volume, and
+    # of the pairs the update tests (docs/method.md); 1 is the exact kernel
+    kernel_cutoff: float = 0.85
     point_weight: str = "count"  # count: a training voxel weighs by its points; unit: once
     # evidence of these classes reaches at most ell_min_m from its training point, whatever the
     # receiving voxel's length: the network mistakes foliage for trunk and trunk for pole far
@@ -233,6 +238,7 @@ MAPPER_RULES = {
     "ell_min_m": Number(float, 0.0, 100.0, low_open=True, unit="m"),
     "ell_max_m": Number(float, 0.0, 100.0, low_open=True, unit="m"),
     "ell_fixed_vox": Number(float, 0.0, 100.0, low_open=True, unit="voxels"),
+    "kernel_cutoff": Number(float, 0.0, 1.0, low_open=True),
     "point_weight": Choice(("count", "unit")),
     "thin_classes": ClassNames(),
     "query_blend": Choice(QUERY_BLENDS, off_word="off"),

@@ -56,6 +56,7 @@ def scan_params(cfg: MapperConfig, geo: MapGeometry) -> ArgPack:
         length_max_m=cfg.ell_max_m,
         prior=cfg.prior,
         sigma0=cfg.sigma0,
+        kernel_cutoff=cfg.kernel_cutoff,
         inv_tau=0.0 if tau in (0.0, float("inf")) else 1.0 / tau,
     )
 

@@ -224,16 +224,18 @@ class ReferenceMapper:
             self.length_m[ids] = cfg.ell_min_m + span * normalized_entropy(p)
         else:
             self.length_m[ids] = cfg.ell_fixed_vox * self.res
-        # every map voxel with a training point within its own kernel length gets an update
+        # every map voxel with a training point within kernel_cutoff of its own kernel length
+        # gets an update
         centres = (self.keys + 0.5) * self.res
+        reach = self.length_m * cfg.kernel_cutoff
         tree = cKDTree(centroid)
-        near = tree.query_ball_point(centres, r=self.length_m)
+        near = tree.query_ball_point(centres, r=reach)
         v_idx = np.repeat(np.arange(len(centres)), [len(n) for n in near])
         if len(v_idx) == 0:
             return
         p_idx = np.concatenate([np.asarray(n, np.int64) for n in near])
         d = np.linalg.norm(centroid[p_idx] - centres[v_idx], axis=1)
-        inside = d < self.length_m[v_idx]
+        inside = d < reach[v_idx]
         v_idx, p_idx, d = v_idx[inside], p_idx[inside], d[inside]
         # class c's evidence takes the kernel of length min(L(v), cap_c)
         caps = cfg.evidence_caps_m
