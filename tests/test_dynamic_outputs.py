@@ -87,6 +87,28 @@ def test_movers_ground_truth_knows_who_is_where_at_the_end():
 
 
 @pytest.mark.slow
+def test_no_mover_drives_through_the_street():
+    """A dynamic point of a mover never shares a 0.2 m voxel with a static point of anything
+    but the ground it stands on (or the parking car's own body, which it drove into): the cars
+    that park and leave use the right parking lane, which then holds no parked car."""
+    from benchmarks.dynamic import pack
+    from tisem.synth.scene import PARKING, ROAD, SIDEWALK, TERRAIN
+    from tisem.synth.sequence import SyntheticSequence
+
+    static, dynamic = [], []
+    for f in SyntheticSequence(40, seed=0, movers=True):
+        world = f.points @ f.T_world_lidar[:3, :3].T + f.T_world_lidar[:3, 3]
+        key = pack(np.floor(world / 0.2))
+        ground = np.isin(f.gt_raw & 0xFFFF, [ROAD, PARKING, SIDEWALK, TERRAIN])
+        mover = f.instance >= FIRST_INSTANCE
+        static.append(key[~f.dynamic & ~ground & ~mover])
+        dynamic.append(key[f.dynamic & mover])
+    static, dynamic = np.concatenate(static), np.concatenate(dynamic)
+    assert len(static) > 100_000 and len(dynamic) > 100_000
+    assert not np.isin(dynamic, static).any()
+
+
+@pytest.mark.slow
 def test_the_benchmark_scores_free_space_on_the_synthetic_street(tmp_path):
     out = tmp_path / "dynamic.json"
     subprocess.run(
@@ -133,6 +155,23 @@ def test_the_da_bound_counts_dynamic_points_that_share_a_voxel_with_a_static_one
     assert da_bound([first, second], 0.2) == pytest.approx(0.5)
     assert da_bound([first, second], 0.1) == pytest.approx(1.0)  # finer voxels share none
     assert da_bound([_Points(np.zeros((1, 3)), np.array([False]))], 0.2) == 1.0
+
+
+def test_the_da_bound_with_static_points_to_spare_gives_up_the_most_dynamic_voxels_first():
+    from benchmarks.dynamic import da_bound
+
+    def voxel(ix: int, n: int) -> np.ndarray:  # n points in voxel (ix, 0, 0) of 0.2 m
+        return np.tile([[0.2 * ix + 0.1, 0.1, 0.1]], (n, 1))
+
+    # voxel 0: 1 static, 3 dynamic points; voxel 1: 10 static, 1 dynamic; voxel 2: 2 dynamic
+    world = np.concatenate([voxel(0, 1), voxel(1, 10), voxel(0, 3), voxel(1, 1), voxel(2, 2)])
+    moving = np.repeat([False, True], [11, 6])
+    scans = [_Points(world, moving)]
+    assert da_bound(scans, 0.2) == pytest.approx(2 / 6)  # only voxel 2 can go
+    # 1.1 static points to spare: voxel 0 (3 dynamic for 1 static) goes, not voxel 1
+    assert da_bound(scans, 0.2, min_sa=0.9) == pytest.approx(5 / 6)
+    assert da_bound(scans, 0.2, min_sa=0.95) == pytest.approx(2 / 6)  # half a point: none
+    assert da_bound(scans, 0.2, min_sa=0.0) == pytest.approx(1.0)
 
 
 def test_the_first_dynamic_flags_of_a_run_come_with_its_config_and_run_json(tmp_path):

@@ -2,11 +2,13 @@
 
 Beside the street's own moving car and walking person (`World.actors`): oncoming cars, a
 cyclist, a group of pedestrians, a car that arrives and parks, and one that leaves its parking
-spot (the hard case: static for a while, then gone). Every mover has a position per time; a
-point on it is dynamic when the mover is under way, or not where it was by the end of the drive
-(more than `STILL_M` away), which is what a static map must then not hold: the parking car's
-points once it has stopped are static, the leaving car's points dynamic from the first scan,
-and a mover still under way at the end is dynamic in its last scan too.
+spot (the hard case: static for a while, then gone). The last two use the right parking lane,
+which the street then keeps free of parked cars, so that no mover drives through anything.
+Every mover has a position per time; a point on it is dynamic when the mover is under way, or
+not where it was by the end of the drive (more than `STILL_M` away), which is what a static
+map must then not hold: the parking car's points once it has stopped are static, the leaving
+car's points dynamic from the first scan, and a mover still under way at the end is dynamic in
+its last scan too.
 
     movers = StreetMovers(world)
     shapes = movers.shapes(t)                     # ShapeSet of the movers at time t
@@ -73,8 +75,10 @@ def street_movers() -> tuple[Mover, ...]:
             Mover("person", ROAD_HALF_M + 1.2 + 0.7 * (i % 2), 35.0 + 0.8 * i, -1.2)
             for i in range(3)
         ),  # a group on the walk
-        Mover("car", PARKING_U, 5.0, 7.0, t_start=0.0, t_stop=5.0),  # arrives and parks
-        Mover("car", PARKING_U, 28.0, 6.0, t_start=3.0),  # leaves its spot
+        # arrives along the right parking lane (kept free of parked cars: World's movers_lane)
+        # and parks 1 m behind the car that leaves its spot at 3 s and drives on along it
+        Mover("car", PARKING_U, -12.5, 7.0, t_start=0.0, t_stop=5.0),  # parks at 22.5 m
+        Mover("car", PARKING_U, 28.0, 6.0, t_start=3.0),
     )
 
 

@@ -37,6 +37,7 @@ TILE_M = 50.0  # scene tiles along the route
 ROAD_HALF_M = 4.0  # two 3.5 m lanes plus a shoulder
 PARKING_W_M = 2.5  # a parking lane, present per tile and side
 EGO_LANE_U = -1.75  # right-hand traffic: the ego drives in the right lane
+MOVERS_SIDE = 1  # build_tile's sides: 0 at +u (left), 1 at -u (right)
 OTHER_LANE_U = 1.75
 SPEED_MPS = 10.0  # ~1 m per scan at 10 Hz
 LOOP_TURN_RADIUS_M = 150.0
@@ -154,7 +155,7 @@ class Tile:
     edges: np.ndarray
 
 
-def build_tile(route: Route, seed: int, tile_id: int) -> Tile:
+def build_tile(route: Route, seed: int, tile_id: int, movers_lane: bool = False) -> Tile:
     """The content of one tile, from (seed, tile id) alone.
 
     Across the road, per side: road | parking lane (some tiles) | grass verge (some tiles) |
@@ -162,6 +163,9 @@ def build_tile(route: Route, seed: int, tile_id: int) -> Tile:
     trees. Street lights, signs and street trees stand near the curb (in the verge if there
     is one). Each tile has at least one parking lane, sign and fence, so every class appears
     within a few scans.
+
+    `movers_lane`: the right-hand parking lane is on every tile and holds no parked car, so
+    the movers that park and leave there (tisem/synth/movers.py) drive through nothing.
     """
     rng = make_rng(seed, "tile", tile_id)
     s0 = tile_id * TILE_M
@@ -169,6 +173,8 @@ def build_tile(route: Route, seed: int, tile_id: int) -> Tile:
     parking = rng.random(2) < 0.35
     if not parking.any():
         parking[rng.integers(2)] = True
+    if movers_lane:
+        parking[MOVERS_SIDE] = True
     fence_side, sign_side = rng.integers(2), rng.integers(2)
     curb = np.where(parking, ROAD_HALF_M + PARKING_W_M, ROAD_HALF_M)
     verge = np.where(rng.random(2) < 0.5, rng.uniform(1.5, 3.0, 2), 0.0)
@@ -178,7 +184,7 @@ def build_tile(route: Route, seed: int, tile_id: int) -> Tile:
         setback = rng.uniform(3.0, 10.0)  # sidewalk -> building line
         line = sidewalk_out[side] + setback
         park = rng.random() < 0.4
-        if parking[side]:
+        if parking[side] and not (movers_lane and side == MOVERS_SIDE):
             _parked_cars(b, rng, tile_id, side, s0, sigma * (ROAD_HALF_M + PARKING_W_M / 2))
         # street furniture stands 0.4 m in from the curb; trees in the verge or in pits
         furniture_u = sigma * (curb[side] + 0.4)
@@ -279,9 +285,12 @@ def _buildings(b, rng, s0, sigma, line):
 class World:
     """The route, its lazily built tiles (LRU cache) and the two actors, at a given time."""
 
-    def __init__(self, seed: int, route: Route, cache_tiles: int = 12) -> None:
+    def __init__(
+        self, seed: int, route: Route, cache_tiles: int = 12, movers_lane: bool = False
+    ) -> None:
         self.seed = seed
         self.route = route
+        self.movers_lane = movers_lane  # build_tile's: the right parking lane kept for movers
         self.cache_tiles = cache_tiles
         self._tiles: OrderedDict[int, Tile] = OrderedDict()
         self._window: tuple = ((), None)  # last (tile ids, concatenated shapes)
@@ -304,7 +313,7 @@ class World:
     def tile(self, tile_id: int) -> Tile:
         tile = self._tiles.pop(tile_id, None)
         if tile is None:
-            tile = build_tile(self.route, self.seed, tile_id)
+            tile = build_tile(self.route, self.seed, tile_id, self.movers_lane)
         self._tiles[tile_id] = tile
         while len(self._tiles) > self.cache_tiles:
             self._tiles.popitem(last=False)

@@ -110,12 +110,13 @@ class SyntheticSequence:
             raise ValueError(f"points_per_ring must be >= 16, got {points_per_ring}")
         self.num_scans, self.seed, self.route_kind = num_scans, seed, route
         self.noise_seed = seed  # the label noise's streams (several robots: one each)
-        self.world = World(seed, make_route(route, num_scans, seed))
+        self.world = World(seed, make_route(route, num_scans, seed), movers_lane=movers)
         self.lidar = Lidar(points_per_ring=points_per_ring)
         self.noise = NoiseModel()
         self._T_vehicle_lidar = np.eye(4)
         self._T_vehicle_lidar[2, 3] = self.lidar.mount_height_m
-        # more movers (tisem/synth/movers.py), off by default so the street stays as it was
+        # more movers (tisem/synth/movers.py) and the parking lane they use (World's
+        # movers_lane): off by default, so the street stays as it was
         self.movers = StreetMovers(self.world) if movers else None
 
     def __len__(self) -> int:
