@@ -136,6 +136,7 @@ class MapFields:
         seen_empty_s: float = 0.0,
         spare_beside_unseen: bool = False,
         spare_static_beside_own: bool = False,
+        spare_thin_static: bool = False,
     ):
         for n in extent:
             if n % TOP or n & (n - 1):
@@ -200,6 +201,12 @@ class MapFields:
         if self.spare_static_beside_own:
             self.static_class = ti.field(ti.i32)
             fb.dense(ti.i, self.C).place(self.static_class)
+        # per class, 1 for a thin class that cannot move (spare_thin_static): rays leave a live
+        # voxel it leads as it is (kernels/raycast.py)
+        self.spare_thin_static = bool(spare_thin_static) and self.free_space
+        if self.spare_thin_static:
+            self.thin_static_class = ti.field(ti.i32)
+            fb.dense(ti.i, self.C).place(self.thin_static_class)
         # the live voxels the scan's rays crossed (spare_beside_unseen): a crossed voxel next to
         # space no ray has seen (neither live nor in the memory) holds a surface seen from one
         # side, which the rays graze, and keeps its evidence; that is decided after every ray

@@ -153,7 +153,10 @@ def free_space_kernels(decay: str):
             crossed = crossed_stamp(s.stamp)
             if m.free_stamp[u] < crossed:
                 if ti.atomic_max(m.free_stamp[u], crossed) < crossed:
-                    if not beside_hit(m, v, hit_stamp(s.stamp)):
+                    spared = False
+                    if ti.static(m.spare_thin_static):  # thin structure the ray grazed
+                        spared = m.thin_static_class[leading_class(m, u)] == 1
+                    if not spared and not beside_hit(m, v, hit_stamp(s.stamp)):
                         if ti.static(m.spare_beside_unseen):
                             # decided by clear_crossed, once every ray has written the memory
                             i = ti.atomic_add(m.n_crossed[None], 1)

@@ -313,6 +313,31 @@ def test_a_pole_the_rays_pass_beside_is_kept(taichi_cpu):
     assert (labels == POLE).all()
 
 
+@pytest.mark.parametrize(("label", "spare"), [(POLE, True), (POLE, False), (CAR, True)])
+def test_a_pole_no_scan_hits_for_a_while_is_kept(taichi_cpu, label, spare):
+    """A pole hit by three scans, then by none for ten (the rings miss a thin pole) while rays
+    to the wall pass through its voxels, with nothing around them hit: with spare_thin_static
+    its voxels keep their evidence, as a pole cannot have gone. Without the rule it clears
+    after the scans the closed form gives, and so does a car in its place with the rule (a
+    movable class)."""
+    fresh_runtime()
+    rows = np.arange(-4, 4)  # (z within the rays to the wall)
+    pole = away_from_faces(np.column_stack([np.full(8, 5.02), np.full(8, 0.02), rows * RES]), RES)
+    cfg = free_config(spare_thin_static=spare)
+    mapper = Mapper(cfg)
+    for k in range(3):
+        wall_then(mapper, k, DT * k, pole, label)
+    assert (mapper.query(pole)[0] == label).all()
+    assert scans_to_clear(3, cfg) < 10
+    for k in range(3, 13):
+        wall_then(mapper, k, DT * k)
+    kept = mapper.query(pole)[0] == label
+    if label == POLE and spare:
+        assert kept.all()
+    else:
+        assert not kept.any()
+
+
 def box_seen_from_the_front(with_roof):
     """(points, labels): a car-sized box whose front face is at CAR_X and whose roof, below the
     sensor, reaches 2 m back, and the wall behind it minus what the box hides. `with_roof`:

@@ -108,7 +108,7 @@ class MapperConfig:
     free_space: bool = False
     free_margin_m: float = 0.5  # a ray stops this far before its hit, or
     free_margin_fraction: float = 0.15  # this part of its range, whichever is more
-    free_ray_stride: int = 4  # one ray per this many hit voxels (rays cost per voxel)
+    free_ray_stride: int = 3  # one ray per this many hit voxels (rays cost per voxel)
     empty_evidence: float = 1.0  # a voxel seen through this much more than hit is empty
     occupancy_cap: float = 3.0  # occupancy evidence is clamped to +-this
     # space a ray saw empty where the map holds no voxel is remembered this long: whatever
@@ -123,6 +123,10 @@ class MapperConfig:
     # sampled sparsely, beside which rays passed before a scan hit it there (needs
     # seen_empty_s > 0)
     spare_static_beside_own: bool = True
+    # a live voxel led by a thin class that cannot move (thin_classes, not movable: pole,
+    # traffic-sign, trunk) keeps its evidence when rays cross it: rays graze thin structure
+    # sampled sparsely, in scans that hit nothing around the voxel
+    spare_thin_static: bool = True
     # live window (toroidal storage; blocks outside the box leave the field)
     window_xy_m: float = 100.0  # half-size of the live window around the sensor; must
     # hold max_range + kernel reach + 0.8 m. 100 m keeps even
@@ -203,6 +207,20 @@ class MapperConfig:
         return caps
 
     @property
+    def thin_static_classes(self) -> np.ndarray:
+        """(num_classes,) int32: 1 for a thin class that cannot move (thin_classes, not
+        tisem.labels.MOVABLE_CLASSES), in the active label space."""
+        from tisem.labels import MOVABLE_CLASSES, class_names
+
+        names = class_names()
+        out = np.zeros(self.num_classes, np.int32)
+        for name in self.thin_classes:
+            c = names.index(name) if name in names else -1
+            if 0 < c < self.num_classes and c not in MOVABLE_CLASSES:
+                out[c] = 1
+        return out
+
+    @property
     def decay_tau_s(self) -> float:
         """tau for the exp(-dt/tau) decay: inf = plain accumulation, 0 = each scan alone."""
         return {"st": self.tau_s, "spatial": 0.0}.get(self.mode, float("inf"))
@@ -253,6 +271,7 @@ MAPPER_RULES = {
     "free_space": Flag(),
     "spare_beside_unseen": Flag(),
     "spare_static_beside_own": Flag(),
+    "spare_thin_static": Flag(),
     "free_margin_m": Number(float, 0.0, 100.0, unit="m"),
     "free_ray_stride": Number(int, 1, 1_000_000),
     "free_margin_fraction": Number(float, 0.0, 1.0),

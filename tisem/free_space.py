@@ -89,6 +89,8 @@ class FreeSpace:
         self._fields = fields
         if fields.spare_static_beside_own:
             fields.static_class.from_numpy(static_classes(cfg.num_classes))
+        if fields.spare_thin_static:
+            fields.thin_static_class.from_numpy(cfg.thin_static_classes)
         self._margin_m = float(cfg.free_margin_m)
         self._margin_fraction = float(cfg.free_margin_fraction)
         self._stride = int(cfg.free_ray_stride)

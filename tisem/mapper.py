@@ -96,6 +96,7 @@ class Mapper:
             seen_empty_s=cfg.seen_empty_s,
             spare_beside_unseen=cfg.spare_beside_unseen,
             spare_static_beside_own=cfg.spare_static_beside_own,
+            spare_thin_static=cfg.spare_thin_static,
         )
         bki.fill_kernel_table(self._fields)
         self._fields.class_inv_tau.from_numpy(class_inv_tau(cfg))
