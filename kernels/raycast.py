@@ -153,10 +153,7 @@ def free_space_kernels(decay: str):
             crossed = crossed_stamp(s.stamp)
             if m.free_stamp[u] < crossed:
                 if ti.atomic_max(m.free_stamp[u], crossed) < crossed:
-                    spared = False
-                    if ti.static(m.spare_thin_static):  # thin structure the ray grazed
-                        spared = m.thin_static_class[leading_class(m, u)] == 1
-                    if not spared and not beside_hit(m, v, hit_stamp(s.stamp)):
+                    if not beside_hit(m, v, hit_stamp(s.stamp)) and not thin_static_led(m, u):
                         if ti.static(m.spare_beside_unseen):
                             # decided by clear_crossed, once every ray has written the memory
                             i = ti.atomic_add(m.n_crossed[None], 1)
@@ -252,6 +249,16 @@ def leading_class(m: ti.template(), u):
             top = m.counts[u, c]
             best = c
     return best
+
+
+@ti.func
+def thin_static_led(m: ti.template(), u):
+    """1 when live voxel u is led by a thin class that cannot move and rays are to leave it
+    (spare_thin_static): rays graze thin structure sampled sparsely. 0 with the rule off."""
+    led = 0
+    if ti.static(m.spare_thin_static):
+        led = m.thin_static_class[leading_class(m, u)]
+    return led
 
 
 @ti.func

@@ -196,28 +196,22 @@ class MapperConfig:
         """(num_classes,) how far each class's evidence reaches at most, metres (inf: as far
         as the receiving voxel's kernel); csm has no kernel to cap. Names are looked up in the
         active label space; a thin class it does not have caps nothing."""
-        from tisem.labels import class_names
-
-        names = class_names()
         caps = np.full(self.num_classes, np.inf)
         if self.uses_kernel:
-            for name in self.thin_classes:
-                if name in names and names.index(name) < self.num_classes:
-                    caps[names.index(name)] = self.ell_min_m
+            caps[self.thin_class_mask] = self.ell_min_m
         return caps
 
     @property
-    def thin_static_classes(self) -> np.ndarray:
-        """(num_classes,) int32: 1 for a thin class that cannot move (thin_classes, not
-        tisem.labels.MOVABLE_CLASSES), in the active label space."""
-        from tisem.labels import MOVABLE_CLASSES, class_names
+    def thin_class_mask(self) -> np.ndarray:
+        """(num_classes,) bool: the thin_classes, looked up in the active label space (a name
+        it does not have marks nothing)."""
+        from tisem.labels import class_names
 
         names = class_names()
-        out = np.zeros(self.num_classes, np.int32)
+        out = np.zeros(self.num_classes, bool)
         for name in self.thin_classes:
-            c = names.index(name) if name in names else -1
-            if 0 < c < self.num_classes and c not in MOVABLE_CLASSES:
-                out[c] = 1
+            if name in names and names.index(name) < self.num_classes:
+                out[names.index(name)] = True
         return out
 
     @property

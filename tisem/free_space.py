@@ -90,7 +90,8 @@ class FreeSpace:
         if fields.spare_static_beside_own:
             fields.static_class.from_numpy(static_classes(cfg.num_classes))
         if fields.spare_thin_static:
-            fields.thin_static_class.from_numpy(cfg.thin_static_classes)
+            thin_static = cfg.thin_class_mask & (static_classes(cfg.num_classes) == 1)
+            fields.thin_static_class.from_numpy(thin_static.astype(np.int32))
         self._margin_m = float(cfg.free_margin_m)
         self._margin_fraction = float(cfg.free_margin_fraction)
         self._stride = int(cfg.free_ray_stride)
