@@ -534,6 +534,66 @@ def test_scans_posed_across_lost_tf_messages_are_marked(tmp_path):
     assert all(signature(s) == intact[s.index] for s in items if s.index not in suspect)
 
 
+def chunk_records(data: bytes, chunk) -> list[tuple[int, int, bytes]]:
+    """(opcode, offset in the file, content) of the records of an uncompressed chunk."""
+    at, size = chunk.fields["data length"]
+    pos = at + size
+    end = pos + struct.unpack_from("<Q", data, at)[0]
+    out = []
+    while pos < end:
+        opcode, length = struct.unpack_from("<BQ", data, pos)
+        out.append((opcode, pos, data[pos + 9 : pos + 9 + length]))
+        pos += 9 + length
+    return out
+
+
+def test_lost_tf_messages_counted_on_an_unknown_channel_still_mark_the_scans(tmp_path):
+    """A file without a summary is read linearly, and a chunk whose CRC fails is counted from
+    its own records. Here every /tf message of one chunk has a damaged channel id, so the loss
+    counts them on a channel no record names: the scans posed across that gap are marked all
+    the same; those after it are marked too, as the lost messages might have been clouds (their
+    numbers may differ from the intact file's); the others are identical."""
+    from tisem.testing.oracle import signature
+
+    path = tmp_path / "log.mcap"
+    write_synthetic_log(
+        path,
+        n_scans=5,
+        n_points=40,
+        chunk_size=1500,
+        tf_rate_hz=20,
+        compression="none",
+        indexed=False,
+        seed=7,
+    )
+    intact = {s.index: signature(s) for s in McapScanReader(path)}
+    data = bytearray(path.read_bytes())
+    chunks = regions_of(path, "chunk")
+    tf_id = next(
+        struct.unpack_from("<H", content)[0]
+        for opcode, _, content in chunk_records(data, chunks[0])
+        if opcode == 0x04 and b"/tf\x03" in content  # a Channel record, topic "/tf"
+    )
+    damaged = 0
+    for opcode, pos, content in chunk_records(data, chunks[2]):
+        if opcode == 0x05 and struct.unpack_from("<H", content)[0] == tf_id:
+            struct.pack_into("<H", data, pos + 9, 7)
+            damaged += 1
+    assert damaged >= 2 and tf_id != 7
+    path.write_bytes(bytes(data))
+    reader = McapScanReader(path)
+    items = [s for s in reader if not isinstance(s, SkippedScan)]
+    assert any(f"{damaged} on channel 7" in line for line in reader.report.lines())
+    suspect = reader.report.suspect
+    posed = [k for k, why in suspect.items() if why.startswith("pose messages were lost")]
+    assert posed, "the scene needs a scan posed across the lost /tf messages"
+    assert all(
+        k in posed or why.endswith("so its number may differ from the intact file's")
+        for k, why in suspect.items()
+    )
+    assert all(signature(s) == intact[s.index] for s in items if s.index not in suspect)
+
+
 def test_a_message_index_whose_opcode_turned_message_is_not_taken_for_a_cloud(tmp_path):
     """0x07 -> 0x05 is one bit: the chunk index says a message index record starts there."""
     path = tmp_path / "log.mcap"

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 from mcap.records import Channel
 
 from tisem.io.mcap_items import LostMessages
-from tisem.io.mcap_report import Loss, ReadReport
+from tisem.io.mcap_report import Loss, ReadReport, lost_on
 from tisem.io.mcap_summary import Malformed, parse_message_index
 
 
@@ -81,8 +81,7 @@ class Ledger:
             return
         loss.messages = sum(counts.values())
         for channel_id, n in sorted(counts.items()):
-            ch = self.channels.get(channel_id)
-            loss.topics[ch.topic if ch else f"channel {channel_id}"] += n
+            loss.topics[lost_on(self.channels.get(channel_id), channel_id)] += n
             if n:
                 yield LostMessages(channel_id, n, loss.where)
 

@@ -93,6 +93,12 @@ class McapScanReader:
             if isinstance(rec, LostMessages) and rec.channel_id is None:
                 renumbered = renumbered or f"{rec.where}, holding an unknown number of messages,"
                 continue
+            if isinstance(rec, LostMessages) and rec.channel_id not in self._channels:
+                # counted from damaged records on a channel no record names: clouds, maybe
+                renumbered = renumbered or (
+                    f"{rec.where}, holding messages on a channel no record names,"
+                )
+                continue
             if isinstance(rec, LostMessages) and rec.channel_id in targets:
                 # keep the intact file's numbering: a lost cloud is a skipped scan
                 for _ in range(rec.count):

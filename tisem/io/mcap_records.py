@@ -23,7 +23,7 @@ from mcap.records import Channel, ChunkIndex, Schema
 
 from tisem.errors import DatasetError
 from tisem.io.mcap_items import LostMessages, McapMessage
-from tisem.io.mcap_report import Loss, ReadReport
+from tisem.io.mcap_report import Loss, ReadReport, lost_on
 from tisem.io.mcap_summary import MAGIC, crc_of_range, read_footer, read_summary
 from tisem.io.mcap_walk import Walk
 
@@ -90,10 +90,10 @@ class McapRecords:
         for cid, n in orphans.items():
             report.losses.append(
                 Loss(
-                    f"channel {cid}",
+                    lost_on(None, cid),
                     "its Channel record was lost, so its messages cannot be decoded",
                     messages=n,
-                    topics=Counter({f"channel {cid}": n}),
+                    topics=Counter({lost_on(None, cid): n}),
                 )
             )
         self._check_counts(report)
@@ -141,7 +141,7 @@ class McapRecords:
         counted = Counter()
         for cid, n in stats.channel_message_counts.items():
             ch = self.summary.channels.get(cid)
-            counted[ch.topic if ch else f"channel {cid}"] += n
+            counted[lost_on(ch, cid)] += n
         missing = counted - report.messages
         accounted = Counter()
         for loss in report.losses:

@@ -5,7 +5,21 @@ from __future__ import annotations
 from collections import Counter
 from dataclasses import dataclass, field
 
+from mcap.records import Channel
+
 from tisem.errors import SkippedScan
+
+
+def lost_on(channel: Channel | None, channel_id: int) -> str:
+    """The name a loss counts a channel's messages under: its topic, or "channel N" when its
+    Channel record has not been read (yet)."""
+    return channel.topic if channel is not None else f"channel {channel_id}"
+
+
+def unnamed_channel_id(name: str) -> int | None:
+    """N of a loss's "channel N" (`lost_on`), None for a topic's name."""
+    word, _, number = name.partition(" ")
+    return int(number) if word == "channel" and number.isdigit() else None
 
 
 @dataclass

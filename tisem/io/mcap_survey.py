@@ -25,7 +25,22 @@ from tisem.io.mcap_messages import (
 )
 from tisem.io.mcap_options import McapOptions
 from tisem.io.mcap_records import Loss, LostMessages, McapRecords, ReadReport
+from tisem.io.mcap_report import unnamed_channel_id
 from tisem.io.tf import TfBuffer, TfError
+
+
+def _may_hold_poses(lost_topics, pose_topics: set[str], channels: dict) -> bool:
+    """Whether a loss may have held pose messages. One counted before its channel's Channel
+    record was read names the channel by id (a file without a summary, read linearly, whose
+    damaged chunk held a channel's first messages): it held poses if that channel turned out
+    to be a pose topic's, and may have if its record was never read."""
+    for name in lost_topics:
+        cid = unnamed_channel_id(name)
+        if name in pose_topics or (
+            cid is not None and (cid not in channels or channels[cid].topic in pose_topics)
+        ):
+            return True
+    return False
 
 
 def _describe_topics(counts: Counter, kinds: dict) -> str:
@@ -130,7 +145,8 @@ class Survey:
         pose_topics = {t for t, k in kinds.items() if k in TF_SCHEMAS or t == opts.pose_topic}
         # a lost pose message changes the poses interpolated across where it was
         self.poses_lost = bool(undecodable) or any(
-            loss.uncounted or pose_topics & set(loss.topics) for loss in report.losses
+            loss.uncounted or _may_hold_poses(loss.topics, pose_topics, channels)
+            for loss in report.losses
         )
         self.kinds = kinds
         self.schemas, self.channels = schemas, channels
