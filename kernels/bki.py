@@ -199,7 +199,18 @@ def update_kernel(settings: KernelSettings):
         if ti.static(settings.adaptive):
             if is_pending(stored):  # evidence in this scan: the length first
                 ell = fresh_length(
-                    m, u, hist, pending_row(stored), t_rel, inv_tau, prior, ell_min, ell_max, decay
+                    m,
+                    u,
+                    hist,
+                    pending_row(stored),
+                    t_rel,
+                    inv_tau,
+                    prior,
+                    ell_min,
+                    ell_max,
+                    decay,
+                    settings.long_kernel_classes,
+                    settings.long_kernel_share,
                 )
                 m.length[u] = ell
         if ell > 0:

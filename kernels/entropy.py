@@ -107,9 +107,13 @@ def fresh_length(
     ell_min,
     ell_max,
     decay: ti.template(),
+    long_classes: ti.template(),
+    long_share: ti.template(),
 ):
     """Kernel length of map voxel u given this scan's evidence hist[row, :]: the entropy of
-    p(c|v) = prior + decayed counters + the scan's histogram (steps 4-5)."""
+    p(c|v) = prior + decayed counters + the scan's histogram (steps 4-5); ell_max where the
+    voxel holds one of `long_classes` with at least `long_share` of its leading class's
+    evidence (`holds_outvoted_class`)."""
     alpha = decay_factor(t_rel - m.t_last_rel[u], inv_tau, decay)
     p = ti.Vector([0.0] * m.C)
     for c in ti.static(range(m.C)):
@@ -117,7 +121,30 @@ def fresh_length(
     prior_plogp = 0.0
     if prior > 0:
         prior_plogp = prior * fast_log(prior)
-    return length_of(entropy_with_common(p, m.C - 1, prior, prior_plogp), ell_min, ell_max)
+    ell = length_of(entropy_with_common(p, m.C - 1, prior, prior_plogp), ell_min, ell_max)
+    if ti.static(len(long_classes) > 0):
+        if holds_outvoted_class(p, prior, m.C, long_classes, long_share):
+            ell = ell_max
+    return ell
+
+
+@ti.func
+def holds_outvoted_class(
+    p, prior, num_classes: ti.template(), classes: ti.template(), share: ti.template()
+):
+    """Whether p(c|v) - prior, the voxel's evidence, has one of `classes` at `share` or more
+    of the leading class's. Such a voxel takes the longest kernel, so that the evidence around
+    it decides: a patch of fence the network calls pole is outvoted by the fence around it,
+    while the evidence caps keep that pole evidence from reaching far (docs/method.md)."""
+    top = 0.0
+    for c in ti.static(range(1, num_classes)):
+        top = ti.max(top, p[c] - prior)
+    held = False
+    for c in ti.static(classes):
+        evidence = p[c] - prior
+        if evidence > 0 and evidence >= share * top:
+            held = True
+    return held
 
 
 @functools.cache

@@ -94,6 +94,11 @@ class KernelSettings:
     # per-class table (kernels/bki.py); off, the update never reads it
     evidence_caps: bool = False
     per_voxel: bool = False  # the update's parallel loop: per voxel (GPUs), per block (CPUs)
+    # adaptive length: a voxel whose evidence for one of these classes (ids) is at least
+    # long_kernel_share of its leading class's takes the longest kernel (kernels/entropy.py);
+    # () compiles no test
+    long_kernel_classes: tuple[int, ...] = ()
+    long_kernel_share: float = 1.0
 
     def __post_init__(self):
         if self.kernel_length not in (NO_KERNEL, FIXED_LENGTH, ADAPTIVE_LENGTH):

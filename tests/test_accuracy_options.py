@@ -185,6 +185,106 @@ def test_no_thin_class_seen_is_the_uncapped_map(taichi_cpu):
     np.testing.assert_allclose(ell_cap, ell, atol=ATOMIC_ORDER_RTOL)
 
 
+# --------------------------------------------------------------------------- long kernels
+
+LONG_POLE = dict(long_kernel_classes=["pole"])
+
+
+def pole_patch_on_fence(rng):
+    """A fence (x in [0, 0.2), 3 m wide, 2 m tall, hit on a 1.9 x 1.25 cm grid, so that a
+    voxel's evidence is confident after one scan) with a 0.6 m square patch in its middle that
+    the network calls pole, in every scan: the coherent error the long_kernel_classes option is
+    for. Returns the points, their labels and the patch mask."""
+    grid = np.arange(-1.0, 1.0, 0.0125)
+    ys, zs = np.meshgrid(1.5 * grid, grid, indexing="ij")
+    fence = np.column_stack([np.full(ys.size, 0.1), ys.ravel(), zs.ravel()])
+    fence[:, 0] += rng.uniform(-0.05, 0.05, len(fence))
+    xyz = away_from_faces(fence, RES)
+    patch = (np.abs(xyz[:, 1]) < 0.3) & (np.abs(xyz[:, 2]) < 0.3)
+    labels = np.where(patch, POLE, FENCE).astype(np.int32)
+    return xyz, labels, patch
+
+
+def seen_from_the_front(xyz, labels, scans=3):
+    return [
+        scan_from_world(xyz, pose(5.0, 0.0, 0.2, yaw=np.pi), 0.1 * i, labels=labels, index=i)
+        for i in range(scans)
+    ]
+
+
+def mapped(cfg, scans, points):
+    """tisem's and numpy's maps of the scans (both in `cfg`), and tisem's answers at points."""
+    fresh_runtime()
+    mapper, reference = Mapper(cfg), ReferenceMapper(cfg)
+    for scan in scans:
+        mapper.integrate(scan)
+        reference.integrate(scan)
+    return mapper.snapshot(), reference.voxels(), mapper.query(points, with_probs=False)[0]
+
+
+@pytest.mark.slow
+def test_a_pole_patch_on_a_fence_is_outvoted_with_long_kernels(taichi_cpu):
+    """Without the option the patch's voxels are confident pole (short kernels) and stay pole;
+    with long_kernel_classes = [pole] they take ell_max, and the fence around them wins. The
+    fence's own voxels answer fence either way, and the thin-class cap keeps pole from
+    spreading onto them."""
+    xyz, labels, patch = pole_patch_on_fence(np.random.default_rng(8))
+    scans = seen_from_the_front(xyz, labels)
+    centre = patch & (np.abs(xyz[:, 1]) < 0.2) & (np.abs(xyz[:, 2]) < 0.2)
+    _, _, plain = mapped(small_config(mode="st"), scans, xyz)
+    _, _, outvoted = mapped(small_config(mode="st", **LONG_POLE), scans, xyz)
+    assert np.all(plain[centre] == POLE), "the scene needs the option: the patch stays pole"
+    assert np.all(outvoted[patch] == FENCE), f"{np.count_nonzero(outvoted[patch] != FENCE)}"
+    assert np.all(plain[~patch & (np.abs(xyz[:, 1]) > 0.8)] == FENCE)
+    assert np.all(outvoted[~patch] == FENCE)
+
+
+@pytest.mark.slow
+def test_a_pole_beside_a_wall_keeps_its_label_with_long_kernels(taichi_cpu):
+    """A real pole stands in air: with the longest kernel its voxels still hear mostly their
+    own evidence, so it keeps its label, and the wall keeps its own."""
+    scans, xyz, n_wall = pole_scans(np.random.default_rng(5))
+    _, _, labels = mapped(small_config(mode="st", **LONG_POLE), scans, xyz)
+    assert np.all(labels[n_wall:] == POLE)
+    assert not np.any(labels[:n_wall] == POLE)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("share", [0.25, 1.0])
+def test_long_kernels_match_the_numpy_reference(taichi_cpu, share):
+    """The pole patch and the pole beside a wall in one map, with the option at two shares:
+    the voxels, counters and kernel lengths of the numpy reference (which decides the length
+    in float64, the kernel in float32: no voxel of these scenes lies at the share)."""
+    rng = np.random.default_rng(9)
+    fence, fence_labels, _ = pole_patch_on_fence(rng)
+    wall, wall_labels, _ = pole_beside_wall(rng)
+    xyz = np.concatenate([fence, wall + [0.0, 8.0, 0.0]])
+    labels = np.concatenate([fence_labels, wall_labels])
+    cfg = small_config(mode="st", long_kernel_share=share, **LONG_POLE)
+    snap, (keys, counts, _, ell), _ = mapped(cfg, seen_from_the_front(xyz, labels), xyz[:1])
+    np.testing.assert_array_equal(snap.keys, keys)
+    np.testing.assert_allclose(snap.counts, counts, rtol=1e-4, atol=1e-4)
+    np.testing.assert_allclose(snap.ell_m, ell, atol=1e-5)
+    assert np.count_nonzero(np.isclose(ell, cfg.ell_max_m)) >= 9  # (the rule took effect)
+
+
+def test_long_kernel_classes_are_checked_and_ignored_by_fixed_lengths():
+    """A name outside the label space is one ConfigError naming the key; the fixed-length modes
+    have no length to lengthen."""
+    with pytest.raises(ConfigError, match="long_kernel_classes.*unknown class 'poles'"):
+        load_config(None, ["long_kernel_classes=[poles]"])
+    with pytest.raises(ConfigError, match="long_kernel_share"):
+        load_config(None, ["long_kernel_share=0"])
+    assert load_config(None, ["long_kernel_classes=[pole, traffic-sign]"]).mapper.long_kernel_ids
+    assert MapperConfig(
+        mode="st", long_kernel_classes=["pole", "traffic-sign"]
+    ).long_kernel_ids == (
+        POLE,
+        19,
+    )
+    assert MapperConfig(mode="bki", long_kernel_classes=["pole"]).long_kernel_ids == ()
+
+
 # --------------------------------------------------------------------------- query
 
 

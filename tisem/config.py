@@ -88,6 +88,14 @@ class MapperConfig:
     # more often than the reverse, and a long kernel spreads each such label over a metre
     # (docs/method.md); [] gives every class the receiver's length
     thin_classes: list[str] = field(default_factory=lambda: list(THIN_CLASSES))
+    # adaptive modes: a voxel whose evidence for one of these classes is at least
+    # long_kernel_share of its leading class's takes the longest kernel (ell_max_m), so that
+    # the evidence around it decides: a patch of fence the network calls pole is outvoted by
+    # the fence around it (thin_classes still keep that pole evidence from reaching far). [] by
+    # default: it won on a fence-lined synthetic street and cost pole IoU on the real frames
+    # (docs/method.md)
+    long_kernel_classes: list[str] = field(default_factory=list)
+    long_kernel_share: float = 0.25
     # 9. query: a point in the live window whose voxel holds no evidence takes the
     # kernel-weighted posterior of the live voxels within query_radius_m (missing), or 0 (off)
     query_blend: str = "missing"
@@ -205,11 +213,22 @@ class MapperConfig:
     def thin_class_mask(self) -> np.ndarray:
         """(num_classes,) bool: the thin_classes, looked up in the active label space (a name
         it does not have marks nothing)."""
+        return self._class_mask(self.thin_classes)
+
+    @property
+    def long_kernel_ids(self) -> tuple[int, ...]:
+        """The long_kernel_classes' ids in the active label space (a name it does not have
+        marks nothing); () outside the adaptive modes, whose lengths are fixed."""
+        if not self.adaptive:
+            return ()
+        return tuple(int(c) for c in np.flatnonzero(self._class_mask(self.long_kernel_classes)))
+
+    def _class_mask(self, class_list: list[str]) -> np.ndarray:
         from tisem.labels import class_names
 
         names = class_names()
         out = np.zeros(self.num_classes, bool)
-        for name in self.thin_classes:
+        for name in class_list:
             if name in names and names.index(name) < self.num_classes:
                 out[names.index(name)] = True
         return out
@@ -253,6 +272,8 @@ MAPPER_RULES = {
     "kernel_cutoff": Number(float, 0.0, 1.0, low_open=True),
     "point_weight": Choice(("count", "unit")),
     "thin_classes": ClassNames(),
+    "long_kernel_classes": ClassNames(),
+    "long_kernel_share": Number(float, 0.0, 1.0, low_open=True),
     "query_blend": Choice(QUERY_BLENDS, off_word="off"),
     # the blend reads the (2 R / resolution + 1)^3 voxels around a point: a few metres at most
     "query_radius_m": Number(float, 0.0, 5.0, low_open=True, unit="m"),

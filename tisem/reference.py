@@ -222,6 +222,15 @@ class ReferenceMapper:
             p = cfg.prior + alpha[:, None] * self.counts[ids] + h
             span = cfg.ell_max_m - cfg.ell_min_m
             self.length_m[ids] = cfg.ell_min_m + span * normalized_entropy(p)
+            # a voxel holding a long_kernel class at long_kernel_share of its leading class's
+            # evidence takes the longest kernel
+            long = list(cfg.long_kernel_ids)
+            if long:
+                evidence = p - cfg.prior
+                top = evidence[:, 1:].max(axis=1)
+                held = evidence[:, long]
+                outvoted = ((held > 0) & (held >= cfg.long_kernel_share * top[:, None])).any(1)
+                self.length_m[ids[outvoted]] = cfg.ell_max_m
         else:
             self.length_m[ids] = cfg.ell_fixed_vox * self.res
         # every map voxel with a training point within kernel_cutoff of its own kernel length
