@@ -26,6 +26,7 @@ import argparse
 import logging
 import os
 import re
+import shutil
 import subprocess
 import sys
 import tempfile
@@ -153,6 +154,9 @@ def score_predictions(data: Path, split: tuple[int, int], pred_dir: Path) -> dic
 
 
 def run_sbki(args, data: Path, split: tuple[int, int], method: str, out: Path) -> dict:
+    # the driver names its sequence folder after the data folder: predictions an earlier run
+    # on other data left in `out` would otherwise be scored in place of this run's
+    shutil.rmtree(out / "sequences", ignore_errors=True)
     out.mkdir(parents=True, exist_ok=True)
     cmd = [
         str(args.sbki_bin),
@@ -188,7 +192,10 @@ def unbuilt_peer(args, methods: list[str]) -> dict[str, str]:
 
 
 def run(args) -> dict:
+    from tisem.backend import init_taichi
+
     data = args.data or KITTI_MINI
+    init_taichi("cpu", threads=args.threads)  # (the device line asks it; tisem's runs renew it)
     splits = [parse_split(s) for s in args.splits]
     skipped = unbuilt_peer(args, args.methods)
     if skipped:

@@ -10,6 +10,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from benchmarks import free_space, kernel_length, modes, peers, throughput
@@ -203,6 +204,42 @@ def test_peers_benchmark_runs_sbki(tiny_sequence, tmp_path, capsys):
     assert rows["sbki-upstream"]["seconds_per_scan"] > 0
     assert 0.5 < rows["sbki-upstream"]["accuracy"] <= 1
     assert "| 0-3 | sbki-upstream |" in capsys.readouterr().out
+
+
+FAKE_SBKI = """#!{python}
+# S-BKI's driver as peers.py calls it, answering every point with its ground truth
+import shutil, sys
+from pathlib import Path
+a = dict(zip(sys.argv[1::2], sys.argv[2::2]))
+out = Path(a["--out"]) / "sequences" / "00" / "predictions"
+out.mkdir(parents=True)
+for i in range(int(a["--first"]), int(a["--last"]) + 1):
+    shutil.copy(Path(a["--data"]) / "labels" / f"{{i:06d}}.label", out)
+print("sbki_s_per_scan=0.25")
+"""
+
+
+@pytest.mark.slow
+def test_peers_benchmark_scores_only_this_runs_peer_predictions(tiny_sequence, tmp_path, capsys):
+    """S-BKI alone (no tisem method: the device line still needs a Taichi runtime), in an out
+    folder where an earlier run on other data left predictions under another sequence name:
+    they are removed, and the driver's own predictions (here the ground truth) are scored."""
+    driver = tmp_path / "sbki_kitti"
+    driver.write_text(FAKE_SBKI.format(python=sys.executable))
+    driver.chmod(0o755)
+    stale = tmp_path / "runs" / "0-3" / "sbki-upstream" / "sequences" / "07" / "predictions"
+    stale.mkdir(parents=True)
+    for i in range(4):
+        np.zeros(7, "<u4").tofile(stale / f"{i:06d}.label")
+    out = tmp_path / "p.json"
+    args = ["--data", str(tiny_sequence), "--splits", "0-3", "--methods", "sbki-upstream"]
+    args += ["--sbki-bin", str(driver), "--out", str(tmp_path / "runs"), "--json", str(out)]
+    assert peers.main([*args, "--rounds", "1"]) == 0
+    assert not stale.exists()
+    (row,) = json.loads(out.read_text())["rows"]
+    assert (row["method"], row["accuracy"], row["miou"]) == ("sbki-upstream", 1.0, 1.0)
+    assert row["seconds_per_scan"] == 0.25
+    assert "| 0-3 | sbki-upstream | 1.0000 | 1.0000 | 0.250 |" in capsys.readouterr().out
 
 
 @pytest.mark.slow
