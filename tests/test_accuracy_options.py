@@ -127,7 +127,7 @@ def pole_maps():
     mapper = Mapper(cfg)
     capped, uncapped = (
         ReferenceMapper(small_config(mode="st")),
-        ReferenceMapper(small_config(mode="st", thin_classes=[])),
+        ReferenceMapper(small_config(mode="st", thin_classes=[], vehicle_classes=[])),
     )
     for scan in scans:
         mapper.integrate(scan)
@@ -168,13 +168,13 @@ def test_evidence_caps_match_the_numpy_reference(pole_maps):
 @pytest.mark.slow
 def test_no_thin_class_seen_is_the_uncapped_map(taichi_cpu):
     """A cap on a class no point has (bicyclist) runs the capped kernel, which must give the
-    counters of the uncapped one (thin_classes = []): the same voxels, the same sums to float32
-    rounding (two kernels, two fast-math codes, two threads' order of float adds)."""
+    counters of the uncapped one (no thin or vehicle class): the same voxels, the same sums to
+    float32 rounding (two kernels, two fast-math codes, two threads' order of float adds)."""
     scans, _, _ = pole_scans(np.random.default_rng(6))
     maps = []
     for thin in ([], ["bicyclist"]):
         fresh_runtime()
-        mapper = Mapper(small_config(mode="st", thin_classes=thin))
+        mapper = Mapper(small_config(mode="st", thin_classes=thin, vehicle_classes=[]))
         for scan in scans:
             mapper.integrate(scan)
         snap = mapper.snapshot()
@@ -183,6 +183,99 @@ def test_no_thin_class_seen_is_the_uncapped_map(taichi_cpu):
     np.testing.assert_array_equal(keys, keys_cap)
     np.testing.assert_allclose(counts_cap, counts, rtol=ATOMIC_ORDER_RTOL, atol=ATOMIC_ORDER_RTOL)
     np.testing.assert_allclose(ell_cap, ell, atol=ATOMIC_ORDER_RTOL)
+
+
+# --------------------------------------------------------------------------- vehicle cap
+
+CAR, SIDEWALK, TERRAIN = 1, 11, 17
+CAR_BOX = (5.0, 7.0, 0.8)  # x from, x to, |y| below: the car's footprint
+
+
+def car_on_road(rng):
+    """A road 0.1 m below the sensor's frame origin height, hit on a 0.2 m grid and labelled
+    road, sidewalk or terrain at random (an uncertain surface, so its voxels take long
+    kernels), and a car on it: the side facing the sensor and the top of a 2 x 1.6 x 1.1 m
+    box, hit densely and labelled car. The road the car hides is not hit. Seen from a sensor
+    1.7 m up at x = 0."""
+    road = grid_plane((2.0, 10.0), (-4.0, 4.0), -0.1, 0.2, rng)
+    x0, x1, half_w = CAR_BOX
+    road = road[~((road[:, 0] > x0) & (road[:, 0] < x1) & (np.abs(road[:, 1]) < half_w))]
+    road_labels = rng.choice([ROAD, ROAD, ROAD, SIDEWALK, TERRAIN], len(road))
+    n = 6000
+    side = np.column_stack(
+        [np.full(n, x0), rng.uniform(-half_w, half_w, n), rng.uniform(0.2, 1.3, n)]
+    )
+    top = np.column_stack(
+        [rng.uniform(x0, x1, n), rng.uniform(-half_w, half_w, n), np.full(n, 1.3)]
+    )
+    xyz = away_from_faces(np.concatenate([road, side, top]), RES)
+    labels = np.concatenate([road_labels, np.full(2 * n, CAR)]).astype(np.int32)
+    return xyz, labels, len(road)
+
+
+def car_scans(xyz, labels):
+    return [
+        scan_from_world(xyz, pose(0.0, 0.0, 1.7), 0.1 * i, labels=labels, index=i) for i in range(3)
+    ]
+
+
+def nearest_car_evidence_m(keys, car_xyz):
+    """For each voxel key, the distance from its centre to the nearest car training point (the
+    centroid of a voxel's car points: the evidence the update spreads)."""
+    car_keys, inverse = np.unique(voxel_keys(car_xyz, RES), axis=0, return_inverse=True)
+    sums = np.zeros((len(car_keys), 3))
+    np.add.at(sums, inverse.ravel(), car_xyz)
+    centroids = sums / np.bincount(inverse.ravel())[:, None]
+    centres = (keys + 0.5) * RES
+    return np.sqrt(((centres[:, None, :] - centroids[None]) ** 2).sum(-1)).min(axis=1)
+
+
+@pytest.mark.slow
+def test_the_vehicle_cap_keeps_a_cars_evidence_off_the_road_around_it(taichi_cpu):
+    """With the default cap (car evidence within vehicle_cap_m = 0.6 m), a voxel farther than
+    that from every car training point holds no car evidence at all, and no road point beside
+    the car answers car; without it (vehicle_classes = []) the uncertain road's long kernels
+    gather the dense car evidence and road beside the car turns car. The car answers car both
+    ways, and tisem's capped map is the numpy reference's."""
+    xyz, labels, n_road = car_on_road(np.random.default_rng(4))
+    scans = car_scans(xyz, labels)
+    car = xyz[n_road:]
+    cfg = small_config(mode="st")
+    assert cfg.vehicle_classes == ["car"] and cfg.evidence_caps_m[CAR] == cfg.vehicle_cap_m
+    capped, (keys, counts, _, ell), capped_answers = mapped(cfg, scans, xyz)
+    uncapped, _, uncapped_answers = mapped(small_config(mode="st", vehicle_classes=[]), scans, xyz)
+
+    np.testing.assert_array_equal(capped.keys, keys)
+    np.testing.assert_allclose(capped.counts, counts, rtol=1e-4, atol=1e-4)
+    np.testing.assert_allclose(capped.ell_m, ell, atol=1e-5)
+
+    beyond = nearest_car_evidence_m(capped.keys, car) >= cfg.vehicle_cap_m
+    assert np.count_nonzero(beyond) > 500
+    assert not capped.counts[beyond, CAR].any()
+    beyond_uncapped = nearest_car_evidence_m(uncapped.keys, car) >= cfg.vehicle_cap_m
+    assert np.count_nonzero(uncapped.counts[beyond_uncapped, CAR] > 0) >= 40
+
+    assert np.all(capped_answers[n_road:] == CAR) and np.all(uncapped_answers[n_road:] == CAR)
+    assert not np.any(capped_answers[:n_road] == CAR)
+    smeared = np.count_nonzero(uncapped_answers[:n_road] == CAR)
+    assert smeared >= 20, "the scene needs the cap: without it road beside the car turns car"
+
+
+def test_vehicle_classes_are_checked():
+    """A name outside the label space, a class with both caps and a cap of 0 are one
+    ConfigError line naming the key; csm has no kernel to cap."""
+    for assignment, said in (
+        ("vehicle_classes=[cars]", "vehicle_classes = ['cars']: unknown class 'cars'"),
+        ("vehicle_classes=[car, pole]", "pole is in thin_classes too"),
+        ("vehicle_cap_m=0", "vehicle_cap_m = 0: out of range"),
+    ):
+        with pytest.raises(ConfigError) as e:
+            load_config(overrides=[assignment])
+        assert said in str(e.value) and "\n" not in str(e.value)
+    caps = load_config(overrides=["vehicle_classes=[car, truck]", "vehicle_cap_m=0.8"]).mapper
+    assert caps.evidence_caps_m[[CAR, 4]].tolist() == [0.8, 0.8]
+    assert np.isfinite(caps.evidence_caps_m).sum() == len(caps.thin_classes) + 2
+    assert np.isinf(MapperConfig(mode="csm").evidence_caps_m).all()
 
 
 # --------------------------------------------------------------------------- long kernels
@@ -341,7 +434,7 @@ def test_bad_accuracy_options_are_one_line(assignment, said):
 
 
 def test_accuracy_option_defaults():
-    cfg = load_config(overrides=["thin_classes=[]", "query_blend=off"]).mapper
+    cfg = load_config(overrides=["thin_classes=[]", "vehicle_classes=[]", "query_blend=off"]).mapper
     assert cfg.thin_classes == [] and np.isinf(cfg.evidence_caps_m).all()
     assert cfg.query_blend == "off"  # (YAML reads an unquoted off as false)
     cfg = MapperConfig()

@@ -207,7 +207,13 @@ def test_kernel_cutoff_drops_exactly_the_pairs_beyond_it(taichi_cpu, cutoff):
     centre (fixed L = 0.8 m, plain accumulation): the voxel gains sigma0 g(0.8) from the first,
     and sigma0 g(0.9) from the second only when the cutoff lies beyond 0.9 L."""
     res, ell = 0.2, 0.8
-    cfg = small_config(mode="bki", ell_fixed_vox=ell / res, thin_classes=[], kernel_cutoff=cutoff)
+    cfg = small_config(
+        mode="bki",
+        ell_fixed_vox=ell / res,
+        thin_classes=[],
+        vehicle_classes=[],
+        kernel_cutoff=cutoff,
+    )
     mapper = Mapper(cfg)
     T = pose(x=-6.0)
     centre = np.array([0.1, 0.1, 0.1])  # voxel (0, 0, 0)
@@ -232,7 +238,13 @@ MODE_CONFIGS = {
     "bki": dict(point_weight="count", min_points=2, ell_fixed_vox=4.0),
     # (the one mode mapped without evidence caps, query blend and kernel cutoff: the other path
     # of each)
-    "adaptive": dict(point_weight="unit", thin_classes=[], query_blend="off", kernel_cutoff=1.0),
+    "adaptive": dict(
+        point_weight="unit",
+        thin_classes=[],
+        vehicle_classes=[],
+        query_blend="off",
+        kernel_cutoff=1.0,
+    ),
     "spatial": dict(point_weight="count"),
     "st": dict(point_weight="count", min_points=2, tau_s=0.5),
 }

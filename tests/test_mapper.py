@@ -92,7 +92,7 @@ def bki_map():
     """bki: the street, then labels vs probabilities in regions 1-3."""
     # (no evidence caps: the probability regions split mass between classes 3 and 5, and a
     # cap on motorcycle's reach would change the split; the capped bki is in test_kernels.py)
-    cfg, mapper, rng, plane = street_map(4, mode="bki", thin_classes=[])
+    cfg, mapper, rng, plane = street_map(4, mode="bki", thin_classes=[], vehicle_classes=[])
     probs = probs_story(mapper, rng, 20.0)
     return _finish(SimpleNamespace(cfg=cfg, plane=plane, probs=probs, snap=mapper.snapshot()))
 

@@ -354,7 +354,8 @@ def test_decay_covers_the_time_away(taichi_cpu):
     last update, time away included. The return scan is a few labelled points of one class, one
     per voxel, so its evidence is known: sigma0 sum g(d / ell) for that class, 0 for others."""
     tau, c = 5.0, POLE
-    cfg = config(tau_s=tau, thin_classes=[])  # the return's evidence: g(d / ell), uncapped
+    # the return's evidence: g(d / ell), uncapped
+    cfg = config(tau_s=tau, thin_classes=[], vehicle_classes=[])
     mapper = Mapper(cfg)
     home = drive([0.0], seed=10, t0=100.0, n=4000)[0]
     mapper.integrate(home)

@@ -33,6 +33,8 @@ THIN_CLASSES = (
     "motorcycle",
     "motorcyclist",
 )
+# the classes whose evidence reaches at most MapperConfig.vehicle_cap_m by default
+VEHICLE_CLASSES = ("car",)
 # kernels/bki.py and kernels/training.py keep the classes a training voxel has evidence for as
 # the bits of an int32 (a literal 1 << 31 overflows it), and unroll their per-class loops:
 # 31 classes at most
