@@ -90,27 +90,28 @@ class McapScanReader:
                 if rec.topic == self.topic:
                     targets.add(rec.id)
                 continue
-            if isinstance(rec, LostMessages) and rec.channel_id is None:
-                renumbered = renumbered or f"{rec.where}, holding an unknown number of messages,"
-                continue
-            if isinstance(rec, LostMessages) and rec.channel_id not in self._channels:
-                # counted from damaged records on a channel no record names: clouds, maybe
-                renumbered = renumbered or (
-                    f"{rec.where}, holding messages on a channel no record names,"
-                )
-                continue
-            if isinstance(rec, LostMessages) and rec.channel_id in targets:
-                # keep the intact file's numbering: a lost cloud is a skipped scan
-                for _ in range(rec.count):
-                    index += 1
-                    if self._selected(index):
-                        yield self._skip(
-                            SkippedScan(
-                                index,
-                                f"{self.topic}#{index}",
-                                f"message lost in a damaged {rec.where}",
+            if isinstance(rec, LostMessages):
+                if rec.channel_id is None:
+                    renumbered = (
+                        renumbered or f"{rec.where}, holding an unknown number of messages,"
+                    )
+                elif rec.channel_id not in self._channels:
+                    # counted from damaged records on a channel no record names: clouds, maybe
+                    renumbered = renumbered or (
+                        f"{rec.where}, holding messages on a channel no record names,"
+                    )
+                elif rec.channel_id in targets:
+                    # keep the intact file's numbering: a lost cloud is a skipped scan
+                    for _ in range(rec.count):
+                        index += 1
+                        if self._selected(index):
+                            yield self._skip(
+                                SkippedScan(
+                                    index,
+                                    f"{self.topic}#{index}",
+                                    f"message lost in a damaged {rec.where}",
+                                )
                             )
-                        )
                 continue
             if not isinstance(rec, McapMessage) or rec.channel_id not in targets:
                 continue
