@@ -265,6 +265,24 @@ def test_an_object_entering_space_seen_empty_is_flagged_at_once(taichi_cpu):
     assert flagged == [1.0, 0.0]
 
 
+def test_a_car_partly_in_space_seen_empty_is_flagged_whole_with_dynamic_clusters(taichi_cpu):
+    """A 5 m car whose near end stands where the wall's rays crossed (|y| < 3 at CAR_X) and
+    whose far end stands where no ray has been: free space flags the near end alone, and
+    dynamic_clusters spreads that to the whole car, and to nothing of the wall."""
+    car = plane_x(CAR_X, (0.0, 5.0), (-0.5, 0.5))
+    flagged = []
+    for clusters in (False, True):
+        fresh_runtime()
+        mapper = Mapper(free_config(dynamic_clusters=clusters))
+        for k in range(2):
+            wall_then(mapper, k, DT * k)
+        report, labels = wall_then(mapper, 2, 2 * DT, car)
+        assert not report.dynamic[labels == BUILDING].any()
+        flagged.append(float(report.dynamic[labels == CAR].mean()))
+    assert 0.2 < flagged[0] < 0.8  # the near end only
+    assert flagged[1] == 1.0
+
+
 def test_the_memory_of_space_seen_empty_lasts_seen_empty_s(taichi_cpu):
     cfg = free_config(seen_empty_s=1.0)
     mapper = Mapper(cfg)

@@ -143,6 +143,12 @@ class MapperConfig:
     # traffic-sign, trunk) keeps its evidence when rays cross it: rays graze thin structure
     # sampled sparsely, in scans that hit nothing around the voxel
     spare_thin_static: bool = True
+    # what free space flags of a mover is spread over its cluster: the points of movable
+    # classes in touching cells of cluster_link_m, when at least cluster_min_seeds of them are
+    # flagged (tisem/dynamic_clusters.py); its flagged points still end rays
+    dynamic_clusters: bool = False
+    cluster_link_m: float = 0.4
+    cluster_min_seeds: int = 10
     # live window (toroidal storage; blocks outside the box leave the field)
     window_xy_m: float = 100.0  # half-size of the live window around the sensor; must
     # hold max_range + kernel reach + 0.8 m. 100 m keeps even
@@ -304,6 +310,9 @@ MAPPER_RULES = {
     "spare_beside_unseen": Flag(),
     "spare_static_beside_own": Flag(),
     "spare_thin_static": Flag(),
+    "dynamic_clusters": Flag(),
+    "cluster_link_m": Number(float, 0.05, 5.0, unit="m"),
+    "cluster_min_seeds": Number(int, 1, 1_000_000),
     "free_margin_m": Number(float, 0.0, 100.0, unit="m"),
     "free_ray_stride": Number(int, 1, 1_000_000),
     "free_margin_fraction": Number(float, 0.0, 1.0),

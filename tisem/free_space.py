@@ -8,7 +8,9 @@ Per scan, with `free_space: true`:
   class leads: kernels/raycast.py), are flagged dynamic (DUFOMap's rule: space
   seen empty at one time makes anything in it at another time dynamic), and so are the points
   the input's motion labels call moving (`Scan.moving`): flagged points add no evidence to the
-  map, so what drives through space seen empty leaves no trail;
+  map, so what drives through space seen empty leaves no trail; with dynamic_clusters, the
+  flags of a mover's points are spread over its whole cluster (tisem/dynamic_clusters.py), and
+  its flagged points still end rays;
 * after the kernel update, every voxel holding a training point gains a hit, and one ray per
   `free_ray_stride` training points, from the sensor to a margin before it, takes occupancy
   evidence from every live voxel it crosses, except voxels next to a hit of the scan and
@@ -35,12 +37,14 @@ import numpy as np
 from taichi.lang.argpack import ArgPack
 
 from tisem.config import MapperConfig
+from tisem.dynamic_clusters import spread_over_clusters
 from tisem.kernels import raycast, seen_empty
 from tisem.kernels.layout import MapFields
 from tisem.kernels.params import EXPONENTIAL, FORGET, PER_CLASS
 from tisem.labels import MOVABLE_CLASSES
 from tisem.live_window import ivec
 from tisem.preprocess import CheckedScan
+from tisem.scan import to_frame
 from tisem.scan_buffers import TrainingRows
 
 
@@ -103,11 +107,26 @@ class FreeSpace:
         self._slack_vox = np.array(fields.N) - 2 * np.asarray(window_half_vox)
         self._next_forget_s = -np.inf
         self._blocks = 0  # the memory's blocks after its last pass
+        # (cluster_link_m, cluster_min_seeds) with dynamic_clusters, else None
+        self._clusters = None
+        self._movable = static_classes(cfg.num_classes) == 0
+        self._movable[0] = False
+        if cfg.dynamic_clusters:
+            self._clusters = (float(cfg.cluster_link_m), int(cfg.cluster_min_seeds))
+        self._dynamic_ends: np.ndarray | None = None  # (D, 3) local metres, float32
+        self._max_range2 = float(cfg.max_range_m) ** 2
+        self._resolution_m = float(cfg.resolution_m)
 
     def flag_points(
-        self, params: ArgPack, checked: CheckedScan, half_vox: np.ndarray, moving: np.ndarray | None
+        self,
+        params: ArgPack,
+        checked: CheckedScan,
+        half_vox: np.ndarray,
+        moving: np.ndarray | None,
+        to_local: tuple[np.ndarray, np.ndarray],
     ) -> np.ndarray:
-        """(N,) bool: which points of the scan are dynamic, before the scan changes the map."""
+        """(N,) bool: which points of the scan are dynamic, before the scan changes the map
+        (`to_local`: T_world_sensor and the map origin in metres, for the clusters)."""
         flags = np.zeros(len(checked.points_sensor), np.int8)
         ev = checked.evidence
         labels = ev if not checked.use_probs else np.argmax(ev, axis=1)
@@ -116,6 +135,23 @@ class FreeSpace:
             self._fields, params, checked.points_sensor, labels, ivec(half_vox), flags
         )
         dynamic = flags.astype(bool)
+        self._dynamic_ends = None
+        if self._clusters is not None:
+            dynamic = spread_over_clusters(
+                checked.points_sensor, labels, dynamic, self._movable, *self._clusters
+            )
+            T, origin_m = to_local
+            # a mover's points add no evidence, but the space between the sensor and them is
+            # empty all the same: they end rays too (every free_ray_stride-th, in range and in
+            # the live window, whose storage a ray must not wrap around), or a car driving off
+            # along the line of sight would leave its old place uncleared
+            ends = np.flatnonzero(dynamic)[:: self._stride]
+            sensor = checked.points_sensor[ends]
+            local = to_frame(sensor, T, origin_m)
+            half_m = np.asarray(half_vox) * self._resolution_m
+            inside = np.all(np.abs(local - (T[:3, 3] - origin_m)) <= half_m, axis=1)
+            inside &= np.einsum("ij,ij->i", sensor, sensor) <= self._max_range2
+            self._dynamic_ends = local[inside].astype(np.float32)
         if moving is not None:
             dynamic |= moving
         return dynamic
@@ -135,6 +171,11 @@ class FreeSpace:
             self._margin_m,
             self._margin_fraction,
         )
+        ends = self._dynamic_ends
+        if ends is not None and len(ends):
+            freed += self._cast_free(
+                self._fields, params, ends, len(ends), 1, self._margin_m, self._margin_fraction
+            )
         if self._fields.spare_beside_unseen:
             freed += self._clear_crossed(self._fields, params)
         return int(freed)

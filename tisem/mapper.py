@@ -239,8 +239,9 @@ class Mapper:
     ) -> CheckedScan:
         """The free-space flags of the scan's points (before it changes the map), and the scan
         without the evidence of the points flagged dynamic."""
+        to_local = (scan.T_world_sensor, self.origin_vox * self.geometry.resolution_m)
         report.dynamic = self._free.flag_points(
-            self._params, checked, self.window.half_vox, scan.moving
+            self._params, checked, self.window.half_vox, scan.moving, to_local
         )
         report.dynamic_points = int(report.dynamic.sum())
         return without_moving(checked, report.dynamic)

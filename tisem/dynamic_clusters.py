@@ -1,0 +1,98 @@
+"""What free space flags of a moving object, spread over the whole object.
+
+Free space finds a mover by the points of it that land in space seen empty (kernels/raycast.py).
+That is only part of it: its back is in its own shadow, a slow walker's body overlaps where it
+stood a scan ago, and the rays that would show the space ahead of it empty stop a margin short
+of their hits. Dynablox (Schmid et al., RA-L 2023) grows such seeds to the cluster of points
+they belong to; here, within one scan:
+
+* a cluster is the points of movable classes (tisem.labels.MOVABLE_CLASSES) whose cells of
+  `link_m` touch (26-neighbours);
+* a cluster holding at least `min_seeds` flagged points is dynamic: one stray ray through a
+  parked car does not flag it;
+* every point in the cells of a dynamic cluster is flagged, whatever its label: the network
+  calls parts of a car pole or road, and those parts move with it. Points of static classes
+  elsewhere are never flagged by it.
+
+The cells are taken in the sensor frame (a scan's points as they come, no transform: a
+transform of every point costs several ms per scan). Dynablox also tracks clusters from scan to
+scan; a prototype of that (a cluster next to a recent dynamic one is dynamic too) found next to
+none more of the movers on the synthetic street and lost static points (docs/dynamic.md), so
+there is none.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+
+# the 13 offsets of one half of the 26-neighbourhood: each pair of touching cells once
+_HALF = np.array(
+    [
+        (dx, dy, dz)
+        for dx in (-1, 0, 1)
+        for dy in (-1, 0, 1)
+        for dz in (-1, 0, 1)
+        if (dx, dy, dz) > (0, 0, 0)
+    ],
+    np.int64,
+)
+_BITS = 21  # bits per axis of a packed cell: +-2^20 cells (+-420 km at 0.4 m)
+
+
+def pack_cells(cells: np.ndarray) -> np.ndarray:
+    """(M,) int64 keys of (M, 3) integer cells, in the order of (x, y, z)."""
+    c = cells.astype(np.int64) + (1 << (_BITS - 1))
+    return (c[:, 0] << (2 * _BITS)) | (c[:, 1] << _BITS) | c[:, 2]
+
+
+def clusters(cells: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The connected groups of touching cells (26-neighbours) among (M, 3) cells: (the distinct
+    cells (K, 3) in key order, the group of each (K,), the distinct cell of each input (M,))."""
+    keys, of_input = np.unique(pack_cells(cells), return_inverse=True)
+    n = len(keys)
+    first = np.zeros(n, np.int64)
+    first[of_input[::-1]] = np.arange(len(cells))[::-1]
+    distinct = cells[first]
+    rows, cols = [np.arange(n)], [np.arange(n)]
+    for off in _HALF:
+        k = pack_cells(distinct + off)
+        pos = np.minimum(np.searchsorted(keys, k), n - 1)
+        touch = keys[pos] == k
+        rows.append(np.flatnonzero(touch))
+        cols.append(pos[touch])
+    r, c = np.concatenate(rows), np.concatenate(cols)
+    graph = coo_matrix((np.ones(len(r), np.int8), (r, c)), shape=(n, n))
+    _, group = connected_components(graph, directed=False)
+    return distinct, group, of_input
+
+
+def spread_over_clusters(
+    points: np.ndarray,
+    labels: np.ndarray,
+    dynamic: np.ndarray,
+    movable: np.ndarray,
+    link_m: float,
+    min_seeds: int,
+) -> np.ndarray:
+    """(N,) bool: `dynamic`, and every point in the cells of a movable-class cluster that
+    holds at least `min_seeds` dynamic points (see the module's docstring). `points` (N, 3)
+    metres, one scan in any one frame; `labels` (N,) class ids; `movable` (C,) bool."""
+    mov = np.flatnonzero(movable[labels])
+    seeds = dynamic[mov]
+    if seeds.sum() < min_seeds:
+        return dynamic
+    cells = np.floor(points[mov] / link_m).astype(np.int64)
+    distinct, group, of_point = clusters(cells)
+    n_seeds = np.bincount(group[of_point], weights=seeds, minlength=group.max() + 1)
+    flagged = distinct[n_seeds[group] >= min_seeds]
+    if len(flagged) == 0:
+        return dynamic
+    # every point in those cells: a box test first spares most points the packing
+    lo, hi = flagged.min(0) * link_m, (flagged.max(0) + 1) * link_m
+    inside = np.flatnonzero(np.all((points >= lo) & (points < hi), axis=1))
+    keys = pack_cells(np.floor(points[inside] / link_m).astype(np.int64))
+    out = dynamic.copy()
+    out[inside[np.isin(keys, pack_cells(flagged))]] = True
+    return out
