@@ -27,6 +27,9 @@ import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
+# one int64 per cell, as the store keys its voxels (+-2^20 cells: +-420 km at 0.4 m)
+from tisem.store_segments import pack
+
 # the 13 offsets of one half of the 26-neighbourhood: each pair of touching cells once
 _HALF = np.array(
     [
@@ -38,26 +41,19 @@ _HALF = np.array(
     ],
     np.int64,
 )
-_BITS = 21  # bits per axis of a packed cell: +-2^20 cells (+-420 km at 0.4 m)
-
-
-def pack_cells(cells: np.ndarray) -> np.ndarray:
-    """(M,) int64 keys of (M, 3) integer cells, in the order of (x, y, z)."""
-    c = cells.astype(np.int64) + (1 << (_BITS - 1))
-    return (c[:, 0] << (2 * _BITS)) | (c[:, 1] << _BITS) | c[:, 2]
 
 
 def clusters(cells: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The connected groups of touching cells (26-neighbours) among (M, 3) cells: (the distinct
     cells (K, 3) in key order, the group of each (K,), the distinct cell of each input (M,))."""
-    keys, of_input = np.unique(pack_cells(cells), return_inverse=True)
+    keys, of_input = np.unique(pack(cells), return_inverse=True)
     n = len(keys)
     first = np.zeros(n, np.int64)
     first[of_input[::-1]] = np.arange(len(cells))[::-1]
     distinct = cells[first]
     rows, cols = [np.arange(n)], [np.arange(n)]
     for off in _HALF:
-        k = pack_cells(distinct + off)
+        k = pack(distinct + off)
         pos = np.minimum(np.searchsorted(keys, k), n - 1)
         touch = keys[pos] == k
         rows.append(np.flatnonzero(touch))
@@ -92,7 +88,7 @@ def spread_over_clusters(
     # every point in those cells: a box test first spares most points the packing
     lo, hi = flagged.min(0) * link_m, (flagged.max(0) + 1) * link_m
     inside = np.flatnonzero(np.all((points >= lo) & (points < hi), axis=1))
-    keys = pack_cells(np.floor(points[inside] / link_m).astype(np.int64))
+    keys = pack(np.floor(points[inside] / link_m).astype(np.int64))
     out = dynamic.copy()
-    out[inside[np.isin(keys, pack_cells(flagged))]] = True
+    out[inside[np.isin(keys, pack(flagged))]] = True
     return out

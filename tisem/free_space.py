@@ -107,12 +107,12 @@ class FreeSpace:
         self._slack_vox = np.array(fields.N) - 2 * np.asarray(window_half_vox)
         self._next_forget_s = -np.inf
         self._blocks = 0  # the memory's blocks after its last pass
-        # (cluster_link_m, cluster_min_seeds) with dynamic_clusters, else None
+        # (movable classes, cluster_link_m, cluster_min_seeds) with dynamic_clusters, else None
         self._clusters = None
-        self._movable = static_classes(cfg.num_classes) == 0
-        self._movable[0] = False
         if cfg.dynamic_clusters:
-            self._clusters = (float(cfg.cluster_link_m), int(cfg.cluster_min_seeds))
+            movable = static_classes(cfg.num_classes) == 0
+            movable[0] = False
+            self._clusters = (movable, float(cfg.cluster_link_m), int(cfg.cluster_min_seeds))
         self._dynamic_ends: np.ndarray | None = None  # (D, 3) local metres, float32
         self._max_range2 = float(cfg.max_range_m) ** 2
         self._resolution_m = float(cfg.resolution_m)
@@ -137,24 +137,27 @@ class FreeSpace:
         dynamic = flags.astype(bool)
         self._dynamic_ends = None
         if self._clusters is not None:
-            dynamic = spread_over_clusters(
-                checked.points_sensor, labels, dynamic, self._movable, *self._clusters
-            )
-            T, origin_m = to_local
-            # a mover's points add no evidence, but the space between the sensor and them is
-            # empty all the same: they end rays too (every free_ray_stride-th, in range and in
-            # the live window, whose storage a ray must not wrap around), or a car driving off
-            # along the line of sight would leave its old place uncleared
-            ends = np.flatnonzero(dynamic)[:: self._stride]
-            sensor = checked.points_sensor[ends]
-            local = to_frame(sensor, T, origin_m)
-            half_m = np.asarray(half_vox) * self._resolution_m
-            inside = np.all(np.abs(local - (T[:3, 3] - origin_m)) <= half_m, axis=1)
-            inside &= np.einsum("ij,ij->i", sensor, sensor) <= self._max_range2
-            self._dynamic_ends = local[inside].astype(np.float32)
+            dynamic = spread_over_clusters(checked.points_sensor, labels, dynamic, *self._clusters)
+            self._dynamic_ends = self._ray_ends(checked.points_sensor[dynamic], half_vox, to_local)
         if moving is not None:
             dynamic |= moving
         return dynamic
+
+    def _ray_ends(
+        self, points: np.ndarray, half_vox: np.ndarray, to_local: tuple[np.ndarray, np.ndarray]
+    ) -> np.ndarray:
+        """(D, 3) float32 local metres: every free_ray_stride-th of a scan's dynamic points
+        (sensor frame), in range and in the live window, whose storage a ray must not wrap
+        around. A mover's points add no evidence, but the space between the sensor and them
+        is empty all the same: without these rays a car driving off along the line of sight
+        would leave its old place uncleared."""
+        T, origin_m = to_local
+        sensor = points[:: self._stride]
+        local = to_frame(sensor, T, origin_m)
+        half_m = np.asarray(half_vox) * self._resolution_m
+        inside = np.all(np.abs(local - (T[:3, 3] - origin_m)) <= half_m, axis=1)
+        inside &= np.einsum("ij,ij->i", sensor, sensor) <= self._max_range2
+        return local[inside].astype(np.float32)
 
     def integrate(self, params: ArgPack, rows: TrainingRows, n_rows: int) -> int:
         """Hits, then rays, of the scan's n_rows training points; returns how many voxels
