@@ -137,6 +137,7 @@ class MapFields:
         spare_beside_unseen: bool = False,
         spare_static_beside_own: bool = False,
         spare_thin_static: bool = False,
+        thin_static_hold_s: float | None = None,
     ):
         for n in extent:
             if n % TOP or n & (n - 1):
@@ -207,6 +208,16 @@ class MapFields:
         if self.spare_thin_static:
             self.thin_static_class = ti.field(ti.i32)
             fb.dense(ti.i, self.C).place(self.thin_static_class)
+        # (thin_static_hold_s) the spare of a voxel whose hits came and went within the hold
+        # lapses once it has gone the hold without one: per voxel, beside the evidence, the
+        # map time of its last hit and 1 + that of its first (0 where no scan has hit it, as
+        # where no voxel is live)
+        self.thin_static_hold = self.spare_thin_static and thin_static_hold_s is not None
+        self.thin_static_hold_s = float(thin_static_hold_s) if self.thin_static_hold else 0.0
+        if self.thin_static_hold:
+            self.hit_time = ti.field(ti.f32)
+            self.first_hit = ti.field(ti.f32)
+            self.blk.dense(ti.ijk, LEAF).place(self.hit_time, self.first_hit)
         # the live voxels the scan's rays crossed (spare_beside_unseen): a crossed voxel next to
         # space no ray has seen (neither live nor in the memory) holds a surface seen from one
         # side, which the rays graze, and keeps its evidence; that is decided after every ray

@@ -153,7 +153,7 @@ def free_space_kernels(decay: str):
             crossed = crossed_stamp(s.stamp)
             if m.free_stamp[u] < crossed:
                 if ti.atomic_max(m.free_stamp[u], crossed) < crossed:
-                    if not beside_hit(m, v, hit_stamp(s.stamp)) and not thin_static_led(m, u):
+                    if not beside_hit(m, v, hit_stamp(s.stamp)) and not thin_static_led(m, s, u):
                         if ti.static(m.spare_beside_unseen):
                             # decided by clear_crossed, once every ray has written the memory
                             i = ti.atomic_add(m.n_crossed[None], 1)
@@ -187,6 +187,10 @@ def free_space_kernels(decay: str):
                 decay_voxel_to(m, u, s.time_rel_s, s.inv_tau, decay)
                 m.occupancy[u] = ti.min(m.occupancy[u] + 1.0, m.occupancy_cap)
                 m.free_stamp[u] = hit_stamp(s.stamp)
+                if ti.static(m.thin_static_hold):
+                    m.hit_time[u] = s.time_rel_s
+                    if m.first_hit[u] == 0.0:
+                        m.first_hit[u] = 1.0 + s.time_rel_s
 
     @ti.kernel
     def cast_free(
@@ -252,12 +256,21 @@ def leading_class(m: ti.template(), u):
 
 
 @ti.func
-def thin_static_led(m: ti.template(), u):
+def thin_static_led(m: ti.template(), s: ti.template(), u):
     """1 when live voxel u is led by a thin class that cannot move and rays are to leave it
-    (spare_thin_static): rays graze thin structure sampled sparsely. 0 with the rule off."""
+    (spare_thin_static): rays graze thin structure sampled sparsely. 0 with the rule off, and
+    (thin_static_hold_s) when the scans' hits of u came and went within the hold and none has
+    hit it for longer than that: a pole or a trunk is hit now and then for as long as it is
+    in view, while a voxel a walker made with the network's trunk or pole labels is hit only
+    in the few scans the walker is in it. (A voxel no scan hit keeps its spare.)"""
     led = 0
     if ti.static(m.spare_thin_static):
         led = m.thin_static_class[leading_class(m, u)]
+        if ti.static(m.thin_static_hold):
+            hold = m.thin_static_hold_s
+            if m.first_hit[u] > 0.0 and s.time_rel_s - m.hit_time[u] > hold:
+                if m.hit_time[u] - (m.first_hit[u] - 1.0) < hold:
+                    led = 0
     return led
 
 
@@ -331,8 +344,15 @@ def scatter_occupancy(
     m: ti.template(),
     keys: ti.types.ndarray(dtype=ti.i32, ndim=2),  # (M, 3) live voxels
     occupancy: ti.types.ndarray(dtype=ti.f32, ndim=1),
+    t_last_rel: ti.types.ndarray(dtype=ti.f32, ndim=1),  # (M,) their last update
 ):
-    """Write the occupancy evidence of voxels just imported into the window."""
+    """Write the occupancy evidence of voxels just imported into the window. With a
+    thin_static_hold_s, a voxel back from the store counts as hit from the map's first scan
+    to its last update (the store keeps no hit times): structure that has stood, whose spare
+    holds."""
     for i in range(keys.shape[0]):
         u = m.wrap(ti.Vector([keys[i, 0], keys[i, 1], keys[i, 2]]))
         m.occupancy[u] = occupancy[i]
+        if ti.static(m.thin_static_hold):
+            m.hit_time[u] = t_last_rel[i]
+            m.first_hit[u] = 1.0

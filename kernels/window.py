@@ -85,6 +85,9 @@ def export_leaving(
                         occupancy[idx] = m.occupancy[u]
                     m.occupancy[u] = 0.0
                     m.free_stamp[u] = 0
+                    if ti.static(m.thin_static_hold):
+                        m.hit_time[u] = 0.0
+                        m.first_hit[u] = 0.0
                 if ti.static(m.class_centroids):
                     for k in ti.static(range(CENTROID_COLS)):
                         if idx < keys.shape[0]:

@@ -335,13 +335,14 @@ def test_a_pole_the_rays_pass_beside_is_kept(taichi_cpu):
 def test_a_pole_no_scan_hits_for_a_while_is_kept(taichi_cpu, label, spare):
     """A pole hit by three scans, then by none for ten (the rings miss a thin pole) while rays
     to the wall pass through its voxels, with nothing around them hit: with spare_thin_static
-    its voxels keep their evidence, as a pole cannot have gone. Without the rule it clears
+    (and no hold) its voxels keep their evidence, as a pole cannot have gone. Without the rule
+    it clears
     after the scans the closed form gives, and so does a car in its place with the rule (a
     movable class)."""
     fresh_runtime()
     rows = np.arange(-4, 4)  # (z within the rays to the wall)
     pole = away_from_faces(np.column_stack([np.full(8, 5.02), np.full(8, 0.02), rows * RES]), RES)
-    cfg = free_config(spare_thin_static=spare)
+    cfg = free_config(spare_thin_static=spare, thin_static_hold_s=None)
     mapper = Mapper(cfg)
     for k in range(3):
         wall_then(mapper, k, DT * k, pole, label)
@@ -354,6 +355,43 @@ def test_a_pole_no_scan_hits_for_a_while_is_kept(taichi_cpu, label, spare):
         assert kept.all()
     else:
         assert not kept.any()
+
+
+@pytest.mark.parametrize("hold", [0.45, 0.15])
+def test_a_pole_hit_only_briefly_keeps_its_spare_for_the_hold(taichi_cpu, hold):
+    """thin_static_hold_s: a pole hit by three scans (0.2 s from the first hit to the last),
+    then by none while rays to the wall cross its voxels. With a hold longer than that span,
+    its voxels keep their evidence through the hold and then clear in the scans the closed
+    form gives (decayed from the last hit to the first crossing, then one loss a scan), as what
+    a walker labelled trunk or pole leaves does. With a hold shorter than the span, the pole
+    has stood long enough: it keeps its evidence for good."""
+    fresh_runtime()
+    rows = np.arange(-4, 4)
+    pole = away_from_faces(np.column_stack([np.full(8, 5.02), np.full(8, 0.02), rows * RES]), RES)
+    cfg = free_config(thin_static_hold_s=hold)  # (no multiple of DT: no scan on its end)
+    mapper = Mapper(cfg)
+    for k in range(3):
+        wall_then(mapper, k, DT * k, pole, POLE)
+    t_first, t_hit = 0.0, DT * 2
+    # the closed form: no change while held, then each scan's crossing after the decay
+    occ, t_last = occupancy_after_hits(3, cfg), t_hit
+    cleared_at = None
+    for k in range(3, 20):
+        t = DT * k
+        if t_hit - t_first < hold and t - t_hit > hold:
+            occ = max(occ * math.exp(-(t - t_last) / cfg.tau_s) - 1.0, -cfg.occupancy_cap)
+            t_last = t
+        if occ <= -cfg.empty_evidence:
+            cleared_at = k
+            break
+    if hold > t_hit - t_first:
+        assert cleared_at is not None and cleared_at > 3 + hold / DT
+    else:
+        assert cleared_at is None
+    for k in range(3, cleared_at + 1 if cleared_at else 20):
+        wall_then(mapper, k, DT * k)
+        kept = mapper.query(pole)[0] == POLE
+        assert kept.all() if k != cleared_at else not kept.any(), k
 
 
 def box_seen_from_the_front(with_roof):

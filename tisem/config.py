@@ -143,6 +143,11 @@ class MapperConfig:
     # traffic-sign, trunk) keeps its evidence when rays cross it: rays graze thin structure
     # sampled sparsely, in scans that hit nothing around the voxel
     spare_thin_static: bool = True
+    # ... except one whose hits came and went within this many seconds and that no scan has
+    # hit for longer than that (None: for ever): a pole or a trunk is hit now and then while
+    # in view, a voxel a walker made with the network's trunk or pole labels only while the
+    # walker is in it
+    thin_static_hold_s: float | None = None
     # what free space flags of a mover is spread over its cluster: the points of movable
     # classes in touching cells of cluster_link_m, when at least cluster_min_seeds of them are
     # flagged (tisem/dynamic_clusters.py); its flagged points still end rays
@@ -310,6 +315,7 @@ MAPPER_RULES = {
     "spare_beside_unseen": Flag(),
     "spare_static_beside_own": Flag(),
     "spare_thin_static": Flag(),
+    "thin_static_hold_s": Number(float, 0.0, 1.0e6, unit="s", optional=True),
     "dynamic_clusters": Flag(),
     "cluster_link_m": Number(float, 0.05, 5.0, unit="m"),
     "cluster_min_seeds": Number(int, 1, 1_000_000),

@@ -215,7 +215,10 @@ class LiveWindow:
             if self._fields.free_space:
                 occupancy = v.occupancy if v.occupancy is not None else np.zeros(len(keys))
                 raycast.scatter_occupancy(
-                    self._fields, keys, np.ascontiguousarray(occupancy, np.float32)
+                    self._fields,
+                    keys,
+                    np.ascontiguousarray(occupancy, np.float32),
+                    np.ascontiguousarray(v.t_last_rel, np.float32),
                 )
             if self._fields.class_centroids:  # (the store keeps them for every voxel)
                 cent = np.ascontiguousarray(v.centroids, np.float32)
