@@ -49,6 +49,7 @@ from tisem.evaluate import Confusion, online_labels  # noqa: E402
 from tisem.labels import MOVABLE_CLASSES  # noqa: E402
 from tisem.mapper import Mapper  # noqa: E402
 from tisem.scan import Scan  # noqa: E402
+from tisem.store_segments import pack  # noqa: E402
 
 WARMUP_SCANS = 3
 SA_TARGET = 0.99  # DynamicMap's static accuracy a map must keep (the DA bound at this SA)
@@ -108,12 +109,6 @@ def load(args) -> tuple[list[Scan], str]:
         if s.gt_labels is None or s.gt_moving is None:
             raise SystemExit(f"{s.name}: no ground truth (labels and motion) to score")
     return [dataclasses.replace(s, moving=None) for s in scans], what
-
-
-def pack(keys: np.ndarray) -> np.ndarray:
-    """Voxel keys (M, 3) as one int64 each (21 bits per axis)."""
-    k = keys.astype(np.int64) + (1 << 20)
-    return (k[:, 0] << 42) | (k[:, 1] << 21) | k[:, 2]
 
 
 def da_bound(scans: list[Scan], resolution_m: float, min_sa: float = 1.0) -> float:

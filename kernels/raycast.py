@@ -265,12 +265,13 @@ def thin_static_led(m: ti.template(), s: ti.template(), u):
     in the few scans the walker is in it. (A voxel no scan hit keeps its spare.)"""
     led = 0
     if ti.static(m.spare_thin_static):
-        led = m.thin_static_class[leading_class(m, u)]
+        lapsed = False  # checked first: it skips the loop over the classes
         if ti.static(m.thin_static_hold):
             hold = m.thin_static_hold_s
             if m.first_hit[u] > 0.0 and s.time_rel_s - m.hit_time[u] > hold:
-                if m.hit_time[u] - (m.first_hit[u] - 1.0) < hold:
-                    led = 0
+                lapsed = m.hit_time[u] - (m.first_hit[u] - 1.0) < hold
+        if not lapsed:
+            led = m.thin_static_class[leading_class(m, u)]
     return led
 
 

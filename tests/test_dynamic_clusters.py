@@ -104,3 +104,23 @@ def test_two_cars_closer_than_a_cell_are_one_cluster():
     out = spread_over_clusters(points, labels, dynamic, MOVABLE, link_m=0.4, min_seeds=3)
     assert out[parts["a"]].all() and out[parts["b"]].all()
     assert not out[parts["pole"]].any()
+
+
+@pytest.mark.parametrize("count", [12, 40])
+def test_a_cluster_with_few_of_its_points_flagged_is_not_dynamic(count):
+    """Car A (2,000 points) with `count` flagged: enough seeds, but under a tenth of the car
+    (a parked car that rays grazed where a mover passed close by); 200 make it dynamic."""
+    points, labels, parts = scene()
+    n_a = len(parts["a"])
+    dynamic = seeds_in(len(points), parts["a"][100:], count)
+    out = spread_over_clusters(
+        points, labels, dynamic, MOVABLE, link_m=0.4, min_seeds=10, min_fraction=0.1
+    )
+    assert np.array_equal(out, dynamic)
+    assert count < 0.1 * n_a
+    # flags on a tenth of the car make it dynamic
+    many = seeds_in(len(points), parts["a"][100:], int(np.ceil(0.1 * n_a)))
+    out = spread_over_clusters(
+        points, labels, many, MOVABLE, link_m=0.4, min_seeds=10, min_fraction=0.1
+    )
+    assert out[parts["a"]].all() and not out[parts["b"]].any()

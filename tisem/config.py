@@ -147,13 +147,15 @@ class MapperConfig:
     # hit for longer than that (None: for ever): a pole or a trunk is hit now and then while
     # in view, a voxel a walker made with the network's trunk or pole labels only while the
     # walker is in it
-    thin_static_hold_s: float | None = None
+    thin_static_hold_s: float | None = 1.0
     # what free space flags of a mover is spread over its cluster: the points of movable
-    # classes in touching cells of cluster_link_m, when at least cluster_min_seeds of them are
-    # flagged (tisem/dynamic_clusters.py); its flagged points still end rays
-    dynamic_clusters: bool = False
+    # classes in touching cells of cluster_link_m, when at least cluster_min_seeds of them and
+    # cluster_min_fraction of the cluster are flagged (tisem/dynamic_clusters.py); its flagged
+    # points still end rays
+    dynamic_clusters: bool = True
     cluster_link_m: float = 0.4
     cluster_min_seeds: int = 10
+    cluster_min_fraction: float = 0.1
     # live window (toroidal storage; blocks outside the box leave the field)
     window_xy_m: float = 100.0  # half-size of the live window around the sensor; must
     # hold max_range + kernel reach + 0.8 m. 100 m keeps even
@@ -319,6 +321,7 @@ MAPPER_RULES = {
     "dynamic_clusters": Flag(),
     "cluster_link_m": Number(float, 0.05, 5.0, unit="m"),
     "cluster_min_seeds": Number(int, 1, 1_000_000),
+    "cluster_min_fraction": Number(float, 0.0, 1.0),
     "free_margin_m": Number(float, 0.0, 100.0, unit="m"),
     "free_ray_stride": Number(int, 1, 1_000_000),
     "free_margin_fraction": Number(float, 0.0, 1.0),
