@@ -86,8 +86,9 @@ def spread_over_clusters(
         return dynamic
     cells = np.floor(points[mov] / link_m).astype(np.int64)
     distinct, group, of_point = clusters(cells)
-    n_seeds = np.bincount(group[of_point], weights=seeds, minlength=group.max() + 1)
-    n_points = np.bincount(group[of_point], minlength=group.max() + 1)
+    point_group = group[of_point]
+    n_seeds = np.bincount(point_group, weights=seeds, minlength=group.max() + 1)
+    n_points = np.bincount(point_group, minlength=group.max() + 1)
     dynamic_group = (n_seeds >= min_seeds) & (n_seeds >= min_fraction * n_points)
     flagged = distinct[dynamic_group[group]]
     if len(flagged) == 0:
