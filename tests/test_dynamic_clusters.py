@@ -124,3 +124,51 @@ def test_a_cluster_with_few_of_its_points_flagged_is_not_dynamic(count):
         points, labels, many, MOVABLE, link_m=0.4, min_seeds=10, min_fraction=0.1
     )
     assert out[parts["a"]].all() and not out[parts["b"]].any()
+
+
+PERSON, TRUNK = 6, 16
+THIN_STATIC = np.zeros(20, bool)
+THIN_STATIC[[16, 18, 19]] = True  # trunk, pole, traffic-sign
+
+
+def walker(x=0.0):
+    """A walker (a 0.5 x 0.5 x 1.8 m box) whose top 0.8 m the network calls trunk, a patch
+    with cells of its own (link 0.4 m), and a pole 3 m away."""
+    body = box_points((x, 0, 0), (x + 0.5, 0.5, 1.8))
+    pole = box_points((x + 3.0, 0, 0), (x + 3.2, 0.2, 2))
+    points = np.concatenate([body, pole])
+    labels = np.r_[np.where(body[:, 2] > 1.0, TRUNK, PERSON), np.full(len(pole), POLE)]
+    return points, labels, np.arange(len(body)), len(body) + np.arange(len(pole))
+
+
+def test_thin_classes_join_the_cluster_of_a_walker_they_touch():
+    points, labels, body, pole = walker()
+    person = body[labels[body] == PERSON]
+    dynamic = seeds_in(len(points), person, 40)  # of 250
+    args = dict(link_m=0.4, min_seeds=10, min_fraction=0.1)
+    alone = spread_over_clusters(points, labels, dynamic, MOVABLE, **args)
+    assert alone[person].all()
+    assert not alone[body[labels[body] == TRUNK]].all()  # the top's own cells stay
+    joined = spread_over_clusters(points, labels, dynamic, MOVABLE, joining=THIN_STATIC, **args)
+    assert joined[body].all()
+    assert not joined[pole].any()
+
+
+def test_joining_points_count_for_neither_test():
+    """Flags on the walker's trunk-called top make no cluster (a pole a stray ray flags is
+    none); the fraction is of the movable-class points: 10 % of the person part flags the
+    walker though the top doubles its points."""
+    points, labels, body, pole = walker()
+    person = body[labels[body] == PERSON]
+    top = body[labels[body] == TRUNK]
+    args = dict(link_m=0.4, min_seeds=1, min_fraction=0.1, joining=THIN_STATIC)
+    for flagged in (top, pole):
+        dynamic = seeds_in(len(points), flagged, len(flagged))
+        out = spread_over_clusters(points, labels, dynamic, MOVABLE, **args)
+        assert np.array_equal(out, dynamic)
+    assert len(top) > 0.5 * len(person)
+    tenth = int(np.ceil(0.1 * len(person)))
+    out = spread_over_clusters(
+        points, labels, seeds_in(len(points), person, tenth), MOVABLE, **args
+    )
+    assert out[body].all() and not out[pole].any()

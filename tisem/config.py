@@ -156,6 +156,10 @@ class MapperConfig:
     cluster_link_m: float = 0.4
     cluster_min_seeds: int = 10
     cluster_min_fraction: float = 0.1
+    # the points of thin classes that cannot move (pole, traffic-sign, trunk) join the clusters
+    # they touch without counting for either test: the network calls parts of a walker pole or
+    # trunk, and those parts move with it
+    cluster_thin_classes: bool = False
     # live window (toroidal storage; blocks outside the box leave the field)
     window_xy_m: float = 100.0  # half-size of the live window around the sensor; must
     # hold max_range + kernel reach + 0.8 m. 100 m keeps even
@@ -322,6 +326,7 @@ MAPPER_RULES = {
     "cluster_link_m": Number(float, 0.05, 5.0, unit="m"),
     "cluster_min_seeds": Number(int, 1, 1_000_000),
     "cluster_min_fraction": Number(float, 0.0, 1.0),
+    "cluster_thin_classes": Flag(),
     "free_margin_m": Number(float, 0.0, 100.0, unit="m"),
     "free_ray_stride": Number(int, 1, 1_000_000),
     "free_margin_fraction": Number(float, 0.0, 1.0),

@@ -7,7 +7,11 @@ of their hits. Dynablox (Schmid et al., RA-L 2023) grows such seeds to the clust
 they belong to; here, within one scan:
 
 * a cluster is the points of movable classes (tisem.labels.MOVABLE_CLASSES) whose cells of
-  `link_m` touch (26-neighbours);
+  `link_m` touch (26-neighbours), and, with `joining` classes (cluster_thin_classes: pole,
+  traffic-sign, trunk), the points of those in cells that touch them: the network calls parts
+  of a walker pole or trunk, and a voxel it makes so is one rays leave alone
+  (spare_thin_static). Joining points count for neither test below: a pole on its own, or one
+  a stray ray flags, is never a cluster;
 * a cluster holding at least `min_seeds` flagged points, and at least `min_fraction` of its
   points flagged, is dynamic: one stray ray through a parked car does not flag it, nor do the
   dozens a large parked car collects where a mover passed close by (a mover is flagged over
@@ -75,20 +79,25 @@ def spread_over_clusters(
     link_m: float,
     min_seeds: int,
     min_fraction: float = 0.0,
+    joining: np.ndarray | None = None,
 ) -> np.ndarray:
     """(N,) bool: `dynamic`, and every point in the cells of a movable-class cluster that
-    holds at least `min_seeds` dynamic points, and at least `min_fraction` of its points
-    (see the module's docstring). `points` (N, 3) metres, one scan in any one frame;
-    `labels` (N,) class ids; `movable` (C,) bool."""
-    mov = np.flatnonzero(movable[labels])
-    seeds = dynamic[mov]
-    if seeds.sum() < min_seeds:
+    holds at least `min_seeds` dynamic points of movable classes, and at least `min_fraction`
+    of its movable-class points (see the module's docstring). `points` (N, 3) metres, one
+    scan in any one frame; `labels` (N,) class ids; `movable` (C,) bool; `joining` (C,) bool
+    or None: the classes whose points join the clusters without counting."""
+    of_movable = movable[labels]
+    if dynamic[of_movable].sum() < min_seeds:
         return dynamic
-    cells = np.floor(points[mov] / link_m).astype(np.int64)
+    member = of_movable if joining is None else of_movable | joining[labels]
+    idx = np.flatnonzero(member)
+    counted = of_movable[idx]  # (the movable-class members: what the tests count)
+    seeds = dynamic[idx] & counted
+    cells = np.floor(points[idx] / link_m).astype(np.int64)
     distinct, group, of_point = clusters(cells)
     point_group = group[of_point]
     n_seeds = np.bincount(point_group, weights=seeds, minlength=group.max() + 1)
-    n_points = np.bincount(point_group, minlength=group.max() + 1)
+    n_points = np.bincount(point_group, weights=counted, minlength=group.max() + 1)
     dynamic_group = (n_seeds >= min_seeds) & (n_seeds >= min_fraction * n_points)
     flagged = distinct[dynamic_group[group]]
     if len(flagged) == 0:

@@ -107,17 +107,20 @@ class FreeSpace:
         self._slack_vox = np.array(fields.N) - 2 * np.asarray(window_half_vox)
         self._next_forget_s = -np.inf
         self._blocks = 0  # the memory's blocks after its last pass
-        # (movable classes, cluster_link_m, cluster_min_seeds, cluster_min_fraction) with
-        # dynamic_clusters, else None
+        # (movable classes, cluster_link_m, cluster_min_seeds, cluster_min_fraction, the
+        # classes that join clusters or None) with dynamic_clusters, else None
         self._clusters = None
         if cfg.dynamic_clusters:
-            movable = static_classes(cfg.num_classes) == 0
+            static = static_classes(cfg.num_classes) == 1
+            movable = ~static
             movable[0] = False
+            joining = cfg.thin_class_mask & static if cfg.cluster_thin_classes else None
             self._clusters = (
                 movable,
                 float(cfg.cluster_link_m),
                 int(cfg.cluster_min_seeds),
                 float(cfg.cluster_min_fraction),
+                joining,
             )
         self._dynamic_ends: np.ndarray | None = None  # (D, 3) local metres, float32
         self._max_range2 = float(cfg.max_range_m) ** 2
