@@ -91,10 +91,11 @@ class FreeSpace:
         self, fields: MapFields, cfg: MapperConfig, decay: str, window_half_vox: np.ndarray
     ):
         self._fields = fields
+        static = static_classes(cfg.num_classes) == 1
+        thin_static = cfg.thin_class_mask & static  # (the rays' spare, the clusters' joining)
         if fields.spare_static_beside_own:
-            fields.static_class.from_numpy(static_classes(cfg.num_classes))
+            fields.static_class.from_numpy(static.astype(np.int32))
         if fields.spare_thin_static:
-            thin_static = cfg.thin_class_mask & (static_classes(cfg.num_classes) == 1)
             fields.thin_static_class.from_numpy(thin_static.astype(np.int32))
         self._margin_m = float(cfg.free_margin_m)
         self._margin_fraction = float(cfg.free_margin_fraction)
@@ -111,10 +112,9 @@ class FreeSpace:
         # classes that join clusters or None) with dynamic_clusters, else None
         self._clusters = None
         if cfg.dynamic_clusters:
-            static = static_classes(cfg.num_classes) == 1
             movable = ~static
             movable[0] = False
-            joining = cfg.thin_class_mask & static if cfg.cluster_thin_classes else None
+            joining = thin_static if cfg.cluster_thin_classes else None
             self._clusters = (
                 movable,
                 float(cfg.cluster_link_m),
