@@ -138,6 +138,7 @@ class MapFields:
         spare_static_beside_own: bool = False,
         spare_thin_static: bool = False,
         thin_static_hold_s: float | None = None,
+        thin_static_crossings: int | None = None,
     ):
         for n in extent:
             if n % TOP or n & (n - 1):
@@ -214,10 +215,23 @@ class MapFields:
         # where no voxel is live)
         self.thin_static_hold = self.spare_thin_static and thin_static_hold_s is not None
         self.thin_static_hold_s = float(thin_static_hold_s) if self.thin_static_hold else 0.0
+        # (thin_static_crossings) ... and of one the scans' rays have crossed in more than so
+        # many scans since its last hit: per voxel, that count (0 where no voxel is live)
+        self.thin_static_crossings = self.spare_thin_static and thin_static_crossings is not None
+        self.thin_static_crossings_n = (
+            int(thin_static_crossings) if self.thin_static_crossings else 0
+        )
+        # placed together, voxel by voxel: a ray's crossing reads them all (one cache line)
+        hit_record = []
         if self.thin_static_hold:
             self.hit_time = ti.field(ti.f32)
             self.first_hit = ti.field(ti.f32)
-            self.blk.dense(ti.ijk, LEAF).place(self.hit_time, self.first_hit)
+            hit_record += [self.hit_time, self.first_hit]
+        if self.thin_static_crossings:
+            self.crossings_since_hit = ti.field(ti.i32)
+            hit_record.append(self.crossings_since_hit)
+        if hit_record:
+            self.blk.dense(ti.ijk, LEAF).place(*hit_record)
         # the live voxels the scan's rays crossed (spare_beside_unseen): a crossed voxel next to
         # space no ray has seen (neither live nor in the memory) holds a surface seen from one
         # side, which the rays graze, and keeps its evidence; that is decided after every ray

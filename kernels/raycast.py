@@ -153,16 +153,19 @@ def free_space_kernels(decay: str):
             crossed = crossed_stamp(s.stamp)
             if m.free_stamp[u] < crossed:
                 if ti.atomic_max(m.free_stamp[u], crossed) < crossed:
-                    if not beside_hit(m, v, hit_stamp(s.stamp)) and not thin_static_led(m, s, u):
-                        if ti.static(m.spare_beside_unseen):
-                            # decided by clear_crossed, once every ray has written the memory
-                            i = ti.atomic_add(m.n_crossed[None], 1)
-                            if i < m.crossed.shape[0]:
-                                m.crossed[i] = v
-                            else:  # (more than the list holds: these go without the check)
+                    # (nested: Taichi evaluates both sides of an `and`, and the spare's count
+                    # of crossings must not grow in a scan that hit the voxel's neighbours)
+                    if not beside_hit(m, v, hit_stamp(s.stamp)):
+                        if not thin_static_led(m, s, u):
+                            if ti.static(m.spare_beside_unseen):
+                                # decided by clear_crossed, once every ray has written the memory
+                                i = ti.atomic_add(m.n_crossed[None], 1)
+                                if i < m.crossed.shape[0]:
+                                    m.crossed[i] = v
+                                else:  # (more than the list holds: these go without the check)
+                                    lose_evidence(m, s, u)
+                            else:
                                 lose_evidence(m, s, u)
-                        else:
-                            lose_evidence(m, s, u)
         elif ti.static(m.seen_empty_s > 0):
             # space the map holds nothing in: remembered as seen empty. Written without reading
             # first: every ray writes the same value, the first one through a voxel allocates
@@ -191,6 +194,8 @@ def free_space_kernels(decay: str):
                     m.hit_time[u] = s.time_rel_s
                     if m.first_hit[u] == 0.0:
                         m.first_hit[u] = 1.0 + s.time_rel_s
+                if ti.static(m.thin_static_crossings):
+                    m.crossings_since_hit[u] = 0
 
     @ti.kernel
     def cast_free(
@@ -262,7 +267,12 @@ def thin_static_led(m: ti.template(), s: ti.template(), u):
     (thin_static_hold_s) when the scans' hits of u came and went within the hold and none has
     hit it for longer than that: a pole or a trunk is hit now and then for as long as it is
     in view, while a voxel a walker made with the network's trunk or pole labels is hit only
-    in the few scans the walker is in it. (A voxel no scan hit keeps its spare.)"""
+    in the few scans the walker is in it. (A voxel no scan hit keeps that spare.) Also 0
+    (thin_static_crossings) once the spare has kept u through more scans of crossings than
+    the limit since its last hit (each call is such a scan; counted only while the spare
+    holds, so that no other voxel pays a write): a pole in view is hit again before many
+    scans see through its voxel, while the place a group of walkers left, hit over more than
+    the hold, is seen through scan after scan."""
     led = 0
     if ti.static(m.spare_thin_static):
         lapsed = False  # checked first: it skips the loop over the classes
@@ -272,6 +282,12 @@ def thin_static_led(m: ti.template(), s: ti.template(), u):
                 lapsed = m.hit_time[u] - (m.first_hit[u] - 1.0) < hold
         if not lapsed:
             led = m.thin_static_class[leading_class(m, u)]
+            if ti.static(m.thin_static_crossings):
+                if led == 1:
+                    n = m.crossings_since_hit[u] + 1
+                    m.crossings_since_hit[u] = n
+                    if n > m.thin_static_crossings_n:
+                        led = 0
     return led
 
 
@@ -357,3 +373,5 @@ def scatter_occupancy(
         if ti.static(m.thin_static_hold):
             m.hit_time[u] = t_last_rel[i]
             m.first_hit[u] = 1.0
+        if ti.static(m.thin_static_crossings):
+            m.crossings_since_hit[u] = 0

@@ -88,6 +88,8 @@ def export_leaving(
                     if ti.static(m.thin_static_hold):
                         m.hit_time[u] = 0.0
                         m.first_hit[u] = 0.0
+                    if ti.static(m.thin_static_crossings):
+                        m.crossings_since_hit[u] = 0
                 if ti.static(m.class_centroids):
                     for k in ti.static(range(CENTROID_COLS)):
                         if idx < keys.shape[0]:

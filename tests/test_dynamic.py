@@ -335,14 +335,13 @@ def test_a_pole_the_rays_pass_beside_is_kept(taichi_cpu):
 def test_a_pole_no_scan_hits_for_a_while_is_kept(taichi_cpu, label, spare):
     """A pole hit by three scans, then by none for ten (the rings miss a thin pole) while rays
     to the wall pass through its voxels, with nothing around them hit: with spare_thin_static
-    (and no hold) its voxels keep their evidence, as a pole cannot have gone. Without the rule
-    it clears
-    after the scans the closed form gives, and so does a car in its place with the rule (a
-    movable class)."""
+    (and neither a hold nor a limit on the crossings) its voxels keep their evidence, as a
+    pole cannot have gone. Without the rule it clears after the scans the closed form gives,
+    and so does a car in its place with the rule (a movable class)."""
     fresh_runtime()
     rows = np.arange(-4, 4)  # (z within the rays to the wall)
     pole = away_from_faces(np.column_stack([np.full(8, 5.02), np.full(8, 0.02), rows * RES]), RES)
-    cfg = free_config(spare_thin_static=spare, thin_static_hold_s=None)
+    cfg = free_config(spare_thin_static=spare, thin_static_hold_s=None, thin_static_crossings=None)
     mapper = Mapper(cfg)
     for k in range(3):
         wall_then(mapper, k, DT * k, pole, label)
@@ -357,6 +356,27 @@ def test_a_pole_no_scan_hits_for_a_while_is_kept(taichi_cpu, label, spare):
         assert not kept.any()
 
 
+def pole_hit_three_scans(cfg):
+    """(map, pole points): a fresh map whose first three scans hit the wall and a pole 5 m in
+    front of it, one point a voxel layer, within the rays to the wall."""
+    fresh_runtime()
+    rows = np.arange(-4, 4)
+    pole = away_from_faces(np.column_stack([np.full(8, 5.02), np.full(8, 0.02), rows * RES]), RES)
+    mapper = Mapper(cfg)
+    for k in range(3):
+        wall_then(mapper, k, DT * k, pole, POLE)
+    return mapper, pole
+
+
+def wall_alone_until(mapper, pole, cleared_at, last=20):
+    """Scans of the wall alone from scan 3 on: the pole is kept in each until `cleared_at`,
+    gone in that one (None: kept up to scan `last`)."""
+    for k in range(3, cleared_at + 1 if cleared_at else last):
+        wall_then(mapper, k, DT * k)
+        kept = mapper.query(pole)[0] == POLE
+        assert kept.all() if k != cleared_at else not kept.any(), k
+
+
 @pytest.mark.parametrize("hold", [0.45, 0.15])
 def test_a_pole_hit_only_briefly_keeps_its_spare_for_the_hold(taichi_cpu, hold):
     """thin_static_hold_s: a pole hit by three scans (0.2 s from the first hit to the last),
@@ -365,13 +385,9 @@ def test_a_pole_hit_only_briefly_keeps_its_spare_for_the_hold(taichi_cpu, hold):
     form gives (decayed from the last hit to the first crossing, then one loss a scan), as what
     a walker labelled trunk or pole leaves does. With a hold shorter than the span, the pole
     has stood long enough: it keeps its evidence for good."""
-    fresh_runtime()
-    rows = np.arange(-4, 4)
-    pole = away_from_faces(np.column_stack([np.full(8, 5.02), np.full(8, 0.02), rows * RES]), RES)
-    cfg = free_config(thin_static_hold_s=hold)  # (no multiple of DT: no scan on its end)
-    mapper = Mapper(cfg)
-    for k in range(3):
-        wall_then(mapper, k, DT * k, pole, POLE)
+    # (no multiple of DT: no scan on its end)
+    cfg = free_config(thin_static_hold_s=hold, thin_static_crossings=None)
+    mapper, pole = pole_hit_three_scans(cfg)
     t_first, t_hit = 0.0, DT * 2
     # the closed form: no change while held, then each scan's crossing after the decay
     occ, t_last = occupancy_after_hits(3, cfg), t_hit
@@ -388,10 +404,43 @@ def test_a_pole_hit_only_briefly_keeps_its_spare_for_the_hold(taichi_cpu, hold):
         assert cleared_at is not None and cleared_at > 3 + hold / DT
     else:
         assert cleared_at is None
-    for k in range(3, cleared_at + 1 if cleared_at else 20):
-        wall_then(mapper, k, DT * k)
-        kept = mapper.query(pole)[0] == POLE
-        assert kept.all() if k != cleared_at else not kept.any(), k
+    wall_alone_until(mapper, pole, cleared_at)
+
+
+@pytest.mark.parametrize("limit", [2, 5])
+def test_a_pole_seen_through_scan_after_scan_loses_its_spare(taichi_cpu, limit):
+    """thin_static_crossings (no hold): a pole hit by three scans, then by none while rays to
+    the wall cross its voxels scan after scan: they keep their evidence for `limit` scans of
+    crossings, then clear in the scans the closed form gives (decayed from the last hit to the
+    first crossing that counts, then one loss a scan), as what a walker labelled pole leaves."""
+    cfg = free_config(thin_static_hold_s=None, thin_static_crossings=limit)
+    mapper, pole = pole_hit_three_scans(cfg)
+    occ, t_last = occupancy_after_hits(3, cfg), DT * 2
+    cleared_at = None
+    for k in range(3 + limit, 30):
+        occ = max(occ * math.exp(-(DT * k - t_last) / cfg.tau_s) - 1.0, -cfg.occupancy_cap)
+        t_last = DT * k
+        if occ <= -cfg.empty_evidence:
+            cleared_at = k
+            break
+    assert cleared_at is not None
+    wall_alone_until(mapper, pole, cleared_at)
+
+
+def test_a_pole_hit_now_and_then_keeps_its_spare(taichi_cpu):
+    """thin_static_crossings 2 (no hold): a pole the rings hit one scan in three, while in the
+    other two rays to the wall cross its voxels, is seen through in no more than two scans
+    since a hit: it keeps its evidence for good. With a limit of 0 every crossing counts, two
+    losses a hit, and it clears."""
+    kept = {}
+    for limit in (2, 0):
+        cfg = free_config(thin_static_hold_s=None, thin_static_crossings=limit)
+        mapper, pole = pole_hit_three_scans(cfg)  # (scans 0, 1, 2: then one in three)
+        for k in range(3, 30):
+            wall_then(mapper, k, DT * k, pole if k % 3 == 0 else None, POLE)
+        kept[limit] = mapper.query(pole)[0] == POLE
+    assert kept[2].all()
+    assert not kept[0].any()
 
 
 def box_seen_from_the_front(with_roof):

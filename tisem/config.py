@@ -148,6 +148,10 @@ class MapperConfig:
     # in view, a voxel a walker made with the network's trunk or pole labels only while the
     # walker is in it
     thin_static_hold_s: float | None = 1.0
+    # ... and except one the scans' rays have crossed in more than this many scans since its
+    # last hit (None: no such limit): a pole or a trunk in view is hit again before many scans
+    # see through its voxel, what a walker left is seen through scan after scan
+    thin_static_crossings: int | None = 4
     # what free space flags of a mover is spread over its cluster: the points of movable
     # classes in touching cells of cluster_link_m, when at least cluster_min_seeds of them and
     # cluster_min_fraction of the cluster are flagged (tisem/dynamic_clusters.py); its flagged
@@ -322,6 +326,7 @@ MAPPER_RULES = {
     "spare_static_beside_own": Flag(),
     "spare_thin_static": Flag(),
     "thin_static_hold_s": Number(float, 0.0, 1.0e6, unit="s", optional=True),
+    "thin_static_crossings": Number(int, 0, 1_000_000, optional=True),
     "dynamic_clusters": Flag(),
     "cluster_link_m": Number(float, 0.05, 5.0, unit="m"),
     "cluster_min_seeds": Number(int, 1, 1_000_000),

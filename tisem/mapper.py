@@ -98,6 +98,7 @@ class Mapper:
             spare_static_beside_own=cfg.spare_static_beside_own,
             spare_thin_static=cfg.spare_thin_static,
             thin_static_hold_s=cfg.thin_static_hold_s,
+            thin_static_crossings=cfg.thin_static_crossings,
         )
         bki.fill_kernel_table(self._fields)
         self._fields.class_inv_tau.from_numpy(class_inv_tau(cfg))
