@@ -366,12 +366,10 @@ def scatter_occupancy(
     """Write the occupancy evidence of voxels just imported into the window. With a
     thin_static_hold_s, a voxel back from the store counts as hit from the map's first scan
     to its last update (the store keeps no hit times): structure that has stood, whose spare
-    holds."""
+    holds. (Its count of crossings since a hit is 0, as export_leaving left it.)"""
     for i in range(keys.shape[0]):
         u = m.wrap(ti.Vector([keys[i, 0], keys[i, 1], keys[i, 2]]))
         m.occupancy[u] = occupancy[i]
         if ti.static(m.thin_static_hold):
             m.hit_time[u] = t_last_rel[i]
             m.first_hit[u] = 1.0
-        if ti.static(m.thin_static_crossings):
-            m.crossings_since_hit[u] = 0

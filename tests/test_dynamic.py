@@ -331,6 +331,18 @@ def test_a_pole_the_rays_pass_beside_is_kept(taichi_cpu):
     assert (labels == POLE).all()
 
 
+def pole_hit_three_scans(cfg, label=POLE):
+    """(map, pole points): a fresh map whose first three scans hit the wall and a pole 5 m in
+    front of it (points of `label`), one a voxel layer, within the rays to the wall."""
+    fresh_runtime()
+    rows = np.arange(-4, 4)
+    pole = away_from_faces(np.column_stack([np.full(8, 5.02), np.full(8, 0.02), rows * RES]), RES)
+    mapper = Mapper(cfg)
+    for k in range(3):
+        wall_then(mapper, k, DT * k, pole, label)
+    return mapper, pole
+
+
 @pytest.mark.parametrize(("label", "spare"), [(POLE, True), (POLE, False), (CAR, True)])
 def test_a_pole_no_scan_hits_for_a_while_is_kept(taichi_cpu, label, spare):
     """A pole hit by three scans, then by none for ten (the rings miss a thin pole) while rays
@@ -338,13 +350,8 @@ def test_a_pole_no_scan_hits_for_a_while_is_kept(taichi_cpu, label, spare):
     (and neither a hold nor a limit on the crossings) its voxels keep their evidence, as a
     pole cannot have gone. Without the rule it clears after the scans the closed form gives,
     and so does a car in its place with the rule (a movable class)."""
-    fresh_runtime()
-    rows = np.arange(-4, 4)  # (z within the rays to the wall)
-    pole = away_from_faces(np.column_stack([np.full(8, 5.02), np.full(8, 0.02), rows * RES]), RES)
     cfg = free_config(spare_thin_static=spare, thin_static_hold_s=None, thin_static_crossings=None)
-    mapper = Mapper(cfg)
-    for k in range(3):
-        wall_then(mapper, k, DT * k, pole, label)
+    mapper, pole = pole_hit_three_scans(cfg, label)
     assert (mapper.query(pole)[0] == label).all()
     assert scans_to_clear(3, cfg) < 10
     for k in range(3, 13):
@@ -356,16 +363,18 @@ def test_a_pole_no_scan_hits_for_a_while_is_kept(taichi_cpu, label, spare):
         assert not kept.any()
 
 
-def pole_hit_three_scans(cfg):
-    """(map, pole points): a fresh map whose first three scans hit the wall and a pole 5 m in
-    front of it, one point a voxel layer, within the rays to the wall."""
-    fresh_runtime()
-    rows = np.arange(-4, 4)
-    pole = away_from_faces(np.column_stack([np.full(8, 5.02), np.full(8, 0.02), rows * RES]), RES)
-    mapper = Mapper(cfg)
-    for k in range(3):
-        wall_then(mapper, k, DT * k, pole, POLE)
-    return mapper, pole
+def scan_cleared(cfg, losing):
+    """The scan (3-29) in which a voxel hit by scans 0-2 is empty by the closed form, when the
+    scans k for which losing(k) is true each take one evidence after the decay since the last
+    change (None: not by scan 29)."""
+    occ, t_last = occupancy_after_hits(3, cfg), DT * 2
+    for k in range(3, 30):
+        if losing(k):
+            occ = max(occ * math.exp(-(DT * k - t_last) / cfg.tau_s) - 1.0, -cfg.occupancy_cap)
+            t_last = DT * k
+        if occ <= -cfg.empty_evidence:
+            return k
+    return None
 
 
 def wall_alone_until(mapper, pole, cleared_at, last=20):
@@ -390,16 +399,7 @@ def test_a_pole_hit_only_briefly_keeps_its_spare_for_the_hold(taichi_cpu, hold):
     mapper, pole = pole_hit_three_scans(cfg)
     t_first, t_hit = 0.0, DT * 2
     # the closed form: no change while held, then each scan's crossing after the decay
-    occ, t_last = occupancy_after_hits(3, cfg), t_hit
-    cleared_at = None
-    for k in range(3, 20):
-        t = DT * k
-        if t_hit - t_first < hold and t - t_hit > hold:
-            occ = max(occ * math.exp(-(t - t_last) / cfg.tau_s) - 1.0, -cfg.occupancy_cap)
-            t_last = t
-        if occ <= -cfg.empty_evidence:
-            cleared_at = k
-            break
+    cleared_at = scan_cleared(cfg, lambda k: t_hit - t_first < hold and DT * k - t_hit > hold)
     if hold > t_hit - t_first:
         assert cleared_at is not None and cleared_at > 3 + hold / DT
     else:
@@ -415,14 +415,7 @@ def test_a_pole_seen_through_scan_after_scan_loses_its_spare(taichi_cpu, limit):
     first crossing that counts, then one loss a scan), as what a walker labelled pole leaves."""
     cfg = free_config(thin_static_hold_s=None, thin_static_crossings=limit)
     mapper, pole = pole_hit_three_scans(cfg)
-    occ, t_last = occupancy_after_hits(3, cfg), DT * 2
-    cleared_at = None
-    for k in range(3 + limit, 30):
-        occ = max(occ * math.exp(-(DT * k - t_last) / cfg.tau_s) - 1.0, -cfg.occupancy_cap)
-        t_last = DT * k
-        if occ <= -cfg.empty_evidence:
-            cleared_at = k
-            break
+    cleared_at = scan_cleared(cfg, lambda k: k >= 3 + limit)
     assert cleared_at is not None
     wall_alone_until(mapper, pole, cleared_at)
 
