@@ -143,21 +143,22 @@ def count_work(args, cfg, scans) -> dict:
         return n
 
     rows_of_scan = []
-    new_blocks = [0]
+    new_blocks = 0
     cast = free._cast_free
 
     def counted_cast(m, s, xyz, n_rows, stride, margin_m, margin_fraction):
+        nonlocal new_blocks
         before = memory_blocks(m)
         count_rays(m, s, xyz, n_rows, stride, margin_m, margin_fraction)
-        new_blocks[0] += memory_blocks(m) - before
+        new_blocks += memory_blocks(m) - before
         return cast(m, s, xyz, n_rows, stride, margin_m, margin_fraction)
 
     free._cast_free = counted_cast
     for scan in replay(scans, args.scans + 1):
         tally.fill(0)  # (summed over the scan's casts: the movers' rays are a second)
-        new_blocks[0] = 0
+        new_blocks = 0
         mapper.integrate(scan)
-        rows_of_scan.append([*tally.to_numpy(), new_blocks[0]])
+        rows_of_scan.append([*tally.to_numpy(), new_blocks])
     per_scan = np.median(np.array(rows_of_scan[1:], dtype=np.float64), axis=0)
     return dict(zip((*COUNTS, "new_memory_blocks"), (float(x) for x in per_scan)))
 

@@ -83,14 +83,19 @@ def occupancy_after_hits(hit_scans, cfg):
     return occ
 
 
+def after_loss(occ, dt, cfg):
+    """A voxel's occupancy evidence after a scan's rays cross it, dt after its last change:
+    decayed, -1, clamped."""
+    return max(occ * math.exp(-dt / cfg.tau_s) - 1.0, -cfg.occupancy_cap)
+
+
 def scans_to_clear(hit_scans, cfg):
     """Scans of rays (one per scan after the object left) until a voxel hit `hit_scans`
     times in a row is empty, by the closed form of its occupancy evidence."""
-    alpha = math.exp(-DT / cfg.tau_s)
     occ = occupancy_after_hits(hit_scans, cfg)
     n = 0
     while occ > -cfg.empty_evidence:
-        occ = max(alpha * occ - 1.0, -cfg.occupancy_cap)
+        occ = after_loss(occ, DT, cfg)
         n += 1
     return n
 
@@ -370,8 +375,7 @@ def scan_cleared(cfg, losing):
     occ, t_last = occupancy_after_hits(3, cfg), DT * 2
     for k in range(3, 30):
         if losing(k):
-            occ = max(occ * math.exp(-(DT * k - t_last) / cfg.tau_s) - 1.0, -cfg.occupancy_cap)
-            t_last = DT * k
+            occ, t_last = after_loss(occ, DT * k - t_last, cfg), DT * k
         if occ <= -cfg.empty_evidence:
             return k
     return None
