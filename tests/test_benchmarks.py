@@ -52,6 +52,8 @@ def test_throughput_benchmark_runs(tiny_sequence, tmp_path, capsys):
                 "3",
                 "--reference-scans",
                 "1",
+                "--fresh-maps",
+                "2",
                 "--json",
                 str(out),
             ]
@@ -62,10 +64,17 @@ def test_throughput_benchmark_runs(tiny_sequence, tmp_path, capsys):
     assert set(r["stages"]) == {*STAGES, "query"}
     assert r["scans"] == 3 and r["seconds_per_scan"] > 0 and r["active_voxels"] > 0
     assert r["arch"] == "cpu" and r["threads"] == 2 and r["peak_rss_mb"] > 0
+    assert r["minor_faults_per_scan"] >= 0
     assert r["speedup_vs_numpy"] == pytest.approx(
         r["reference_seconds_per_scan"] / r["seconds_per_scan"]
     )
-    assert "| **mapping, end to end** |" in capsys.readouterr().out
+    # two fresh maps of the street's 4 scans: the 3 after each map's first are timed
+    fresh = r["fresh_map"]
+    assert fresh["rounds"] == 2 and fresh["distinct_scans"] == 4 and fresh["scans"] == 6
+    assert set(fresh["stages"]) == set(STAGES) and fresh["seconds_per_scan"] > 0
+    assert fresh["minor_faults_per_scan"] >= 0
+    out_text = capsys.readouterr().out
+    assert out_text.count("| **mapping, end to end** |") == 2 and "fresh maps (2 rounds" in out_text
 
 
 @pytest.mark.slow
