@@ -58,7 +58,10 @@ def parse_args(argv=None):
         help="also map the distinct scans R times into fresh maps, timing each scan after the "
         "first (0: skip)",
     )
-    return p.parse_args(argv)
+    args = p.parse_args(argv)
+    if args.fresh_maps < 0:
+        p.error(f"--fresh-maps {args.fresh_maps}: expected a whole number >= 0")
+    return args
 
 
 def minor_faults() -> int:

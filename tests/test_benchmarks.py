@@ -77,6 +77,12 @@ def test_throughput_benchmark_runs(tiny_sequence, tmp_path, capsys):
     assert out_text.count("| **mapping, end to end** |") == 2 and "fresh maps (2 rounds" in out_text
 
 
+def test_throughput_refuses_a_negative_number_of_fresh_maps(capsys):
+    with pytest.raises(SystemExit):
+        throughput.parse_args(["--fresh-maps", "-1"])
+    assert "--fresh-maps -1: expected a whole number >= 0" in capsys.readouterr().err
+
+
 @pytest.mark.slow
 def test_free_space_benchmark_runs(tiny_sequence, tmp_path, capsys):
     out = tmp_path / "f.json"
