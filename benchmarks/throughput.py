@@ -185,23 +185,31 @@ def run(args) -> dict:
     return result
 
 
+def stage_table(part: dict) -> list[str]:
+    """The median ms per scan of each stage and end to end of a result (or its fresh maps)."""
+    lines = ["| stage | ms per scan (median) |", "| --- | ---: |"]
+    lines += [f"| {s} | {v:.1f} |" for s, v in part["stages"].items()]
+    lines.append(f"| **mapping, end to end** | **{1000 * part['seconds_per_scan']:.1f}** |")
+    return lines
+
+
 def format_result(r: dict) -> str:
     lines = [
         f"device: {r['device']}",
         f"data: {r['source']}, mode {r['mode']}, "
         f"{r['points_per_scan']:.0f} points per scan, {r['scans']} steady-state scans",
         "",
-        "| stage | ms per scan (median) |",
-        "| --- | ---: |",
-    ]
-    lines += [f"| {s} | {v:.1f} |" for s, v in r["stages"].items()]
-    lines += [
-        f"| **mapping, end to end** | **{1000 * r['seconds_per_scan']:.1f}** |",
+        *stage_table(r),
         "",
         f"scans per second: {r['scans_per_second']:.1f}; compile (first scan): "
         f"{r['compile_seconds']:.2f} s; peak RSS {r['peak_rss_mb']:.0f} MB; "
         f"{r['active_voxels']:,} voxels; {r['minor_faults_per_scan']:,.0f} page faults per scan",
     ]
+    if "speedup_vs_numpy" in r:
+        lines.append(
+            f"numpy reference: {r['reference_seconds_per_scan']:.2f} s per scan -> "
+            f"tisem is {r['speedup_vs_numpy']:.0f}x faster"
+        )
     fresh = r.get("fresh_map")
     if fresh:
         lines += [
@@ -209,20 +217,10 @@ def format_result(r: dict) -> str:
             f"fresh maps ({fresh['rounds']} rounds of the {fresh['distinct_scans']} distinct "
             f"scans, each scan after the first timed, {fresh['scans']} in all):",
             "",
-            "| stage | ms per scan (median) |",
-            "| --- | ---: |",
-        ]
-        lines += [f"| {s} | {v:.1f} |" for s, v in fresh["stages"].items()]
-        lines += [
-            f"| **mapping, end to end** | **{1000 * fresh['seconds_per_scan']:.1f}** |",
+            *stage_table(fresh),
             "",
             f"{fresh['minor_faults_per_scan']:,.0f} page faults per scan",
         ]
-    if "speedup_vs_numpy" in r:
-        lines.append(
-            f"numpy reference: {r['reference_seconds_per_scan']:.2f} s per scan -> "
-            f"tisem is {r['speedup_vs_numpy']:.0f}x faster"
-        )
     return "\n".join(lines)
 
 
