@@ -5,11 +5,12 @@
 
 What the path is decides the reader, by content (magic bytes, `metadata.yaml`), not by name:
 - an MCAP file: tisem's damage-tolerant reader (`McapScanReader`);
-- a rosbag2 folder of uncompressed MCAP split files: the same reader over its files in the
-  order `metadata.yaml` lists them (still damage-tolerant);
-- any other rosbag2 folder (sqlite3 storage, per-message or per-file compression), a single
-  `.db3` file, a ROS 1 `.bag`: the `rosbags` library reads the messages, tisem decodes the
-  clouds and transforms the same way;
+- a rosbag2 folder of MCAP split files, uncompressed or compressed message by message (zstd):
+  the same reader over its files in the order `metadata.yaml` lists them (still
+  damage-tolerant: a message whose frame does not inflate is one lost message);
+- any other rosbag2 folder (sqlite3 storage, per-file compression), a single `.db3` file, a
+  ROS 1 `.bag`: the `rosbags` library reads the messages, tisem decodes the clouds and
+  transforms the same way (damage part-way keeps the messages before it);
 - anything else is refused in one line naming what it is and how to convert it.
 All give a `McapScanReader` (topic, frame_id, total, tf, report; iterate for scans).
 """
@@ -22,12 +23,12 @@ from pathlib import Path
 import yaml
 
 from tisem.errors import DatasetError
+from tisem.io.bag_records import ZSTD_MAGIC, SplitMcapRecords
 from tisem.io.mcap_reader import McapOptions, McapScanReader
 from tisem.io.mcap_summary import MAGIC as MCAP_MAGIC
 
 SQLITE_MAGIC = b"SQLite format 3\x00"
 ROS1_MAGIC = b"#ROSBAG V2.0"
-ZSTD_MAGIC = b"\x28\xb5\x2f\xfd"
 STORAGES = ("mcap", "sqlite3")
 CONVERT = (
     "`ros2 bag convert -i IN -o out.yaml` (ROS 2) or `rosbags-convert --src IN --dst "
@@ -37,24 +38,55 @@ CONVERT = (
 
 @dataclass(frozen=True)
 class BagInput:
-    """What a path holds: `kind` is mcap | mcap-split | rosbags; `files` for mcap-split."""
+    """What a path holds: `kind` is mcap | mcap-split | rosbags; `files` for mcap-split, and
+    `zstd_messages` when each of their messages is a zstd frame of its own (None: unknown)."""
 
     path: Path
     kind: str
     what: str  # for messages, e.g. "rosbag2 folder (sqlite3, 2 files)"
     files: tuple[Path, ...] = ()
+    zstd_messages: bool | None = False  # None: unknown, each cdr message tells by its bytes
+    note: str = ""  # how it was read, for the report (a folder read without its metadata)
 
 
 def open_scan_reader(path: str | Path, options: McapOptions | None = None) -> McapScanReader:
     """The scan reader for the recording at `path` (module docstring); `DatasetError` with one
     line when it cannot be read."""
     found = identify(path)
+    try:
+        return _open_noted(found, options)
+    except DatasetError as first:
+        # rosbags reads a folder's metadata too: one that parses but that it rejects (a
+        # damaged key) is read around, from the folder's one .db3, as a missing one is
+        around = None
+        if found.kind == "rosbags" and found.path.is_dir():
+            around = _without_metadata(found.path, "rosbags rejects its metadata.yaml")
+        if around is None or around.kind != "rosbags":
+            raise
+        try:
+            return _open_noted(around, options)
+        except DatasetError:
+            raise first from None
+
+
+def _open_noted(found: BagInput, options: McapOptions | None) -> McapScanReader:
+    """`_open`, with how the input was read (`found.note`) in the report and in a refusal."""
+    if not found.note:
+        return _open(found, options)
+    try:
+        reader = _open(found, options)
+    except DatasetError as e:
+        raise DatasetError(f"{e} ({found.note})") from None
+    reader.report.notes.append(found.note)
+    return reader
+
+
+def _open(found: BagInput, options: McapOptions | None) -> McapScanReader:
     if found.kind == "mcap":
         return McapScanReader(found.path, options)
     if found.kind == "mcap-split":
-        from tisem.io.bag_records import SplitMcapRecords
-
-        return McapScanReader(found.path, options, records=SplitMcapRecords(list(found.files)))
+        records = SplitMcapRecords(list(found.files), zstd_messages=found.zstd_messages)
+        return McapScanReader(found.path, options, records=records)
     try:
         import rosbags.highlevel  # noqa: F401 - only to say which package is missing
 
@@ -95,7 +127,9 @@ def identify(path: str | Path) -> BagInput:
             f"decompress it with `zstd -d`"
         )
     if head.startswith(MCAP_MAGIC) or path.suffix == ".mcap":
-        _refuse_message_compressed_split(path)
+        if _message_compressed_split(path):
+            what = "split of a rosbag2 bag compressed message by message"
+            return BagInput(path, "mcap-split", what, (path,), zstd_messages=True)
         return BagInput(path, "mcap", "MCAP file")
     raise DatasetError(
         f"{path}: not a recording tisem reads (no MCAP, SQLite or ROS 1 bag "
@@ -112,7 +146,7 @@ def _bag_metadata(folder: Path) -> dict:
             raise TypeError("not a mapping")
     except OSError as exc:
         raise DatasetError(f"{meta_path}: cannot read ({exc.strerror})") from None
-    except (yaml.YAMLError, KeyError, TypeError) as exc:
+    except (yaml.YAMLError, KeyError, TypeError, ValueError) as exc:  # (ValueError: not UTF-8)
         raise DatasetError(
             f"{meta_path}: not rosbag2 metadata ({type(exc).__name__}: "
             f"{str(exc).splitlines()[0][:120] if str(exc) else ''}); "
@@ -123,6 +157,10 @@ def _bag_metadata(folder: Path) -> dict:
 
 def _identify_folder(folder: Path) -> BagInput:
     if not (folder / "metadata.yaml").is_file():
+        # what a recording that did not close leaves: rosbag2 writes the metadata at the end
+        found = _without_metadata(folder, "no metadata.yaml")
+        if found is not None:
+            return found
         inside = sorted(
             p.name for p in folder.iterdir() if p.suffix in (".mcap", ".db3", ".bag", ".zstd")
         )[:4]
@@ -133,8 +171,18 @@ def _identify_folder(folder: Path) -> BagInput:
             else ""
         )
         raise DatasetError(f"{folder}: a folder without metadata.yaml is not a rosbag2 bag{hint}")
-    meta = _bag_metadata(folder)
+    try:
+        meta = _bag_metadata(folder)
+    except DatasetError:
+        found = _without_metadata(folder, "metadata.yaml is damaged")
+        if found is None:
+            raise
+        return found
     storage = meta.get("storage_identifier")
+    if storage is None:  # (a damaged key)
+        found = _without_metadata(folder, "metadata.yaml names no storage_identifier")
+        if found is not None:
+            return found
     if storage not in STORAGES:
         raise DatasetError(
             f"{folder}: rosbag2 storage {storage!r} is not readable here "
@@ -162,21 +210,43 @@ def _identify_folder(folder: Path) -> BagInput:
     )
     if storage == "mcap" and not compressed:
         return BagInput(folder, "mcap-split", what, files)
+    zstd = str(meta.get("compression_format") or "").lower() == "zstd"
+    if storage == "mcap" and compression == "message" and zstd:
+        return BagInput(folder, "mcap-split", what, files, zstd_messages=True)
     return BagInput(folder, "rosbags", what)
 
 
-def _refuse_message_compressed_split(path: Path) -> None:
-    """A split of a bag that compresses each message: its messages are zstd frames, which
-    only the folder's metadata.yaml announces."""
-    meta_path = path.parent / "metadata.yaml"
-    if not meta_path.is_file():
-        return
+def _split_order(path: Path) -> tuple:
+    """rosbag2 names its splits NAME_0, NAME_1, ... NAME_10: order them by that number."""
+    stem = path.stem
+    digits = len(stem) - len(stem.rstrip("0123456789"))
+    return (stem[: len(stem) - digits], int(stem[len(stem) - digits :] or -1), path.name)
+
+
+def _without_metadata(folder: Path, why: str) -> BagInput | None:
+    """A rosbag2 folder whose metadata is missing or unreadable, read from its storage files:
+    its MCAP files in split order, or its one `.db3`; None when it holds neither."""
+    mcaps = sorted((p for p in folder.glob("*.mcap") if p.is_file()), key=_split_order)
+    db3s = [p for p in folder.glob("*.db3") if p.is_file()]
+    hint = f"`ros2 bag reindex {folder}` rebuilds it"
+    if mcaps and not db3s:
+        names = ", ".join(p.name for p in mcaps[:4]) + (", ..." if len(mcaps) > 4 else "")
+        note = f"{why}: its {len(mcaps)} MCAP file(s) were read in split order ({names}); {hint}"
+        what = f"rosbag2 folder without metadata (mcap, {len(mcaps)} file(s))"
+        return BagInput(folder, "mcap-split", what, tuple(mcaps), zstd_messages=None, note=note)
+    if len(db3s) == 1 and not mcaps:
+        note = f"{why}: its one file {db3s[0].name} was read; {hint}"
+        return BagInput(db3s[0], "rosbags", "rosbag2 sqlite3 file", note=note)
+    return None
+
+
+def _message_compressed_split(path: Path) -> bool:
+    """Whether `path` is a split of a bag that compresses each message (its messages are zstd
+    frames, which only the folder's metadata.yaml announces)."""
+    if not (path.parent / "metadata.yaml").is_file():
+        return False
     try:
         meta = _bag_metadata(path.parent)
     except DatasetError:
-        return  # a stray or damaged metadata.yaml: read the file itself
-    if str(meta.get("compression_mode") or "").lower() == "message":
-        raise DatasetError(
-            f"{path}: a split of a bag whose messages are compressed one by one "
-            f"(metadata.yaml beside it); give the folder {path.parent} instead"
-        )
+        return False  # a stray or damaged metadata.yaml: read the file itself
+    return str(meta.get("compression_mode") or "").lower() == "message"

@@ -5,12 +5,14 @@
 Two more sources give it that stream, so every bag yields the same `Scan`s through the same
 survey, topic choice, tf buffer and cloud decoding (`tisem.io.mcap_messages`):
 
-- `SplitMcapRecords`: the `.mcap` files of an uncompressed rosbag2 folder, in order, each read
-  by tisem's damage-tolerant `McapRecords`; schema and channel ids are renumbered across the
-  files (every split file numbers its own), and what was lost is reported per file;
-- `RosbagRecords`: a bag that the `rosbags` library reads (rosbag2 sqlite3 or MCAP storage,
-  per-message or per-file compression, ROS 1 `.bag`); it raises on damage rather than
-  recovering, so a damaged bag is refused with rosbags' reason.
+- `SplitMcapRecords`: the `.mcap` files of a rosbag2 folder, in order, each read by tisem's
+  damage-tolerant `McapRecords`; schema and channel ids are renumbered across the files (every
+  split file numbers its own), a bag compressed message by message has each message inflated
+  (one that does not inflate is one lost message), and what was lost is reported per file;
+- `RosbagRecords`: a bag that the `rosbags` library reads (rosbag2 sqlite3 storage, per-file
+  compression, ROS 1 `.bag`). rosbags raises on damage rather than recovering: a bag it cannot
+  open is refused with its reason, and one damaged part-way gives the messages before the
+  damage, the rest reported lost.
 """
 
 from __future__ import annotations
@@ -21,10 +23,12 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
+import zstandard
 from mcap.records import Channel, Schema
 
 from tisem.errors import DatasetError
 from tisem.io.mcap_records import LostMessages, McapMessage, McapRecords, ReadReport
+from tisem.io.mcap_report import Loss
 
 
 def repair_hint(what: str) -> str:
@@ -40,11 +44,40 @@ def repair_hint(what: str) -> str:
     )
 
 
-class SplitMcapRecords:
-    """The records of several MCAP files read one after the other as one recording."""
+ZSTD_MAGIC = b"\x28\xb5\x2f\xfd"
+# larger than any message a sensor records: a frame that declares or inflates to more is damage
+MAX_MESSAGE_BYTES = 1 << 30
+_PIECE = 1 << 20
 
-    def __init__(self, paths: list[Path]) -> None:
+
+def inflate_message(data: bytes) -> bytes:
+    """A message compressed on its own (rosbag2's per-message zstd); `zstandard.ZstdError`
+    when its bytes are no frame, a damaged or cut one, or one larger than MAX_MESSAGE_BYTES."""
+    size = zstandard.frame_content_size(data)  # -1: not declared
+    if size > MAX_MESSAGE_BYTES:
+        raise zstandard.ZstdError(f"its frame declares {size} bytes")
+    if size >= 0:
+        return zstandard.ZstdDecompressor().decompress(data)
+    dobj = zstandard.ZstdDecompressor().decompressobj()
+    out = bytearray()
+    for at in range(0, len(data), _PIECE):
+        out += dobj.decompress(data[at : at + _PIECE])
+        if len(out) > MAX_MESSAGE_BYTES:
+            raise zstandard.ZstdError(f"it inflates to more than {MAX_MESSAGE_BYTES} bytes")
+    if not dobj.eof:
+        raise zstandard.ZstdError("the frame is cut short")
+    return bytes(out)
+
+
+class SplitMcapRecords:
+    """The records of several MCAP files read one after the other as one recording;
+    `zstd_messages`: each message's data is a zstd frame of its own (rosbag2's per-message
+    compression), inflated here; None (a folder without its metadata): each cdr message whose
+    bytes begin as a zstd frame does (a CDR header never does)."""
+
+    def __init__(self, paths: list[Path], zstd_messages: bool | None = False) -> None:
         self.paths = [Path(p) for p in paths]
+        self.zstd_messages = zstd_messages
         self.parts = [McapRecords(p) for p in self.paths]
         self.excess: Counter = Counter()
         self.data_crc: str | None = None
@@ -59,6 +92,8 @@ class SplitMcapRecords:
             own = ReadReport(path=str(path))
             local_schemas: dict[int, int] = {}
             local_channels: dict[int, int] = {}
+            topics: dict[int, str] = {}  # local channel id -> topic
+            cdr: set[int] = set()  # local ids of cdr channels
             for rec in part.records(own):
                 if isinstance(rec, Schema):
                     key = (rec.name, rec.encoding, bytes(rec.data))
@@ -71,13 +106,31 @@ class SplitMcapRecords:
                     key = (rec.topic, rec.message_encoding, schema_id)
                     new = key not in channel_ids
                     local_channels[rec.id] = channel_ids.setdefault(key, len(channel_ids) + 1)
+                    topics[rec.id] = rec.topic
+                    if rec.message_encoding == "cdr":
+                        cdr.add(rec.id)
                     if new:
                         yield dataclasses.replace(
                             rec, id=local_channels[rec.id], schema_id=schema_id
                         )
                 elif isinstance(rec, McapMessage):
-                    if rec.channel_id in local_channels:
-                        yield dataclasses.replace(rec, channel_id=local_channels[rec.channel_id])
+                    if rec.channel_id not in local_channels:
+                        continue
+                    channel = local_channels[rec.channel_id]
+                    compressed = self.zstd_messages
+                    if compressed is None:
+                        compressed = rec.channel_id in cdr and rec.data[:4] == ZSTD_MAGIC
+                    if not compressed:
+                        yield dataclasses.replace(rec, channel_id=channel)
+                        continue
+                    try:
+                        yield dataclasses.replace(
+                            rec, channel_id=channel, data=inflate_message(rec.data)
+                        )
+                    except zstandard.ZstdError as exc:
+                        where = f"message at log time {rec.log_time * 1e-9:.3f} s"
+                        lost = _lost_message(own, topics[rec.channel_id], channel, where, exc)
+                        yield dataclasses.replace(lost, where=f"{path.name}: {where}")
                 else:
                     channel = None if rec.channel_id is None else local_channels.get(rec.channel_id)
                     yield dataclasses.replace(
@@ -87,6 +140,23 @@ class SplitMcapRecords:
         self.excess = sum((p.excess for p in self.parts), Counter())
         crcs = {p.data_crc for p in self.parts}
         self.data_crc = "mismatch" if "mismatch" in crcs else "match" if crcs == {"match"} else None
+
+
+def _lost_message(
+    report: ReadReport, topic: str, channel: int, where: str, exc: Exception
+) -> LostMessages:
+    """A message read whole whose compressed data does not inflate: one lost message on its
+    topic (no longer counted as read)."""
+    report.messages[topic] -= 1
+    report.losses.append(
+        Loss(
+            where,
+            f"its zstd frame does not inflate ({exc})",
+            messages=1,
+            topics=Counter({topic: 1}),
+        )
+    )
+    return LostMessages(channel, 1, where)
 
 
 def _merge_report(into: ReadReport, part: ReadReport, name: str) -> None:
@@ -158,11 +228,17 @@ class RosbagRecords:
                         channel_id=conn.id, log_time=int(stamp_ns), data=data, crc_checked=True
                     )
             except Exception as exc:  # noqa: BLE001 - a damaged storage file, mid-way
-                raise DatasetError(
-                    f"{self.path}: the {self.what} is damaged after "
-                    f"{sum(report.messages.values())} messages "
-                    f"({_reason(exc)}); {repair_hint(self.what)}"
-                ) from None
+                # what was read is kept; how much the rest held is unknown
+                where = f"{self.path.name} after {sum(report.messages.values())} message(s)"
+                report.losses.append(
+                    Loss(
+                        where,
+                        f"the rest of the {self.what} is unreadable ({_reason(exc)}); "
+                        f"{repair_hint(self.what)}",
+                        uncounted=True,
+                    )
+                )
+                yield LostMessages(None, None, where)
 
 
 class _Closing:
