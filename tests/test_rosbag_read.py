@@ -140,8 +140,10 @@ def humble_db3(path: Path) -> Path:
     return path
 
 
-def ros1_bag(path: Path, messages) -> Path:
-    """The same messages as a ROS 1 bag (ROS 1 headers carry a `seq`; noetic has no tf2)."""
+def ros1_bag(path: Path, messages, compression=None, chunk_bytes: int | None = None) -> Path:
+    """The same messages as a ROS 1 bag (ROS 1 headers carry a `seq`; noetic has no tf2), its
+    chunks compressed with `compression` (a Ros1Writer.CompressionFormat) and closed after
+    `chunk_bytes`."""
     noetic = get_typestore(Stores.ROS1_NOETIC)
     noetic.register(
         get_types_from_msg("geometry_msgs/TransformStamped[] transforms", "tf2_msgs/msg/TFMessage")
@@ -158,7 +160,12 @@ def ros1_bag(path: Path, messages) -> Path:
             )
         return [to_ros1(x) for x in obj] if isinstance(obj, list) else obj
 
-    with Ros1Writer(path) as writer:
+    writer = Ros1Writer(path)
+    if compression is not None:
+        writer.set_compression(compression)
+    if chunk_bytes is not None:
+        writer.chunk_threshold = chunk_bytes
+    with writer:
         connections = {}
         for topic, msgtype, t, data in messages:
             if topic not in connections:
@@ -364,6 +371,65 @@ def test_a_db3_folder_whose_metadata_rosbags_rejects_is_read_from_its_db3(record
     assert "cannot read this rosbag2 folder" in one_line_refusal(folder)
 
 
+@pytest.mark.parametrize("compression", [None, "BZ2", "LZ4"])
+def test_a_ros1_bag_without_its_index_is_read_record_by_record(recording, compression):
+    """A ROS 1 recording that did not close has no index (`rosbags` cannot open it): its
+    chunks are read in file order, uncompressed, bz2 or lz4; a cut one gives the scans of the
+    chunks it holds whole, and says where it ends."""
+    seq_dir, messages, tmp = recording
+    fmt = None if compression is None else getattr(Ros1Writer.CompressionFormat, compression)
+    bag = ros1_bag(tmp / f"chunks_{compression}.bag", messages, fmt, chunk_bytes=4096)
+    data = bag.read_bytes()
+    at = data.index(b"index_pos=") + len(b"index_pos=")
+    open_bag = tmp / f"open_{compression}.bag.active"
+    open_bag.write_bytes(data[:at] + bytes(8) + data[at + 8 :])  # as `rosbag record` starts it
+    expected = list(SemanticKittiSequence(seq_dir))
+    reader = open_scan_reader(open_bag, McapOptions(gt_field="gt_label"))
+    got = list(reader)
+    assert len(got) == 4 and reader.report.losses == []
+    for a, b in zip(expected, got):
+        assert b.index == a.index and b.stamp_s == pytest.approx(a.stamp_s, abs=1e-9)
+        assert np.array_equal(a.points_sensor, b.points_sensor)
+        assert np.array_equal(a.labels, b.labels) and np.array_equal(a.gt_labels, b.gt_labels)
+        assert np.abs(a.T_world_sensor - b.T_world_sensor).max() < 1e-6
+    assert any("records were read in file order" in n for n in reader.report.notes)
+    cut = tmp / f"cut_{compression}.bag"
+    cut.write_bytes(data[: int(len(data) * 0.75)])
+    reader = open_scan_reader(cut, McapOptions(gt_field="gt_label"))
+    scans = [s for s in reader if isinstance(s, Scan)]
+    assert 1 <= len(scans) < 4 and [s.index for s in scans] == list(range(len(scans)))
+    assert all(np.array_equal(expected[s.index].points_sensor, s.points_sensor) for s in scans)
+    (loss,) = reader.report.losses
+    assert loss.where.startswith("chunk at byte ") and "cut short" in loss.what
+
+
+def test_a_damaged_chunk_of_a_ros1_bag_costs_that_chunk_alone(recording):
+    """rosbags stops at the first chunk that does not inflate; read record by record, the
+    chunks after it are mapped too (the scans after the loss are marked suspect: how many
+    messages it held is unknown)."""
+    from tisem.io.ros1_linear import MAGIC, OP_CHUNK, _records
+
+    seq_dir, messages, tmp = recording
+    fmt = Ros1Writer.CompressionFormat.BZ2
+    bag = ros1_bag(tmp / "damaged_chunk.bag", messages, fmt, chunk_bytes=4096)
+    data = bytearray(bag.read_bytes())
+    chunks = [
+        (at, len(d)) for op, _, d, at in _records(data, len(MAGIC), len(data)) if op == OP_CHUNK
+    ]
+    at, n = chunks[2]  # the third cloud's
+    middle = at + 200 + n // 2
+    data[middle : middle + 64] = bytes(x ^ 0xFF for x in data[middle : middle + 64])
+    bag.write_bytes(bytes(data))
+    reader = open_scan_reader(bag, McapOptions(gt_field="gt_label"))
+    scans = [s for s in reader if isinstance(s, Scan)]
+    expected = list(SemanticKittiSequence(seq_dir))
+    assert len(scans) == 3
+    for s, k in zip(scans, (0, 1, 3)):
+        assert np.array_equal(s.points_sensor, expected[k].points_sensor)
+    (loss,) = reader.report.losses
+    assert loss.where == f"chunk at byte {at}" and loss.uncounted
+
+
 def one_line_refusal(path: Path) -> str:
     with pytest.raises(DatasetError) as info:
         open_scan_reader(path)
@@ -379,9 +445,9 @@ def test_what_cannot_be_read_is_refused_in_one_line_with_the_conversion(recordin
     assert "ros2 bag convert" in one_line_refusal(junk)
     bag = ros1_bag(tmp / "whole.bag", messages)
     cut = tmp / "cut.bag"
-    cut.write_bytes(bag.read_bytes()[: bag.stat().st_size // 2])
+    cut.write_bytes(bag.read_bytes()[: bag.stat().st_size // 10])  # before the first cloud
     text = one_line_refusal(cut)
-    assert "ROS 1 bag" in text and "rosbag reindex" in text
+    assert "ROS 1 bag" in text and "rosbag reindex" in text and "no point-cloud" in text
     old = tmp / "old.bag"
     old.write_bytes(b"#ROSBAG V1.2\n" + b"\x00" * 64)
     assert "rosbag fix" in one_line_refusal(old)

@@ -178,6 +178,15 @@ def test_bad_transforms_are_ignored_with_a_warning():
     assert len(tf.warnings) == 4 and tf.frames == set()
 
 
+def test_a_quaternion_of_huge_components_is_normalised_without_overflow():
+    """Damaged bytes can decode to finite but huge components, whose norm overflows float64."""
+    tf = TfBuffer()
+    with np.errstate(all="raise"):
+        tf.add("map", "a", 0, [1, 2, 3], [0, 0, 1e300, 1e300])  # 90 degrees about z
+        T = tf.lookup("map", "a", 0)
+    assert np.allclose(T[:3, :3], rot_z(np.pi / 2), atol=1e-12) and np.allclose(T[:3, 3], [1, 2, 3])
+
+
 def test_ignored_transforms_are_counted_and_named_when_a_frame_is_missing():
     """16 map -> base_link transforms with zero quaternions: the error says so, instead of
     only 'frame map does not appear in any transform'."""

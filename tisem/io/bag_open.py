@@ -38,7 +38,8 @@ CONVERT = (
 
 @dataclass(frozen=True)
 class BagInput:
-    """What a path holds: `kind` is mcap | mcap-split | rosbags; `files` for mcap-split, and
+    """What a path holds: `kind` is mcap | mcap-split | rosbags | ros1-linear (a ROS 1 bag
+    read without its index); `files` for mcap-split, and
     `zstd_messages` when each of their messages is a zstd frame of its own (None: unknown)."""
 
     path: Path
@@ -54,19 +55,51 @@ def open_scan_reader(path: str | Path, options: McapOptions | None = None) -> Mc
     line when it cannot be read."""
     found = identify(path)
     try:
-        return _open_noted(found, options)
+        reader = _open_noted(found, options)
     except DatasetError as first:
-        # rosbags reads a folder's metadata too: one that parses but that it rejects (a
-        # damaged key) is read around, from the folder's one .db3, as a missing one is
-        around = None
-        if found.kind == "rosbags" and found.path.is_dir():
-            around = _without_metadata(found.path, "rosbags rejects its metadata.yaml")
-        if around is None or around.kind != "rosbags":
+        around = _read_around(found)
+        if around is None:
             raise
         try:
             return _open_noted(around, options)
         except DatasetError:
+            if around.kind == "ros1-linear":  # (says what the records held)
+                raise
             raise first from None
+    return _past_the_damage(found, reader, options)
+
+
+def _past_the_damage(found: BagInput, reader: McapScanReader, options) -> McapScanReader:
+    """rosbags stops at the first damaged chunk of a ROS 1 bag; read record by record, the
+    chunks after it are read too. The reader that recovered more messages is kept."""
+    if not (found.kind == "rosbags" and found.what.startswith("ROS 1") and reader.records.stopped):
+        return reader
+    try:
+        linear = _open_noted(_read_around(found), options)
+    except DatasetError:
+        return reader
+    got = sum(linear.report.messages.values())
+    return linear if got > sum(reader.report.messages.values()) else reader
+
+
+def _read_around(found: BagInput) -> BagInput | None:
+    """Another way into an input that `rosbags` cannot open, or None: a ROS 1 bag record by
+    record, without its index (what a recording that did not close lacks); a rosbag2 folder
+    whose metadata parses but that rosbags rejects (a damaged key), from its one .db3."""
+    if found.kind != "rosbags":
+        return None
+    if found.what.startswith("ROS 1"):
+        note = (
+            "rosbags cannot use this ROS 1 bag's index, or stops at damage (a recording that "
+            "did not close? a damaged chunk?): its records were read in file order; `rosbag "
+            "reindex` rebuilds the index"
+        )
+        return BagInput(found.path, "ros1-linear", found.what, note=note)
+    if found.path.is_dir():
+        around = _without_metadata(found.path, "rosbags rejects its metadata.yaml")
+        if around is not None and around.kind == "rosbags":
+            return around
+    return None
 
 
 def _open_noted(found: BagInput, options: McapOptions | None) -> McapScanReader:
@@ -87,6 +120,11 @@ def _open(found: BagInput, options: McapOptions | None) -> McapScanReader:
     if found.kind == "mcap-split":
         records = SplitMcapRecords(list(found.files), zstd_messages=found.zstd_messages)
         return McapScanReader(found.path, options, records=records)
+    if found.kind == "ros1-linear":
+        from tisem.io.ros1_linear import Ros1LinearRecords
+
+        linear = Ros1LinearRecords(found.path)
+        return McapScanReader(found.path, options, records=linear, decoders=linear.decoders)
     try:
         import rosbags.highlevel  # noqa: F401 - only to say which package is missing
 

@@ -181,6 +181,7 @@ class RosbagRecords:
         self.what = what  # e.g. "rosbag2 folder (sqlite3)"
         self.excess: Counter = Counter()
         self.data_crc: str | None = None
+        self.stopped = False  # whether a pass met damage it could not read past
         with self._open() as reader:
             self._ros1 = not reader.is2
             self.typestore = reader.typestore  # kept: closing the reader only drops its name
@@ -229,6 +230,7 @@ class RosbagRecords:
                     )
             except Exception as exc:  # noqa: BLE001 - a damaged storage file, mid-way
                 # what was read is kept; how much the rest held is unknown
+                self.stopped = True
                 where = f"{self.path.name} after {sum(report.messages.values())} message(s)"
                 report.losses.append(
                     Loss(

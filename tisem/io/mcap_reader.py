@@ -76,6 +76,11 @@ class McapScanReader:
         self._schemas, self._channels, self._kinds = survey.schemas, survey.channels, survey.kinds
         self._poses_lost = survey.poses_lost
 
+    @property
+    def records(self):
+        """The record source the scans are read from (the file's, or the bag's)."""
+        return self._records
+
     # -- pass 2: the scans
     def __len__(self) -> int:
         return self.total
@@ -225,7 +230,8 @@ class McapScanReader:
         except (TfError, pc2.CloudFormatError, ScanError) as e:
             return SkippedScan(index, name, str(e))
         except Exception as e:  # noqa: BLE001 - undecodable bytes raise anything
-            return SkippedScan(index, name, f"cannot decode the message ({type(e).__name__}: {e})")
+            why = " ".join(f"{type(e).__name__}: {e}".split())  # one line, for reports
+            return SkippedScan(index, name, f"cannot decode the message ({why})")
 
     def _count_unknown(self, index: int, unknown: int, unknown_gt: int) -> None:
         """Per scan, so that reading the log twice (the final pass) does not count twice."""

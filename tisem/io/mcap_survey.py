@@ -124,7 +124,7 @@ class Survey:
             # cloud is skipped with its reason when the scans are read, so only its reason is
             # kept here
             except Exception as e:  # noqa: BLE001 - decoders raise anything on bad bytes
-                why = f"{type(e).__name__}: {e}"
+                why = " ".join(f"{type(e).__name__}: {e}".split())  # one line, for reports
                 if wants_cloud:
                     self._cloud_errors.setdefault(ch.topic, why)
                 else:

@@ -50,7 +50,8 @@ def _time_range(start: int, end: int) -> str:
 
 
 def _why(e: Exception) -> str:
-    return str(e) if isinstance(e, (BadChunk, Malformed)) else f"{type(e).__name__}: {e}"
+    why = str(e) if isinstance(e, (BadChunk, Malformed)) else f"{type(e).__name__}: {e}"
+    return " ".join(why.split())  # one line, for reports
 
 
 class Walk:

@@ -217,9 +217,10 @@ class TfBuffer:
         if not (np.all(np.isfinite(q)) and np.all(np.isfinite(xyz))):
             self._ignore(f"{parent} -> {child} with non-finite values")
             return
-        if q.shape != (4,) or xyz.shape != (3,) or np.linalg.norm(q) < 1e-9:
+        if q.shape != (4,) or xyz.shape != (3,) or np.abs(q).max() < 1e-9:
             self._ignore(f"{parent} -> {child} with a zero quaternion")
             return
+        q = q / np.abs(q).max()  # (the norm of huge components would overflow)
         if not _INT64_MIN <= int(stamp_ns) <= _INT64_MAX:
             self._ignore(f"{parent} -> {child} stamped outside 64-bit nanoseconds")
             return
