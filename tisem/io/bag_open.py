@@ -11,6 +11,9 @@ What the path is decides the reader, by content (magic bytes, `metadata.yaml`), 
 - any other rosbag2 folder (sqlite3 storage, per-file compression), a single `.db3` file, a
   ROS 1 `.bag`: the `rosbags` library reads the messages, tisem decodes the clouds and
   transforms the same way (damage part-way keeps the messages before it);
+- what `rosbags` cannot open, or stops reading at damage, is read around it where the format
+  allows: a ROS 1 bag record by record (`tisem.io.ros1_linear`: no index needed), a `.db3`
+  row by row (`tisem.io.db3_rows`); a rosbag2 folder without usable metadata from its files;
 - anything else is refused in one line naming what it is and how to convert it.
 All give a `McapScanReader` (topic, frame_id, total, tf, report; iterate for scans).
 """
@@ -38,8 +41,8 @@ CONVERT = (
 
 @dataclass(frozen=True)
 class BagInput:
-    """What a path holds: `kind` is mcap | mcap-split | rosbags | ros1-linear (a ROS 1 bag
-    read without its index); `files` for mcap-split, and
+    """What a path holds: `kind` is mcap | mcap-split | rosbags, or ros1-linear | db3-rows
+    (a ROS 1 bag read without its index, a .db3 row by row); `files` for mcap-split, and
     `zstd_messages` when each of their messages is a zstd frame of its own (None: unknown)."""
 
     path: Path
@@ -56,38 +59,44 @@ def open_scan_reader(path: str | Path, options: McapOptions | None = None) -> Mc
     found = identify(path)
     try:
         reader = _open_noted(found, options)
-    except DatasetError as first:
+    except DatasetError:
         around = _read_around(found)
         if around is None:
             raise
-        try:
-            return _open_noted(around, options)
-        except DatasetError:
-            if around.kind == "ros1-linear":  # (says what the records held)
-                raise
-            raise first from None
-    return _past_the_damage(found, reader, options)
+    else:
+        return _past_the_damage(found, reader, options)
+    # (a refusal here says what the records or rows held, and its note what was tried)
+    return _open_noted(around, options)
 
 
 def _past_the_damage(found: BagInput, reader: McapScanReader, options) -> McapScanReader:
-    """rosbags stops at the first damaged chunk of a ROS 1 bag; read record by record, the
-    chunks after it are read too. The reader that recovered more messages is kept."""
-    if not (found.kind == "rosbags" and found.what.startswith("ROS 1") and reader.records.stopped):
+    """rosbags stops at the first damaged chunk of a ROS 1 bag, or page of a .db3; read
+    record by record or row by row, what lies after it is read too. The reader that
+    recovered more messages is kept."""
+    around = _read_around(found) if found.kind == "rosbags" else None
+    if around is None or not reader.records.stopped:
         return reader
     try:
-        linear = _open_noted(_read_around(found), options)
+        other = _open_noted(around, options)
     except DatasetError:
         return reader
-    got = sum(linear.report.messages.values())
-    return linear if got > sum(reader.report.messages.values()) else reader
+    got = sum(other.report.messages.values())
+    return other if got > sum(reader.report.messages.values()) else reader
 
 
 def _read_around(found: BagInput) -> BagInput | None:
-    """Another way into an input that `rosbags` cannot open, or None: a ROS 1 bag record by
-    record, without its index (what a recording that did not close lacks); a rosbag2 folder
-    whose metadata parses but that rosbags rejects (a damaged key), from its one .db3."""
+    """Another way into an input that `rosbags` cannot open (or read to its end), or None: a
+    ROS 1 bag record by record, without its index (what a recording that did not close
+    lacks); a `.db3`, or the one of a rosbag2 folder (whatever its metadata), row by row."""
     if found.kind != "rosbags":
         return None
+    db3s = [found.path] if found.path.is_file() else list(found.path.glob("*.db3"))
+    if "sqlite3" in found.what and len(db3s) == 1 and db3s[0].is_file():
+        note = (
+            f"rosbags cannot read {db3s[0].name} (damaged database pages? its metadata?): its "
+            f"messages were read row by row"
+        )
+        return BagInput(db3s[0], "db3-rows", found.what, note=note)
     if found.what.startswith("ROS 1"):
         note = (
             "rosbags cannot use this ROS 1 bag's index, or stops at damage (a recording that "
@@ -95,10 +104,6 @@ def _read_around(found: BagInput) -> BagInput | None:
             "reindex` rebuilds the index"
         )
         return BagInput(found.path, "ros1-linear", found.what, note=note)
-    if found.path.is_dir():
-        around = _without_metadata(found.path, "rosbags rejects its metadata.yaml")
-        if around is not None and around.kind == "rosbags":
-            return around
     return None
 
 
@@ -120,11 +125,13 @@ def _open(found: BagInput, options: McapOptions | None) -> McapScanReader:
     if found.kind == "mcap-split":
         records = SplitMcapRecords(list(found.files), zstd_messages=found.zstd_messages)
         return McapScanReader(found.path, options, records=records)
-    if found.kind == "ros1-linear":
+    if found.kind in ("ros1-linear", "db3-rows"):
+        from tisem.io.db3_rows import Db3RowRecords
         from tisem.io.ros1_linear import Ros1LinearRecords
 
-        linear = Ros1LinearRecords(found.path)
-        return McapScanReader(found.path, options, records=linear, decoders=linear.decoders)
+        kind = Ros1LinearRecords if found.kind == "ros1-linear" else Db3RowRecords
+        around = kind(found.path)
+        return McapScanReader(found.path, options, records=around, decoders=around.decoders)
     try:
         import rosbags.highlevel  # noqa: F401 - only to say which package is missing
 

@@ -46,7 +46,7 @@ class Loss:
         return f"{self.where}: {self.what}{held}"
 
 
-def _ranges(indexes: list[int]) -> str:
+def id_ranges(indexes: list[int]) -> str:
     """[1, 2, 3, 7] -> '1-3, 7'."""
     out, start = [], None
     for i, k in enumerate(indexes):
@@ -88,7 +88,9 @@ class ReadReport:
         by_reason: dict[str, list[int]] = {}
         for index, why in sorted(self.suspect.items()):
             by_reason.setdefault(why, []).append(index)
-        out += [f"scan(s) {_ranges(ks)} mapped but suspect: {why}" for why, ks in by_reason.items()]
+        out += [
+            f"scan(s) {id_ranges(ks)} mapped but suspect: {why}" for why, ks in by_reason.items()
+        ]
         if self.unknown_labels:
             out.append(
                 f"{self.unknown_labels} point(s) with an unknown label id (or an invalid "

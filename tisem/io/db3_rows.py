@@ -1,0 +1,160 @@
+"""A rosbag2 `.db3` read row by row, around damaged database pages.
+
+`rosbags` reads a `.db3` through whole-table queries: one damaged page of the messages table
+(or of its index) and it cannot open the bag, or stops part-way. SQLite still finds most rows
+by their id, each through its own path in the table's tree, so `Db3RowRecords` asks for them
+one at a time: a row on a damaged page is one lost message, the others are mapped. It gives
+`McapScanReader` the same stream `tisem.io.bag_records` gives for other bags. The types are
+the Humble type store's, plus any the bag defines in its `message_definitions` table.
+"""
+
+from __future__ import annotations
+
+import sqlite3
+from collections import Counter
+from collections.abc import Iterator
+from contextlib import closing
+from pathlib import Path
+
+from mcap.records import Channel, Schema
+from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+
+from tisem.errors import DatasetError
+from tisem.io.bag_records import RosbagDecoders
+from tisem.io.mcap_records import LostMessages, McapMessage, ReadReport
+from tisem.io.mcap_report import Loss, id_ranges
+
+# ids probed past the last row found when the table cannot say its largest id
+MAX_ID_GAP = 1_000
+
+
+class Db3RowRecords:
+    """The Schema, Channel and message records of one `.db3`, its messages by id (see the
+    module docstring); `decoders` decodes them."""
+
+    def __init__(self, path: str | Path) -> None:
+        self.path = Path(path)
+        self.excess: Counter = Counter()
+        self.data_crc: str | None = None
+        with closing(self._connect()) as db:
+            try:
+                rows = db.execute("SELECT id, name, type FROM topics").fetchall()
+            except sqlite3.DatabaseError as exc:
+                why = " ".join(str(exc).split())  # (sqlite quotes the schema, newlines too)
+                raise DatasetError(f"{self.path}: its topics table is unreadable ({why})") from None
+            self.topics = {  # (sqlite keeps whatever a damaged page holds: check the types)
+                i: (name, typ)
+                for i, name, typ in rows
+                if isinstance(i, int) and isinstance(name, str) and isinstance(typ, str)
+            }
+            typestore = get_typestore(Stores.ROS2_HUMBLE)
+            for typ, text in self._definitions(db):
+                try:
+                    typestore.register(get_types_from_msg(text, typ))
+                except Exception:  # noqa: BLE001 - a damaged definition: the Humble one stands
+                    pass
+        self.decoders = RosbagDecoders(typestore, False, self.path)
+
+    def _connect(self) -> sqlite3.Connection:
+        try:  # immutable: no journal or lock files next to a damaged recording
+            return sqlite3.connect(f"file:{self.path}?mode=ro&immutable=1", uri=True)
+        except sqlite3.Error as exc:
+            raise DatasetError(f"{self.path}: cannot open ({' '.join(str(exc).split())})") from None
+
+    @staticmethod
+    def _definitions(db: sqlite3.Connection) -> list[tuple[str, str]]:
+        """(type, .msg text) the bag stores (rosbag2 schema 4 and later; Humble stores none)."""
+        try:
+            rows = db.execute(
+                "SELECT topic_type, encoded_message_definition FROM message_definitions "
+                "WHERE encoding = 'ros2msg'"
+            ).fetchall()
+        except sqlite3.DatabaseError:
+            return []
+        return [(str(t), str(d)) for t, d in rows if t and d]
+
+    def records(
+        self, report: ReadReport
+    ) -> Iterator[Schema | Channel | McapMessage | LostMessages]:
+        schemas: dict[str, int] = {}
+        for tid, (topic, typ) in sorted(self.topics.items()):
+            if typ not in schemas:
+                schemas[typ] = len(schemas) + 1
+                yield Schema(id=schemas[typ], name=typ, encoding="ros2msg", data=b"")
+            yield Channel(
+                id=tid, topic=topic, schema_id=schemas[typ], message_encoding="cdr", metadata={}
+            )
+        unreadable: list[int] = []
+        with closing(self._connect()) as db:
+            last = self._last_id(db)
+            k, found = 0, 0
+            # to the largest id, or while rows turn up when the table cannot say it; a run of
+            # ids without a row much longer than that ends it either way (a damaged max)
+            while (k < last if last >= 0 else k - found < MAX_ID_GAP) and (
+                k - found < 100 * MAX_ID_GAP
+            ):
+                k += 1
+                try:
+                    row = db.execute(
+                        "SELECT topic_id, timestamp, data FROM messages WHERE id = ?", (k,)
+                    ).fetchone()
+                except sqlite3.DatabaseError:
+                    row = ()
+                if row is None:
+                    continue  # (ids can have gaps)
+                if not _whole(row, self.topics):
+                    unreadable.append(k)
+                    yield LostMessages(None, None, f"messages table row {k}")
+                    continue
+                found = k
+                report.messages[self.topics[row[0]][0]] += 1
+                yield McapMessage(
+                    channel_id=row[0], log_time=row[1], data=bytes(row[2]), crc_checked=False
+                )
+        self._report(report, unreadable, found if last < 0 else None)
+
+    @staticmethod
+    def _report(report: ReadReport, unreadable: list[int], end_unknown_after: int | None) -> None:
+        """The unreadable rows as losses; with the table's end unknown, those after the last
+        row found may be no rows at all: an unknown number of messages."""
+        lost = [k for k in unreadable if end_unknown_after is None or k < end_unknown_after]
+        if lost:
+            report.losses.append(
+                Loss(
+                    f"messages table rows {id_ranges(lost)}",
+                    "on damaged database pages",
+                    messages=len(lost),
+                )
+            )
+        if len(lost) < len(unreadable):
+            report.losses.append(
+                Loss(
+                    f"messages table after row {end_unknown_after}",
+                    "its end is on damaged database pages",
+                    uncounted=True,
+                )
+            )
+
+    @staticmethod
+    def _last_id(db: sqlite3.Connection) -> int:
+        """The largest message id, or -1 when the table cannot say (then ids are probed)."""
+        try:
+            (last,) = db.execute("SELECT max(id) FROM messages").fetchone()
+        except sqlite3.DatabaseError:
+            return -1
+        if last is None:
+            return 0  # (no messages)
+        return last if isinstance(last, int) and 0 <= last < 2**62 else -1
+
+
+def _whole(row: tuple, topics: dict) -> bool:
+    """Whether a messages row holds a known topic, an integer stamp and bytes (a damaged page
+    can hold anything)."""
+    return (
+        len(row) == 3
+        and isinstance(row[0], int)
+        and row[0] in topics
+        and isinstance(row[1], int)
+        and 0 <= row[1] < 2**63
+        and isinstance(row[2], bytes)
+    )
