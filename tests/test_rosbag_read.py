@@ -430,6 +430,26 @@ def test_a_damaged_chunk_of_a_ros1_bag_costs_that_chunk_alone(recording):
     assert loss.where == f"chunk at byte {at}" and loss.uncounted
 
 
+def test_without_rosbags_a_bag_that_needs_it_is_refused_in_one_line(recording, monkeypatch):
+    """Not read around either: the refusal says what to install, nothing else."""
+    import importlib.util
+
+    _, messages, tmp = recording
+    bag = ros1_bag(tmp / "no_rosbags.bag", messages)
+    cut = tmp / "no_rosbags_cut.bag"
+    cut.write_bytes(bag.read_bytes()[: bag.stat().st_size // 2])
+    find_spec = importlib.util.find_spec
+    monkeypatch.setattr(
+        importlib.util, "find_spec", lambda n, *a: None if n == "rosbags" else find_spec(n, *a)
+    )
+    monkeypatch.setitem(sys.modules, "rosbags.highlevel", None)  # (an import of it fails)
+    for path in (bag, cut):
+        text = one_line_refusal(path)
+        assert text.endswith(
+            "needs the `rosbags` package: pip install 'tisem[mcap]' (or pip install rosbags)"
+        )
+
+
 def one_line_refusal(path: Path) -> str:
     with pytest.raises(DatasetError) as info:
         open_scan_reader(path)

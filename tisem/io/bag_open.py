@@ -20,6 +20,7 @@ All give a `McapScanReader` (topic, frame_id, total, tf, report; iterate for sca
 
 from __future__ import annotations
 
+import importlib.util
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -88,8 +89,8 @@ def _read_around(found: BagInput) -> BagInput | None:
     """Another way into an input that `rosbags` cannot open (or read to its end), or None: a
     ROS 1 bag record by record, without its index (what a recording that did not close
     lacks); a `.db3`, or the one of a rosbag2 folder (whatever its metadata), row by row."""
-    if found.kind != "rosbags":
-        return None
+    if found.kind != "rosbags" or importlib.util.find_spec("rosbags") is None:
+        return None  # (without rosbags, the refusal says to install it)
     db3s = [found.path] if found.path.is_file() else list(found.path.glob("*.db3"))
     if "sqlite3" in found.what and len(db3s) == 1 and db3s[0].is_file():
         note = (
@@ -125,23 +126,23 @@ def _open(found: BagInput, options: McapOptions | None) -> McapScanReader:
     if found.kind == "mcap-split":
         records = SplitMcapRecords(list(found.files), zstd_messages=found.zstd_messages)
         return McapScanReader(found.path, options, records=records)
-    if found.kind in ("ros1-linear", "db3-rows"):
-        from tisem.io.db3_rows import Db3RowRecords
-        from tisem.io.ros1_linear import Ros1LinearRecords
-
-        kind = Ros1LinearRecords if found.kind == "ros1-linear" else Db3RowRecords
-        around = kind(found.path)
-        return McapScanReader(found.path, options, records=around, decoders=around.decoders)
-    try:
+    try:  # (the type stores of every other way in)
         import rosbags.highlevel  # noqa: F401 - only to say which package is missing
 
         from tisem.io.bag_records import RosbagRecords
+        from tisem.io.db3_rows import Db3RowRecords
+        from tisem.io.ros1_linear import Ros1LinearRecords
     except ImportError:
         raise DatasetError(
             f"{found.path}: reading a {found.what} needs the `rosbags` package: "
             f"pip install 'tisem[mcap]' (or pip install rosbags)"
         ) from None
-    records = RosbagRecords(found.path, found.what)
+    if found.kind == "ros1-linear":
+        records = Ros1LinearRecords(found.path)
+    elif found.kind == "db3-rows":
+        records = Db3RowRecords(found.path)
+    else:
+        records = RosbagRecords(found.path, found.what)
     return McapScanReader(found.path, options, records=records, decoders=records.decoders)
 
 
