@@ -450,6 +450,27 @@ def test_without_rosbags_a_bag_that_needs_it_is_refused_in_one_line(recording, m
         )
 
 
+def test_split_db3_files_without_metadata_are_read_in_split_order(recording):
+    """A Humble recording (sqlite3 storage) split by size and killed: its .db3 files and no
+    metadata.yaml; rosbags cannot read them without it, so they are read row by row, in split
+    order (NAME_2 before NAME_10)."""
+    seq_dir, messages, tmp = recording
+    folder = tmp / "killed_split_db3"
+    folder.mkdir()
+    cuts = [0, 4, 7, len(messages)]  # three splits: _0, _2, _10
+    for name, a, b in zip(("killed_0", "killed_2", "killed_10"), cuts, cuts[1:]):
+        part = rosbags_bag(tmp / f"part_{name}", messages[a:b], StoragePlugin.SQLITE3)
+        shutil.move(next(part.glob("*.db3")), folder / f"{name}.db3")
+    reader = open_scan_reader(folder, McapOptions(gt_field="gt_label"))
+    got = list(reader)
+    expected = list(SemanticKittiSequence(seq_dir))
+    assert len(got) == 4 and reader.report.losses == []
+    for a, b in zip(expected, got):
+        assert b.index == a.index and np.array_equal(a.points_sensor, b.points_sensor)
+    (note,) = [n for n in reader.report.notes if n.startswith("no metadata.yaml")]
+    assert "killed_0.db3, killed_2.db3, killed_10.db3" in note and "row by row" in note
+
+
 def one_line_refusal(path: Path) -> str:
     with pytest.raises(DatasetError) as info:
         open_scan_reader(path)

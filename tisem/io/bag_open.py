@@ -91,13 +91,13 @@ def _read_around(found: BagInput) -> BagInput | None:
     lacks); a `.db3`, or the one of a rosbag2 folder (whatever its metadata), row by row."""
     if found.kind != "rosbags" or importlib.util.find_spec("rosbags") is None:
         return None  # (without rosbags, the refusal says to install it)
-    db3s = [found.path] if found.path.is_file() else list(found.path.glob("*.db3"))
-    if "sqlite3" in found.what and len(db3s) == 1 and db3s[0].is_file():
+    db3s = [found.path] if found.path.is_file() else _files(found.path, ".db3")
+    if "sqlite3" in found.what and db3s:
         note = (
-            f"rosbags cannot read {db3s[0].name} (damaged database pages? its metadata?): its "
+            f"rosbags cannot read {_listing(db3s)} (damaged database pages? its metadata?): its "
             f"messages were read row by row"
         )
-        return BagInput(db3s[0], "db3-rows", found.what, note=note)
+        return BagInput(found.path, "db3-rows", found.what, tuple(db3s), note=note)
     if found.what.startswith("ROS 1"):
         note = (
             "rosbags cannot use this ROS 1 bag's index, or stops at damage (a recording that "
@@ -140,7 +140,7 @@ def _open(found: BagInput, options: McapOptions | None) -> McapScanReader:
     if found.kind == "ros1-linear":
         records = Ros1LinearRecords(found.path)
     elif found.kind == "db3-rows":
-        records = Db3RowRecords(found.path)
+        records = Db3RowRecords(list(found.files))
     else:
         records = RosbagRecords(found.path, found.what)
     return McapScanReader(found.path, options, records=records, decoders=records.decoders)
@@ -272,18 +272,35 @@ def _split_order(path: Path) -> tuple:
 def _without_metadata(folder: Path, why: str) -> BagInput | None:
     """A rosbag2 folder whose metadata is missing or unreadable, read from its storage files:
     its MCAP files in split order, or its one `.db3`; None when it holds neither."""
-    mcaps = sorted((p for p in folder.glob("*.mcap") if p.is_file()), key=_split_order)
-    db3s = [p for p in folder.glob("*.db3") if p.is_file()]
+    mcaps, db3s = _files(folder, ".mcap"), _files(folder, ".db3")
     hint = f"`ros2 bag reindex {folder}` rebuilds it"
     if mcaps and not db3s:
-        names = ", ".join(p.name for p in mcaps[:4]) + (", ..." if len(mcaps) > 4 else "")
-        note = f"{why}: its {len(mcaps)} MCAP file(s) were read in split order ({names}); {hint}"
+        note = (
+            f"{why}: its {len(mcaps)} MCAP file(s) were read in split order "
+            f"({_listing(mcaps)}); {hint}"
+        )
         what = f"rosbag2 folder without metadata (mcap, {len(mcaps)} file(s))"
         return BagInput(folder, "mcap-split", what, tuple(mcaps), zstd_messages=None, note=note)
     if len(db3s) == 1 and not mcaps:
         note = f"{why}: its one file {db3s[0].name} was read; {hint}"
         return BagInput(db3s[0], "rosbags", "rosbag2 sqlite3 file", note=note)
+    if db3s and not mcaps:  # (rosbags reads split .db3 files only through the metadata)
+        note = (
+            f"{why}: its {len(db3s)} .db3 files were read in split order, row by row "
+            f"({_listing(db3s)}); {hint}"
+        )
+        what = f"rosbag2 folder without metadata (sqlite3, {len(db3s)} file(s))"
+        return BagInput(folder, "db3-rows", what, tuple(db3s), note=note)
     return None
+
+
+def _listing(files: list[Path]) -> str:
+    return ", ".join(p.name for p in files[:4]) + (", ..." if len(files) > 4 else "")
+
+
+def _files(folder: Path, suffix: str) -> list[Path]:
+    """The folder's files with this suffix, in split order."""
+    return sorted((p for p in folder.glob(f"*{suffix}") if p.is_file()), key=_split_order)
 
 
 def _message_compressed_split(path: Path) -> bool:

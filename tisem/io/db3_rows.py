@@ -29,13 +29,53 @@ MAX_ID_GAP = 1_000
 
 
 class Db3RowRecords:
-    """The Schema, Channel and message records of one `.db3`, its messages by id (see the
-    module docstring); `decoders` decodes them."""
+    """The Schema, Channel and message records of the `.db3` files of one recording (its
+    splits, in order), their messages by id (see the module docstring); `decoders` decodes
+    them. Topics are numbered across the files (every split numbers its own)."""
 
-    def __init__(self, path: str | Path) -> None:
-        self.path = Path(path)
+    def __init__(self, paths: list[Path]) -> None:
+        self.parts = [_Db3File(Path(p)) for p in paths]
+        self.path = self.parts[0].path
         self.excess: Counter = Counter()
         self.data_crc: str | None = None
+        typestore = get_typestore(Stores.ROS2_HUMBLE)
+        for part in self.parts:
+            for typ, text in part.definitions:
+                try:
+                    typestore.register(get_types_from_msg(text, typ))
+                except Exception:  # noqa: BLE001 - a damaged definition: the Humble one stands
+                    pass
+        self.decoders = RosbagDecoders(typestore, False, self.path)
+
+    def records(
+        self, report: ReadReport
+    ) -> Iterator[Schema | Channel | McapMessage | LostMessages]:
+        schemas: dict[str, int] = {}
+        channels: dict[tuple[str, str], int] = {}  # (topic, type) -> channel id
+        for part in self.parts:
+            ids = {}  # the file's topic id -> channel id
+            for tid, (topic, typ) in sorted(part.topics.items()):
+                if typ not in schemas:
+                    schemas[typ] = len(schemas) + 1
+                    yield Schema(id=schemas[typ], name=typ, encoding="ros2msg", data=b"")
+                if (topic, typ) not in channels:
+                    channels[topic, typ] = len(channels) + 1
+                    yield Channel(
+                        id=channels[topic, typ],
+                        topic=topic,
+                        schema_id=schemas[typ],
+                        message_encoding="cdr",
+                        metadata={},
+                    )
+                ids[tid] = channels[topic, typ]
+            yield from part.messages(report, ids, len(self.parts) > 1)
+
+
+class _Db3File:
+    """One `.db3`: its topics and message definitions on opening, its messages by id."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
         with closing(self._connect()) as db:
             try:
                 rows = db.execute("SELECT id, name, type FROM topics").fetchall()
@@ -47,13 +87,7 @@ class Db3RowRecords:
                 for i, name, typ in rows
                 if isinstance(i, int) and isinstance(name, str) and isinstance(typ, str)
             }
-            typestore = get_typestore(Stores.ROS2_HUMBLE)
-            for typ, text in self._definitions(db):
-                try:
-                    typestore.register(get_types_from_msg(text, typ))
-                except Exception:  # noqa: BLE001 - a damaged definition: the Humble one stands
-                    pass
-        self.decoders = RosbagDecoders(typestore, False, self.path)
+            self.definitions = self._definitions(db)
 
     def _connect(self) -> sqlite3.Connection:
         try:  # immutable: no journal or lock files next to a damaged recording
@@ -73,17 +107,8 @@ class Db3RowRecords:
             return []
         return [(str(t), str(d)) for t, d in rows if t and d]
 
-    def records(
-        self, report: ReadReport
-    ) -> Iterator[Schema | Channel | McapMessage | LostMessages]:
-        schemas: dict[str, int] = {}
-        for tid, (topic, typ) in sorted(self.topics.items()):
-            if typ not in schemas:
-                schemas[typ] = len(schemas) + 1
-                yield Schema(id=schemas[typ], name=typ, encoding="ros2msg", data=b"")
-            yield Channel(
-                id=tid, topic=topic, schema_id=schemas[typ], message_encoding="cdr", metadata={}
-            )
+    def messages(self, report: ReadReport, ids: dict[int, int], named: bool) -> Iterator:
+        """Its messages on the channels `ids` gives its topics; `named`: losses name the file."""
         unreadable: list[int] = []
         with closing(self._connect()) as db:
             last = self._last_id(db)
@@ -104,24 +129,27 @@ class Db3RowRecords:
                     continue  # (ids can have gaps)
                 if not _whole(row, self.topics):
                     unreadable.append(k)
-                    yield LostMessages(None, None, f"messages table row {k}")
+                    yield LostMessages(None, None, f"{self.path.name}: messages table row {k}")
                     continue
                 found = k
                 report.messages[self.topics[row[0]][0]] += 1
                 yield McapMessage(
-                    channel_id=row[0], log_time=row[1], data=bytes(row[2]), crc_checked=False
+                    channel_id=ids[row[0]], log_time=row[1], data=bytes(row[2]), crc_checked=False
                 )
-        self._report(report, unreadable, found if last < 0 else None)
+        where = f"{self.path.name}: messages table" if named else "messages table"
+        self._report(report, where, unreadable, found if last < 0 else None)
 
     @staticmethod
-    def _report(report: ReadReport, unreadable: list[int], end_unknown_after: int | None) -> None:
+    def _report(
+        report: ReadReport, table: str, unreadable: list[int], end_unknown_after: int | None
+    ) -> None:
         """The unreadable rows as losses; with the table's end unknown, those after the last
         row found may be no rows at all: an unknown number of messages."""
         lost = [k for k in unreadable if end_unknown_after is None or k < end_unknown_after]
         if lost:
             report.losses.append(
                 Loss(
-                    f"messages table rows {id_ranges(lost)}",
+                    f"{table} rows {id_ranges(lost)}",
                     "on damaged database pages",
                     messages=len(lost),
                 )
@@ -129,7 +157,7 @@ class Db3RowRecords:
         if len(lost) < len(unreadable):
             report.losses.append(
                 Loss(
-                    f"messages table after row {end_unknown_after}",
+                    f"{table} after row {end_unknown_after}",
                     "its end is on damaged database pages",
                     uncounted=True,
                 )
