@@ -52,6 +52,7 @@ class BagInput:
     files: tuple[Path, ...] = ()
     zstd_messages: bool | None = False  # None: unknown, each cdr message tells by its bytes
     note: str = ""  # how it was read, for the report (a folder read without its metadata)
+    storage: str = ""  # what rosbags reads: sqlite3 | mcap | ros1 (the other ways in need it)
 
 
 def open_scan_reader(path: str | Path, options: McapOptions | None = None) -> McapScanReader:
@@ -92,13 +93,13 @@ def _read_around(found: BagInput) -> BagInput | None:
     if found.kind != "rosbags" or importlib.util.find_spec("rosbags") is None:
         return None  # (without rosbags, the refusal says to install it)
     db3s = [found.path] if found.path.is_file() else _files(found.path, ".db3")
-    if "sqlite3" in found.what and db3s:
+    if found.storage == "sqlite3" and db3s:
         note = (
             f"rosbags cannot read {_listing(db3s)} (damaged database pages? its metadata?): its "
             f"messages were read row by row"
         )
         return BagInput(found.path, "db3-rows", found.what, tuple(db3s), note=note)
-    if found.what.startswith("ROS 1"):
+    if found.storage == "ros1":
         note = (
             "rosbags cannot use this ROS 1 bag's index, or stops at damage (a recording that "
             "did not close? a damaged chunk?): its records were read in file order; `rosbag "
@@ -157,9 +158,9 @@ def identify(path: str | Path) -> BagInput:
     except OSError as exc:
         raise DatasetError(f"{path}: cannot open ({exc.strerror})") from None
     if head.startswith(SQLITE_MAGIC):
-        return BagInput(path, "rosbags", "rosbag2 sqlite3 file")
+        return BagInput(path, "rosbags", "rosbag2 sqlite3 file", storage="sqlite3")
     if head.startswith(ROS1_MAGIC):
-        return BagInput(path, "rosbags", "ROS 1 bag")
+        return BagInput(path, "rosbags", "ROS 1 bag", storage="ros1")
     if head.startswith(b"#ROSBAG"):
         version = head.split()[1].decode(errors="replace") if len(head.split()) > 1 else "?"
         raise DatasetError(
@@ -259,7 +260,7 @@ def _identify_folder(folder: Path) -> BagInput:
     zstd = str(meta.get("compression_format") or "").lower() == "zstd"
     if storage == "mcap" and compression == "message" and zstd:
         return BagInput(folder, "mcap-split", what, files, zstd_messages=True)
-    return BagInput(folder, "rosbags", what)
+    return BagInput(folder, "rosbags", what, storage=storage)
 
 
 def _split_order(path: Path) -> tuple:
@@ -283,7 +284,7 @@ def _without_metadata(folder: Path, why: str) -> BagInput | None:
         return BagInput(folder, "mcap-split", what, tuple(mcaps), zstd_messages=None, note=note)
     if len(db3s) == 1 and not mcaps:
         note = f"{why}: its one file {db3s[0].name} was read; {hint}"
-        return BagInput(db3s[0], "rosbags", "rosbag2 sqlite3 file", note=note)
+        return BagInput(db3s[0], "rosbags", "rosbag2 sqlite3 file", note=note, storage="sqlite3")
     if db3s and not mcaps:  # (rosbags reads split .db3 files only through the metadata)
         note = (
             f"{why}: its {len(db3s)} .db3 files were read in split order, row by row "

@@ -22,7 +22,7 @@ from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 from tisem.errors import DatasetError
 from tisem.io.bag_records import RosbagDecoders
 from tisem.io.mcap_records import LostMessages, McapMessage, ReadReport
-from tisem.io.mcap_report import Loss, id_ranges
+from tisem.io.mcap_report import Loss, id_ranges, one_line
 
 # ids probed past the last row found when the table cannot say its largest id
 MAX_ID_GAP = 1_000
@@ -80,8 +80,9 @@ class _Db3File:
             try:
                 rows = db.execute("SELECT id, name, type FROM topics").fetchall()
             except sqlite3.DatabaseError as exc:
-                why = " ".join(str(exc).split())  # (sqlite quotes the schema, newlines too)
-                raise DatasetError(f"{self.path}: its topics table is unreadable ({why})") from None
+                raise DatasetError(
+                    f"{self.path}: its topics table is unreadable ({one_line(str(exc))})"
+                ) from None
             self.topics = {  # (sqlite keeps whatever a damaged page holds: check the types)
                 i: (name, typ)
                 for i, name, typ in rows
@@ -93,7 +94,7 @@ class _Db3File:
         try:  # immutable: no journal or lock files next to a damaged recording
             return sqlite3.connect(f"file:{self.path}?mode=ro&immutable=1", uri=True)
         except sqlite3.Error as exc:
-            raise DatasetError(f"{self.path}: cannot open ({' '.join(str(exc).split())})") from None
+            raise DatasetError(f"{self.path}: cannot open ({one_line(str(exc))})") from None
 
     @staticmethod
     def _definitions(db: sqlite3.Connection) -> list[tuple[str, str]]:

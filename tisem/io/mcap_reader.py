@@ -33,6 +33,7 @@ from tisem.io.mcap_messages import (
 )
 from tisem.io.mcap_options import McapOptions
 from tisem.io.mcap_records import LostMessages, McapMessage, McapRecords, ReadReport
+from tisem.io.mcap_report import error_text
 from tisem.io.mcap_survey import Survey
 from tisem.io.stamps import split_ns
 from tisem.io.tf import TfError
@@ -230,8 +231,7 @@ class McapScanReader:
         except (TfError, pc2.CloudFormatError, ScanError) as e:
             return SkippedScan(index, name, str(e))
         except Exception as e:  # noqa: BLE001 - undecodable bytes raise anything
-            why = " ".join(f"{type(e).__name__}: {e}".split())  # one line, for reports
-            return SkippedScan(index, name, f"cannot decode the message ({why})")
+            return SkippedScan(index, name, f"cannot decode the message ({error_text(e)})")
 
     def _count_unknown(self, index: int, unknown: int, unknown_gt: int) -> None:
         """Per scan, so that reading the log twice (the final pass) does not count twice."""

@@ -46,6 +46,17 @@ class Loss:
         return f"{self.where}: {self.what}{held}"
 
 
+def one_line(text: str) -> str:
+    """Text for one line of a report or a refusal: every run of whitespace, newlines too (in a
+    parser's or a database's message), as one space."""
+    return " ".join(text.split())
+
+
+def error_text(e: BaseException) -> str:
+    """`Type: message` of an exception, on one line."""
+    return one_line(f"{type(e).__name__}: {e}")
+
+
 def id_ranges(indexes: list[int]) -> str:
     """[1, 2, 3, 7] -> '1-3, 7'."""
     out, start = [], None

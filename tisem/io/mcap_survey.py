@@ -25,7 +25,7 @@ from tisem.io.mcap_messages import (
 )
 from tisem.io.mcap_options import McapOptions
 from tisem.io.mcap_records import Loss, LostMessages, McapRecords, ReadReport
-from tisem.io.mcap_report import unnamed_channel_id
+from tisem.io.mcap_report import error_text, unnamed_channel_id
 from tisem.io.tf import TfBuffer, TfError
 
 
@@ -124,7 +124,7 @@ class Survey:
             # cloud is skipped with its reason when the scans are read, so only its reason is
             # kept here
             except Exception as e:  # noqa: BLE001 - decoders raise anything on bad bytes
-                why = " ".join(f"{type(e).__name__}: {e}".split())  # one line, for reports
+                why = error_text(e)
                 if wants_cloud:
                     self._cloud_errors.setdefault(ch.topic, why)
                 else:

@@ -29,7 +29,7 @@ from tisem.io.mcap_chunks import (
 )
 from tisem.io.mcap_items import LostMessages, chunk_items, record_item
 from tisem.io.mcap_losses import Ledger
-from tisem.io.mcap_report import Loss, ReadReport
+from tisem.io.mcap_report import Loss, ReadReport, error_text, one_line
 from tisem.io.mcap_resync import RecordFinder, index_disagreements
 from tisem.io.mcap_summary import (
     MAGIC,
@@ -50,8 +50,7 @@ def _time_range(start: int, end: int) -> str:
 
 
 def _why(e: Exception) -> str:
-    why = str(e) if isinstance(e, (BadChunk, Malformed)) else f"{type(e).__name__}: {e}"
-    return " ".join(why.split())  # one line, for reports
+    return one_line(str(e)) if isinstance(e, (BadChunk, Malformed)) else error_text(e)
 
 
 class Walk:
