@@ -54,6 +54,18 @@ def table_half_blocks(limit_vox, reach_blk: int) -> tuple[int, int, int]:
     return tuple(-(-int(v) // LEAF) + 2 * int(reach_blk) + 3 for v in limit_vox)
 
 
+@ti.func
+def deactivate(snode: ti.template(), index):
+    """ti.deactivate(snode, index) for a 3-D index, cast to int32 element by element: taichi
+    1.7.4 prints "Field index N not int32, casting into int32 implicitly" when it compiles a
+    deactivation by a vector or an ndarray row, int32 or not (on a fresh compile, e.g. at a
+    user's first window move)."""
+    ti.deactivate(
+        snode,
+        [ti.cast(index[0], ti.i32), ti.cast(index[1], ti.i32), ti.cast(index[2], ti.i32)],
+    )
+
+
 # A live voxel's `length` holds its kernel length in metres (> 0). While a scan is fused, a voxel
 # the scan hit in an adaptive mode holds instead a pending mark, -(1 + its training row): the
 # kernel update, which reads the voxel's counters anyway, then computes the length from the row's

@@ -9,7 +9,7 @@ freed one), so the memory holds the space the rays of the last seen_empty_s seco
 """
 
 import taichi as ti
-from tisem.kernels.layout import LEAF, MID, local_of_index
+from tisem.kernels.layout import LEAF, MID, deactivate, local_of_index
 
 
 @ti.kernel
@@ -22,7 +22,7 @@ def forget_expired_blocks(m: ti.template(), now: ti.f32) -> ti.i32:
         for q in range(LEAF * LEAF * LEAF):
             latest = ti.max(latest, m.empty_until[b * LEAF + local_of_index(q)])
         if latest <= now:
-            ti.deactivate(m.seen_blk, b)
+            deactivate(m.seen_blk, b)
         else:
             kept += 1
     return kept
@@ -38,4 +38,4 @@ def forget_empty_tops(m: ti.template()):
             if ti.is_active(m.seen_blk, t * MID + o):
                 used = 1
         if not used:
-            ti.deactivate(m.seen_top, t)
+            deactivate(m.seen_top, t)

@@ -12,7 +12,7 @@ block SNode yield them; they are unwrapped around a centre (in blocks) like voxe
 """
 
 import taichi as ti
-from tisem.kernels.layout import CENTROID_COLS, LEAF, TOP, rows_to
+from tisem.kernels.layout import CENTROID_COLS, LEAF, TOP, deactivate, rows_to
 from tisem.kernels.params import ScanParams
 from tisem.kernels.query import copy_voxel_out
 
@@ -99,7 +99,7 @@ def export_leaving(
                     m.counts[u, c] = 0.0
                 m.t_last_rel[u] = 0.0
                 m.length[u] = 0.0
-                ti.deactivate(m.vox, u)
+                deactivate(m.vox, u)
             else:
                 ti.atomic_add(left[b], 1)
     return m.counter[None]
@@ -116,7 +116,7 @@ def free_empty_blocks(
     n = 0
     for b in range(n_blocks):
         if left[b] == 0:
-            ti.deactivate(m.blk, [blocks[b, 0], blocks[b, 1], blocks[b, 2]])
+            deactivate(m.blk, ti.Vector([blocks[b, 0], blocks[b, 1], blocks[b, 2]]))
             n += 1
     return n
 
@@ -137,7 +137,7 @@ def free_far_top_cells(
             if lo[a] > center[a] + half[a] or hi[a] < center[a] - half[a]:
                 far = 1
         if far:
-            ti.deactivate(m.top, T)
+            deactivate(m.top, T)
 
 
 @ti.kernel

@@ -203,7 +203,10 @@ class FreeSpace:
             recent.popleft()
         center = np.asarray(center_vox, np.int64)
         if any(np.any(np.abs(center - c) >= self._slack_vox) for _, c in recent):
-            self._fields.seen_top.deactivate_all()
+            # (every block expired by then; not snode.deactivate_all(), whose own kernel taichi
+            # compiles with a warning per index)
+            seen_empty.forget_expired_blocks(self._fields, float("inf"))
+            seen_empty.forget_empty_tops(self._fields)
             recent.clear()
             self._blocks = 0
         recent.append((time_rel_s, center))
