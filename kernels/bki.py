@@ -211,6 +211,7 @@ def update_kernel(settings: KernelSettings):
                     decay,
                     settings.long_kernel_classes,
                     settings.long_kernel_share,
+                    settings.long_kernel_min_neighbours,
                 )
                 m.length[u] = ell
         if ell > 0:

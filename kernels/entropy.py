@@ -109,11 +109,13 @@ def fresh_length(
     decay: ti.template(),
     long_classes: ti.template(),
     long_share: ti.template(),
+    min_neighbours: ti.template(),
 ):
     """Kernel length of map voxel u given this scan's evidence hist[row, :]: the entropy of
     p(c|v) = prior + decayed counters + the scan's histogram (steps 4-5); ell_max where the
     voxel holds one of `long_classes` with at least `long_share` of its leading class's
-    evidence (`holds_outvoted_class`)."""
+    evidence (`holds_outvoted_class`) and, with `min_neighbours` > 0, its z layer holds at
+    least that many live voxels within 2 of it (`layer_neighbours`)."""
     alpha = decay_factor(t_rel - m.t_last_rel[u], inv_tau, decay)
     p = ti.Vector([0.0] * m.C)
     for c in ti.static(range(m.C)):
@@ -124,8 +126,27 @@ def fresh_length(
     ell = length_of(entropy_with_common(p, m.C - 1, prior, prior_plogp), ell_min, ell_max)
     if ti.static(len(long_classes) > 0):
         if holds_outvoted_class(p, prior, m.C, long_classes, long_share):
-            ell = ell_max
+            if ti.static(min_neighbours > 0):
+                if layer_neighbours(m, u) >= min_neighbours:
+                    ell = ell_max
+            else:
+                ell = ell_max
     return ell
+
+
+@ti.func
+def layer_neighbours(m: ti.template(), u):
+    """How many of the 24 voxels within 2 of storage voxel u in its z layer are live: a patch
+    of a fence or a wall is wide in its layer, a pole is not. Liveness, not the neighbours'
+    classes: the update fuses their counters in the same pass, on other threads, while the
+    voxels live in it were all made live before it (the length pass)."""
+    n = 0
+    for dx in ti.static(range(-2, 3)):
+        for dy in ti.static(range(-2, 3)):
+            if ti.static(dx != 0 or dy != 0):
+                if ti.is_active(m.vox, m.wrap(u + ti.Vector([dx, dy, 0]))):
+                    n += 1
+    return n
 
 
 @ti.func

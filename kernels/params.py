@@ -99,6 +99,8 @@ class KernelSettings:
     # () compiles no test
     long_kernel_classes: tuple[int, ...] = ()
     long_kernel_share: float = 1.0
+    # ... and whose z layer holds at least this many live voxels within 2 of it (0: no test)
+    long_kernel_min_neighbours: int = 0
 
     def __post_init__(self):
         if self.kernel_length not in (NO_KERNEL, FIXED_LENGTH, ADAPTIVE_LENGTH):

@@ -281,6 +281,8 @@ def test_vehicle_classes_are_checked():
 # --------------------------------------------------------------------------- long kernels
 
 LONG_POLE = dict(long_kernel_classes=["pole"])
+# ... only where the voxel's z layer is wide (a straight fence one voxel thick gives 4)
+WIDE_POLE = dict(long_kernel_classes=["pole"], long_kernel_min_neighbours=4)
 
 
 def pole_patch_on_fence(rng):
@@ -316,16 +318,17 @@ def mapped(cfg, scans, points):
 
 
 @pytest.mark.slow
-def test_a_pole_patch_on_a_fence_is_outvoted_with_long_kernels(taichi_cpu):
+@pytest.mark.parametrize("option", [LONG_POLE, WIDE_POLE], ids=["long", "long-where-wide"])
+def test_a_pole_patch_on_a_fence_is_outvoted_with_long_kernels(taichi_cpu, option):
     """Without the option the patch's voxels are confident pole (short kernels) and stay pole;
-    with long_kernel_classes = [pole] they take ell_max, and the fence around them wins. The
-    fence's own voxels answer fence either way, and the thin-class cap keeps pole from
-    spreading onto them."""
+    with long_kernel_classes = [pole] they take ell_max, and the fence around them wins (also
+    with the width test: the fence is wide in every layer). The fence's own voxels answer
+    fence either way, and the thin-class cap keeps pole from spreading onto them."""
     xyz, labels, patch = pole_patch_on_fence(np.random.default_rng(8))
     scans = seen_from_the_front(xyz, labels)
     centre = patch & (np.abs(xyz[:, 1]) < 0.2) & (np.abs(xyz[:, 2]) < 0.2)
     _, _, plain = mapped(small_config(mode="st"), scans, xyz)
-    _, _, outvoted = mapped(small_config(mode="st", **LONG_POLE), scans, xyz)
+    _, _, outvoted = mapped(small_config(mode="st", **option), scans, xyz)
     assert np.all(plain[centre] == POLE), "the scene needs the option: the patch stays pole"
     assert np.all(outvoted[patch] == FENCE), f"{np.count_nonzero(outvoted[patch] != FENCE)}"
     assert np.all(plain[~patch & (np.abs(xyz[:, 1]) > 0.8)] == FENCE)
@@ -342,23 +345,57 @@ def test_a_pole_beside_a_wall_keeps_its_label_with_long_kernels(taichi_cpu):
     assert not np.any(labels[:n_wall] == POLE)
 
 
+def free_standing_pole(rng):
+    """The pole beside a wall, moved 1 m farther from it (1.45 m: no wall voxel within 2 of
+    its voxels in their layers). Returns the points, their labels, the number of wall points."""
+    xyz, labels, n_wall = pole_beside_wall(rng)
+    xyz[n_wall:, 0] += 1.0
+    return xyz, labels, n_wall
+
+
 @pytest.mark.slow
-@pytest.mark.parametrize("share", [0.25, 1.0])
-def test_long_kernels_match_the_numpy_reference(taichi_cpu, share):
-    """The pole patch and the pole beside a wall in one map, with the option at two shares:
-    the voxels, counters and kernel lengths of the numpy reference (which decides the length
-    in float64, the kernel in float32: no voxel of these scenes lies at the share)."""
+def test_the_width_test_keeps_a_free_standing_pole_short(taichi_cpu):
+    """With long_kernel_classes = [pole] alone every pole voxel takes ell_max; with the width
+    test a pole in the open keeps the short kernel of its confident evidence (a pole's layer
+    holds no more than the pole), and it answers pole either way."""
+    xyz, labels, n_wall = free_standing_pole(np.random.default_rng(5))
+    scans = seen_from_the_front(xyz, labels)
+    lengths = []
+    for option in (LONG_POLE, WIDE_POLE):
+        cfg = small_config(mode="st", **option)
+        snap, _, answers = mapped(cfg, scans, xyz)
+        assert np.all(answers[n_wall:] == POLE)
+        lengths.append(snap.ell_m[snap.counts.argmax(axis=1) == POLE])
+    long, wide = lengths
+    assert len(long) >= 10 and np.allclose(long, cfg.ell_max_m)
+    assert len(wide) == len(long) and wide.max() < 0.75 * cfg.ell_max_m
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("share, neighbours", [(0.25, 0), (1.0, 0), (0.25, 4)])
+def test_long_kernels_match_the_numpy_reference(taichi_cpu, share, neighbours):
+    """The pole patch, the pole beside a wall and a free-standing pole in one map, with the
+    option at two shares and with the width test: the voxels, counters and kernel lengths of
+    the numpy reference (which decides the length in float64, the kernel in float32: no voxel
+    of these scenes lies at the share)."""
     rng = np.random.default_rng(9)
     fence, fence_labels, _ = pole_patch_on_fence(rng)
     wall, wall_labels, _ = pole_beside_wall(rng)
-    xyz = np.concatenate([fence, wall + [0.0, 8.0, 0.0]])
-    labels = np.concatenate([fence_labels, wall_labels])
-    cfg = small_config(mode="st", long_kernel_share=share, **LONG_POLE)
+    free, free_labels, n_free_wall = free_standing_pole(rng)
+    xyz = np.concatenate([fence, wall + [0.0, 8.0, 0.0], free[n_free_wall:] + [0.0, -8.0, 0.0]])
+    labels = np.concatenate([fence_labels, wall_labels, free_labels[n_free_wall:]])
+    cfg = small_config(
+        mode="st", long_kernel_share=share, long_kernel_min_neighbours=neighbours, **LONG_POLE
+    )
     snap, (keys, counts, _, ell), _ = mapped(cfg, seen_from_the_front(xyz, labels), xyz[:1])
     np.testing.assert_array_equal(snap.keys, keys)
     np.testing.assert_allclose(snap.counts, counts, rtol=1e-4, atol=1e-4)
     np.testing.assert_allclose(snap.ell_m, ell, atol=1e-5)
     assert np.count_nonzero(np.isclose(ell, cfg.ell_max_m)) >= 9  # (the rule took effect)
+    free_pole = (keys[:, 1] * RES < -6.0) & (counts.argmax(axis=1) == POLE)
+    assert free_pole.sum() >= 10
+    # (the width test took effect: the free-standing pole keeps short kernels)
+    assert np.isclose(ell[free_pole], cfg.ell_max_m).all() == (neighbours == 0)
 
 
 def test_long_kernel_classes_are_checked_and_ignored_by_fixed_lengths():
@@ -368,6 +405,9 @@ def test_long_kernel_classes_are_checked_and_ignored_by_fixed_lengths():
         load_config(None, ["long_kernel_classes=[poles]"])
     with pytest.raises(ConfigError, match="long_kernel_share"):
         load_config(None, ["long_kernel_share=0"])
+    for bad in ("25", "2.5", "-1"):  # (of the 24 voxels around one in its layer)
+        with pytest.raises(ConfigError, match="long_kernel_min_neighbours"):
+            load_config(None, [f"long_kernel_min_neighbours={bad}"])
     assert load_config(None, ["long_kernel_classes=[pole, traffic-sign]"]).mapper.long_kernel_ids
     assert MapperConfig(
         mode="st", long_kernel_classes=["pole", "traffic-sign"]

@@ -104,6 +104,10 @@ class MapperConfig:
     # (docs/method.md)
     long_kernel_classes: list[str] = field(default_factory=list)
     long_kernel_share: float = 0.25
+    # ... and only where the voxel's z layer holds at least this many live voxels within 2 of it
+    # (of 24): such a patch on a fence is as wide as the fence, while a pole is narrow and keeps
+    # its short kernel (docs/method.md). 0: no such test
+    long_kernel_min_neighbours: int = 0
     # 9. query: a point in the live window whose voxel holds no evidence takes the
     # kernel-weighted posterior of the live voxels within query_radius_m (missing), or 0 (off)
     query_blend: str = "missing"
@@ -312,6 +316,7 @@ MAPPER_RULES = {
     "vehicle_cap_m": Number(float, 0.0, 100.0, low_open=True, unit="m"),
     "long_kernel_classes": ClassNames(),
     "long_kernel_share": Number(float, 0.0, 1.0, low_open=True),
+    "long_kernel_min_neighbours": Number(int, 0, 24),
     "query_blend": Choice(QUERY_BLENDS, off_word="off"),
     # the blend reads the (2 R / resolution + 1)^3 voxels around a point: a few metres at most
     "query_radius_m": Number(float, 0.0, 5.0, low_open=True, unit="m"),

@@ -29,8 +29,9 @@ def kernel_settings(cfg: MapperConfig, per_voxel: bool) -> KernelSettings:
         per_voxel=per_voxel,
         evidence_caps=bool(np.isfinite(cfg.evidence_caps_m).any()),
         long_kernel_classes=cfg.long_kernel_ids,
-        # (no classes, no test: the share is then no compile-time choice)
+        # (no classes, no test: the share and the width are then no compile-time choice)
         long_kernel_share=float(cfg.long_kernel_share) if cfg.long_kernel_ids else 1.0,
+        long_kernel_min_neighbours=cfg.long_kernel_min_neighbours if cfg.long_kernel_ids else 0,
     )
 
 

@@ -174,6 +174,14 @@ class ReferenceMapper:
             self.centroids = np.vstack([self.centroids, np.zeros((n, CENTROID_COLS))])
         return ids
 
+    def _layer_neighbours(self, keys: np.ndarray) -> np.ndarray:
+        """Per voxel, how many map voxels lie among the 24 within 2 of it in its z layer."""
+        offsets = [(dx, dy) for dx in range(-2, 3) for dy in range(-2, 3) if dx or dy]
+        return np.array(
+            [sum((x + dx, y + dy, z) in self.index for dx, dy in offsets) for x, y, z in keys],
+            np.int64,
+        )
+
     def rasterize(self, scan: Scan):
         """Steps 1-3: the kept voxels' keys, centroids and (weighted) class evidence, and
         their class centroids (`class_centroids_of`; None when the map keeps none)."""
@@ -230,6 +238,9 @@ class ReferenceMapper:
                 top = evidence[:, 1:].max(axis=1)
                 held = evidence[:, long]
                 outvoted = ((held > 0) & (held >= cfg.long_kernel_share * top[:, None])).any(1)
+                if cfg.long_kernel_min_neighbours > 0:  # ... in a z layer that is wide there
+                    wide = self._layer_neighbours(self.keys[ids[outvoted]])
+                    outvoted[outvoted] = wide >= cfg.long_kernel_min_neighbours
                 self.length_m[ids[outvoted]] = cfg.ell_max_m
         else:
             self.length_m[ids] = cfg.ell_fixed_vox * self.res
