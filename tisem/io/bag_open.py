@@ -143,7 +143,7 @@ def _open(found: BagInput, options: McapOptions | None) -> McapScanReader:
     elif found.kind == "db3-rows":
         records = Db3RowRecords(list(found.files))
     else:
-        records = RosbagRecords(found.path, found.what)
+        records = RosbagRecords(found.path, found.what, found.storage)
     return McapScanReader(found.path, options, records=records, decoders=records.decoders)
 
 

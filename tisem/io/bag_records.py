@@ -31,9 +31,10 @@ from tisem.io.mcap_records import LostMessages, McapMessage, McapRecords, ReadRe
 from tisem.io.mcap_report import Loss
 
 
-def repair_hint(what: str) -> str:
-    """How a user mends a bag that rosbags cannot read (a lost index, an old format)."""
-    if what.startswith("ROS 1"):
+def repair_hint(storage: str) -> str:
+    """How a user mends a bag that rosbags cannot read (a lost index, an old format), by what
+    rosbags reads it as (`BagInput.storage`: ros1, sqlite3, mcap)."""
+    if storage == "ros1":
         return (
             "reindex it (`rosbag reindex IN`) or convert it to ROS 2 (`rosbags-convert "
             "--src IN --dst OUT`)"
@@ -176,9 +177,10 @@ class RosbagRecords:
     Humble type store stands in. `decoders` decodes with the bag's own type store.
     """
 
-    def __init__(self, path: str | Path, what: str) -> None:
+    def __init__(self, path: str | Path, what: str, storage: str = "") -> None:
         self.path = Path(path)
         self.what = what  # e.g. "rosbag2 folder (sqlite3)"
+        self.storage = storage  # ros1 | sqlite3 | mcap: which repair to suggest
         self.excess: Counter = Counter()
         self.data_crc: str | None = None
         self.stopped = False  # whether a pass met damage it could not read past
@@ -198,7 +200,7 @@ class RosbagRecords:
         except Exception as exc:  # noqa: BLE001 - rosbags raises many kinds on bad bags
             raise DatasetError(
                 f"{self.path}: cannot read this {self.what} "
-                f"({_reason(exc)}); {repair_hint(self.what)}"
+                f"({_reason(exc)}); {repair_hint(self.storage)}"
             ) from None
         return _Closing(reader)
 
@@ -236,7 +238,7 @@ class RosbagRecords:
                     Loss(
                         where,
                         f"the rest of the {self.what} is unreadable ({_reason(exc)}); "
-                        f"{repair_hint(self.what)}",
+                        f"{repair_hint(self.storage)}",
                         uncounted=True,
                     )
                 )

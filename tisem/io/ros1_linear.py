@@ -73,21 +73,28 @@ def _u32(fields: dict[str, bytes], name: str) -> int:
     return struct.unpack("<I", value)[0]
 
 
+def _framed(buf, at: int, end: int, cut: str) -> tuple[dict[str, bytes], int, int]:
+    """(header fields, data start, data end) of the record at `at`; `Malformed(cut)` when its
+    data length lies past `end` (its data may: the caller decides what that costs)."""
+    fields, pos = _header(buf, at, end)
+    if pos + 4 > end:
+        raise Malformed(cut)
+    (size,) = struct.unpack_from("<I", buf, pos)
+    return fields, pos + 4, pos + 4 + size
+
+
 def _records(buf, at: int, end: int) -> Iterator[tuple[int, dict[str, bytes], Any, int]]:
     """(op, header fields, data, record start) of each whole record in buf[at:end]; `Malformed`
     at the first one that is not whole (the caller says where)."""
     while at < end:
-        fields, pos = _header(buf, at, end)
-        if pos + 4 > end:
-            raise Malformed("a record's data length past the end")
-        (size,) = struct.unpack_from("<I", buf, pos)
-        if pos + 4 + size > end:
-            raise Malformed(f"a record's {size} data bytes past the end")
+        fields, start, stop = _framed(buf, at, end, "a record's data length past the end")
+        if stop > end:
+            raise Malformed(f"a record's {stop - start} data bytes past the end")
         op = fields.get("op", b"")
         if len(op) != 1:
             raise Malformed("a record without an op")
-        yield op[0], fields, memoryview(buf)[pos + 4 : pos + 4 + size], at
-        at = pos + 4 + size
+        yield op[0], fields, memoryview(buf)[start:stop], at
+        at = stop
 
 
 def _inflate(compression: bytes, data, size: int) -> tuple[bytes, bool]:
@@ -140,15 +147,11 @@ class Ros1LinearRecords:
         at = len(MAGIC)
         while at < size:
             try:
-                fields, pos = _header(buf, at, size)
-                if pos + 4 > size:
-                    raise Malformed("the file ends inside it (cut short)")
+                fields, start, end = _framed(buf, at, size, "the file ends inside it (cut short)")
             except Malformed as exc:  # the chain of record lengths is broken here
                 yield _lost(report, f"record at byte {at}", f"{exc}; anything after it is lost")
                 return
-            (n,) = struct.unpack_from("<I", buf, pos)
-            end = pos + 4 + n
-            data = memoryview(buf)[pos + 4 : min(end, size)]
+            data = memoryview(buf)[start : min(end, size)]
             op = (fields.get("op") or b"\0")[0]
             kind = "chunk" if op == OP_CHUNK else "record"
             try:
