@@ -8,6 +8,11 @@ connection and message records, uncompressed, bz2 or lz4. `Ros1LinearRecords` wa
 file order and gives `McapScanReader` the same stream `tisem.io.bag_records` gives for other
 bags; a chunk the file ends inside gives the records it still holds whole, and the loss is
 reported. Message types come from the connections' own definitions.
+
+Damage costs what it hit, not what follows it: where the chain of record lengths breaks (bytes
+overwritten or inserted), the walk reads on from the next place where two whole records follow
+one another, and a message whose connection record was in damaged data takes the copy of that
+record in the bag's index section (written at the end, when the recording closed).
 """
 
 from __future__ import annotations
@@ -16,7 +21,7 @@ import bz2
 import mmap
 import struct
 from collections import Counter
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -30,8 +35,15 @@ from tisem.io.mcap_records import LostMessages, McapMessage, ReadReport
 from tisem.io.mcap_report import Loss
 
 MAGIC = b"#ROSBAG V2.0\n"
-OP_MESSAGE, OP_BAG_HEADER, OP_CHUNK, OP_CONNECTION = 0x02, 0x03, 0x05, 0x07
+OPS = range(2, 8)
+OP_MESSAGE, OP_BAG_HEADER, OP_INDEX_DATA, OP_CHUNK, OP_CHUNK_INFO, OP_CONNECTION = OPS
 MAX_CHUNK_BYTES = 1 << 31  # a chunk declaring more is damage
+# Finding the next record after damage: every record header holds the field `op=X` (its 4-byte
+# length, 4, first), in any place among the header's fields (rosbag's C++ writer sorts them by
+# name, rosbags writes `op` first); fewer than this many bytes of other fields come before it.
+OP_FIELD = b"\x04\x00\x00\x00op="
+FIELDS_BEFORE_OP = 256
+MAX_HEADER_BYTES = 1 << 16  # the headers rosbag writes are tens of bytes
 
 
 class Malformed(ValueError):
@@ -90,11 +102,65 @@ def _records(buf, at: int, end: int) -> Iterator[tuple[int, dict[str, bytes], An
         fields, start, stop = _framed(buf, at, end, "a record's data length past the end")
         if stop > end:
             raise Malformed(f"a record's {stop - start} data bytes past the end")
-        op = fields.get("op", b"")
-        if len(op) != 1:
-            raise Malformed("a record without an op")
-        yield op[0], fields, memoryview(buf)[start:stop], at
+        yield _op(fields), fields, memoryview(buf)[start:stop], at
         at = stop
+
+
+def _op(fields: dict[str, bytes]) -> int:
+    """A record's op; `Malformed` for a header without one that a bag holds (zeroed bytes
+    parse as empty headers: the walk would step through them out of line with the records)."""
+    op = fields.get("op", b"")
+    if len(op) != 1 or op[0] not in OPS:
+        raise Malformed("a record header without a known op")
+    return op[0]
+
+
+def _next_record(buf, after: int, size: int) -> int | None:
+    """Where the first record after byte `after` starts that is whole and followed by another
+    whole record header (or by the file's end), or None: random or compressed bytes pass that
+    by chance next to never."""
+    pos = after
+    while (pos := buf.find(OP_FIELD, pos + 1)) >= 0:
+        if pos + len(OP_FIELD) < size and buf[pos + len(OP_FIELD)] in OPS:
+            for at in range(pos - 4, max(after, pos - 4 - FIELDS_BEFORE_OP), -1):
+                if _starts_records(buf, at, pos, size):
+                    return at
+    return None
+
+
+def _starts_records(buf, at: int, op_at: int, size: int) -> bool:
+    """Whether a whole record whose header holds the `op` field at `op_at` starts at `at`, and
+    the file ends or another record header follows it."""
+    (header,) = struct.unpack_from("<I", buf, at)
+    if not op_at + len(OP_FIELD) < at + 4 + header <= min(size, at + 4 + MAX_HEADER_BYTES):
+        return False
+    try:
+        fields, _, end = _framed(buf, at, size, "")
+        _op(fields)
+        return end == size or (end < size and _op(_header(buf, end, size)[0]) in OPS)
+    except Malformed:
+        return False
+
+
+def _connection_records(buf, size: int) -> dict[int, list[tuple[dict[str, bytes], bytes]]]:
+    """conn -> [(header fields, data)] of the whole connection records anywhere in the file: a
+    bag that closed holds a copy of each in its index section, after the chunks, which a walk
+    from the start meets last (and whose `index_pos` damage before it may have shifted)."""
+    found: dict[int, list] = {}
+    pattern = OP_FIELD + bytes([OP_CONNECTION])
+    pos = 0
+    while (pos := buf.find(pattern, pos + 1)) >= 0:
+        for at in range(pos - 4, max(0, pos - 4 - FIELDS_BEFORE_OP), -1):
+            try:
+                fields, start, end = _framed(buf, at, size, "")
+                if end <= size and fields.get("op") == bytes([OP_CONNECTION]):
+                    found.setdefault(_u32(fields, "conn"), []).append(
+                        (fields, bytes(buf[start:end]))
+                    )
+                    break
+            except Malformed:
+                continue
+    return found
 
 
 def _inflate(compression: bytes, data, size: int) -> tuple[bytes, bool]:
@@ -123,6 +189,7 @@ class Ros1LinearRecords:
         self.excess: Counter = Counter()
         self.data_crc: str | None = None
         self.decoders = Ros1Decoders(self.path)
+        self._maps: _Connections | None = None  # (the walk's: connections met, their copies)
         try:
             with open(self.path, "rb") as f:
                 head = f.read(len(MAGIC))
@@ -142,41 +209,47 @@ class Ros1LinearRecords:
                 yield from self._walk(buf, size, report)
 
     def _walk(self, buf, size: int, report: ReadReport) -> Iterator:
-        schemas: dict[str, int] = {}
-        channels: dict[int, str] = {}  # conn -> topic
+        self._maps = _Connections(lambda: _connection_records(buf, size))
         at = len(MAGIC)
         while at < size:
             try:
                 fields, start, end = _framed(buf, at, size, "the file ends inside it (cut short)")
+                op = _op(fields)
             except Malformed as exc:  # the chain of record lengths is broken here
-                yield _lost(report, f"record at byte {at}", f"{exc}; anything after it is lost")
-                return
+                lost, at = _lost_up_to_next(report, buf, f"record at byte {at}", exc, at, size)
+                yield lost
+                continue
             data = memoryview(buf)[start : min(end, size)]
-            op = (fields.get("op") or b"\0")[0]
             kind = "chunk" if op == OP_CHUNK else "record"
             try:
                 if op == OP_CHUNK:
-                    yield from self._chunk(fields, data, end <= size, schemas, channels, report)
+                    yield from self._chunk(fields, data, end <= size, report)
                 elif end > size:
                     raise Malformed("the file ends inside it (cut short)")
                 elif op in (OP_CONNECTION, OP_MESSAGE):
-                    yield from self._record(op, fields, data, schemas, channels, report)
+                    yield from self._record(op, fields, data, report)
             except (Malformed, OSError, EOFError, RuntimeError, ValueError) as exc:
-                # a damaged record whose length holds: the walk goes on after it
-                after = "; anything after it is lost" if end > size else ""
-                yield _lost(report, f"{kind} at byte {at}", f"{exc}{after}")
-            if end > size:
-                return
+                if end <= size:  # a damaged record whose length holds: the walk goes on after it
+                    yield _lost(report, f"{kind} at byte {at}", str(exc))
+                elif op == OP_CHUNK and fields.get("compression") == b"none":
+                    # its records, the format of the bag's own, were read to the file's end
+                    yield _lost(report, f"{kind} at byte {at}", f"{exc}; anything after it is lost")
+                else:  # cut short, or its length is damaged: records may follow its header
+                    lost, end = _lost_up_to_next(
+                        report, buf, f"{kind} at byte {at}", exc, start, size
+                    )
+                    yield lost
             at = end
+        self._maps.report_unknown(report)
 
-    def _chunk(self, fields, data, whole: bool, schemas, channels, report) -> Iterator:
+    def _chunk(self, fields, data, whole: bool, report) -> Iterator:
         """The connections and messages of a chunk; for a cut or damaged one, what it holds
         whole, then `Malformed`."""
         records, complete = _inflate(fields.get("compression", b""), data, _u32(fields, "size"))
         try:
             for op, inner, body, _ in _records(records, 0, len(records)):
                 if op in (OP_CONNECTION, OP_MESSAGE):
-                    yield from self._record(op, inner, body, schemas, channels, report)
+                    yield from self._record(op, inner, body, report)
         except Malformed:
             if complete:
                 raise
@@ -185,38 +258,117 @@ class Ros1LinearRecords:
         if not complete:
             raise Malformed("it inflates to fewer bytes than it declares")
 
-    def _record(self, op: int, fields, data, schemas, channels, report) -> Iterator:
+    def _record(self, op: int, fields, data, report) -> Iterator:
         conn = _u32(fields, "conn")
         if op == OP_CONNECTION:
-            if conn in channels:
+            yield from self._maps.connect(conn, fields, data)
+            return
+        if conn not in self._maps.channels:  # its connection record was in damaged data
+            yield from self._maps.from_copy(conn)
+            if conn not in self._maps.channels:
                 return
-            inner = _fields(data, 0, len(data))  # (the connection's own header)
-            msgtype = normalize_msgtype(inner.get("type", b"").decode("utf-8", "replace"))
-            topic = fields.get("topic", b"").decode("utf-8", "replace")
-            if msgtype not in schemas:
-                schemas[msgtype] = len(schemas) + 1
-                yield Schema(
-                    id=schemas[msgtype],
-                    name=msgtype,
-                    encoding="ros1msg",
-                    data=inner.get("message_definition", b""),
-                )
-            channels[conn] = topic
-            yield Channel(
-                id=conn,
-                topic=topic,
-                schema_id=schemas[msgtype],
-                message_encoding="ros1",
-                metadata={},
-            )
-            return
-        if conn not in channels:  # (its connection record was in damaged data)
-            return
         sec, nsec = struct.unpack("<II", fields.get("time", b"\0" * 8)[:8].ljust(8, b"\0"))
-        report.messages[channels[conn]] += 1
+        report.messages[self._maps.channels[conn]] += 1
         yield McapMessage(
             channel_id=conn, log_time=sec * 10**9 + nsec, data=bytes(data), crc_checked=False
         )
+
+
+class _Connections:
+    """The connections a walk has met (conn -> topic), their message types as Schema ids, and
+    the other copies of their records (`copies`: the index section's), for a message whose own
+    connection record was lost and a record whose message definition is damaged."""
+
+    def __init__(self, find_copies: Callable[[], dict[int, tuple]]) -> None:
+        self._find_copies = find_copies
+        self._copies: dict[int, tuple] | None = None
+        self.schemas: dict[str, int] = {}
+        self.channels: dict[int, str] = {}
+        self.unknown: Counter = Counter()  # conn -> messages of no known connection
+
+    def copies(self) -> dict[int, tuple]:
+        if self._copies is None:  # (searched once, when damage first needs it)
+            self._copies = self._find_copies()
+        return self._copies
+
+    def connect(self, conn: int, fields, data) -> Iterator[Schema | Channel]:
+        """The Schema (the first time its type is met) and Channel of a connection record."""
+        if conn in self.channels:
+            return
+        topic, msgtype, definition = _described(fields, data)
+        if not _parses(definition, msgtype):  # damaged: a copy whose definition is whole
+            topic, msgtype, definition = next(
+                self._whole_copies(conn), (topic, msgtype, definition)
+            )
+        if msgtype not in self.schemas:
+            self.schemas[msgtype] = len(self.schemas) + 1
+            yield Schema(
+                id=self.schemas[msgtype], name=msgtype, encoding="ros1msg", data=definition
+            )
+        self.channels[conn] = topic
+        yield Channel(
+            id=conn,
+            topic=topic,
+            schema_id=self.schemas[msgtype],
+            message_encoding="ros1",
+            metadata={},
+        )
+
+    def _whole_copies(self, conn: int) -> Iterator[tuple[str, str, bytes]]:
+        """(topic, type, definition) of each copy of the connection's record that parses."""
+        for fields, data in self.copies().get(conn, []):
+            try:
+                copy = _described(fields, data)
+            except Malformed:
+                continue
+            if _parses(copy[2], copy[1]):
+                yield copy
+
+    def from_copy(self, conn: int) -> Iterator[Schema | Channel | LostMessages]:
+        """The connection from another copy of its record; else the message is lost (on a
+        channel no record names: the scans after it are numbered as suspect)."""
+        for fields, data in self.copies().get(conn, []):
+            try:
+                yield from self.connect(conn, fields, data)
+                return
+            except Malformed:
+                continue
+        self.unknown[conn] += 1
+        yield LostMessages(conn, 1, f"connection {conn}")
+
+    def report_unknown(self, report: ReadReport) -> None:
+        """The messages lost for want of their connection, one loss per connection."""
+        for conn, n in sorted(self.unknown.items()):
+            report.losses.append(
+                Loss(f"connection {conn}", "its connection record was in damaged data", n)
+            )
+
+
+def _described(fields, data) -> tuple[str, str, bytes]:
+    """(topic, message type, message definition) of a connection record."""
+    inner = _fields(data, 0, len(data))  # (the connection's own header)
+    msgtype = normalize_msgtype(inner.get("type", b"").decode("utf-8", "replace"))
+    topic = fields.get("topic", b"").decode("utf-8", "replace")
+    return topic, msgtype, inner.get("message_definition", b"")
+
+
+def _parses(definition: bytes, msgtype: str) -> bool:
+    try:
+        get_types_from_msg(definition.decode("utf-8", "replace"), msgtype)
+    except Exception:  # (rosbags raises TypesysError, and others on text it cannot read)
+        return False
+    return True
+
+
+def _lost_up_to_next(
+    report: ReadReport, buf, where: str, exc: Exception, after: int, size: int
+) -> tuple[LostMessages, int]:
+    """The loss of a record the walk cannot step over, and where it reads on: the next whole
+    record after byte `after` (`_next_record`), or the file's end."""
+    resume = _next_record(buf, after, size)
+    if resume is None:
+        return _lost(report, where, f"{exc}; anything after it is lost"), size
+    return _lost(report, where, f"{exc}; read on from byte {resume}"), resume
 
 
 def _lost(report: ReadReport, where: str, what: str) -> LostMessages:

@@ -1,0 +1,119 @@
+"""A damaged ROS 1 bag, read record by record (tisem.io.ros1_linear), loses what the damage hit
+and no more: the walk reads on after bytes that break its chain of record lengths, and takes a
+connection whose own record was lost, or whose message definition is damaged, from the copy in
+the bag's index section."""
+
+from __future__ import annotations
+
+import struct
+
+import numpy as np
+import pytest
+
+pytest.importorskip("rosbags", reason="the rosbags package (tisem[mcap]) is not installed")
+
+import test_rosbag_read  # noqa: E402
+from rosbags.rosbag1 import Writer as Ros1Writer  # noqa: E402
+from test_rosbag_read import ros1_bag  # noqa: E402
+
+from tisem.io.bag_open import open_scan_reader  # noqa: E402
+from tisem.io.mcap_reader import McapOptions  # noqa: E402
+from tisem.io.ros1_linear import MAGIC, OP_CHUNK, OP_CONNECTION, _inflate, _records  # noqa: E402
+from tisem.io.semantickitti import SemanticKittiSequence  # noqa: E402
+from tisem.scan import Scan  # noqa: E402
+
+BZ2 = Ros1Writer.CompressionFormat.BZ2
+recording = test_rosbag_read.recording  # (the fixture: a tiny sequence and its messages)
+
+
+def chunks(data: bytes) -> list[tuple[int, int, list]]:
+    """(byte, data bytes, [(op, topic) of its records]) of each chunk of a bag."""
+    found = []
+    for op, fields, body, at in _records(data, len(MAGIC), len(data)):
+        if op == OP_CHUNK:
+            inner, _ = _inflate(fields["compression"], body, struct.unpack("<I", fields["size"])[0])
+            held = [(o, f.get("topic")) for o, f, _, _ in _records(inner, 0, len(inner))]
+            found.append((at, len(body), held))
+    return found
+
+
+def read(path):
+    reader = open_scan_reader(path, McapOptions(gt_field="gt_label"))
+    return [s for s in reader if isinstance(s, Scan)], reader.report
+
+
+def same_clouds(scans, expected, indices) -> bool:
+    return len(scans) == len(indices) and all(
+        np.array_equal(s.points_sensor, expected[k].points_sensor)
+        and np.array_equal(s.labels, expected[k].labels)
+        for s, k in zip(scans, indices)
+    )
+
+
+def test_bytes_inserted_between_records_cost_no_scan(recording):
+    """Bytes inserted before a chunk shift every position the index holds (rosbags cannot use
+    it) and break the chain of record lengths there: the walk reads on at the chunk."""
+    seq_dir, messages, tmp = recording
+    data = ros1_bag(tmp / "inserted.bag", messages, BZ2, chunk_bytes=4096).read_bytes()
+    at = chunks(data)[2][0]
+    junk = bytes(range(200, 237))
+    bag = tmp / "inserted_damaged.bag"
+    bag.write_bytes(data[:at] + junk + data[at:])
+    scans, report = read(bag)
+    assert same_clouds(scans, list(SemanticKittiSequence(seq_dir)), range(4))
+    (loss,) = report.losses
+    assert loss.where == f"record at byte {at}" and loss.uncounted
+    assert loss.what.endswith(f"read on from byte {at + len(junk)}")
+
+
+def test_an_overwritten_chunk_header_costs_that_chunk_alone(recording):
+    """Zeros over a chunk's header (its lengths gone): that chunk's scan is lost, the walk
+    finds the records after it, and the scans there are read."""
+    seq_dir, messages, tmp = recording
+    data = bytearray(ros1_bag(tmp / "zeroed.bag", messages, BZ2, chunk_bytes=4096).read_bytes())
+    at, size, _ = chunks(bytes(data))[2]  # the third cloud's
+    data[at : at + 40] = bytes(40)
+    bag = tmp / "zeroed_damaged.bag"
+    bag.write_bytes(bytes(data))
+    scans, report = read(bag)
+    assert same_clouds(scans, list(SemanticKittiSequence(seq_dir)), (0, 1, 3))
+    (loss,) = report.losses
+    assert loss.where == f"record at byte {at}" and "read on from byte" in loss.what
+    resumed = int(loss.what.rsplit(" ", 1)[1])
+    assert at + size < resumed < len(data)  # (after the chunk's data: nothing read twice)
+
+
+def test_a_lost_connection_record_is_taken_from_the_index(recording):
+    """A chunk per message: the first cloud's chunk also holds the clouds' connection record.
+    Damaged, it costs that cloud; the other clouds name the connection from its copy in the
+    index section (without it, no cloud could be decoded)."""
+    seq_dir, messages, tmp = recording
+    data = bytearray(ros1_bag(tmp / "conn.bag", messages, BZ2, chunk_bytes=1).read_bytes())
+    (at, size, _) = next(
+        c for c in chunks(bytes(data)) if (OP_CONNECTION, b"/velodyne_points") in c[2]
+    )
+    middle = at + 100 + size // 2
+    data[middle : middle + 64] = bytes(x ^ 0xFF for x in data[middle : middle + 64])
+    bag = tmp / "conn_damaged.bag"
+    bag.write_bytes(bytes(data))
+    scans, report = read(bag)
+    assert same_clouds(scans, list(SemanticKittiSequence(seq_dir)), (1, 2, 3))
+    (loss,) = report.losses
+    assert loss.where == f"chunk at byte {at}" and loss.uncounted
+
+
+def test_a_damaged_message_definition_is_taken_from_the_index(recording):
+    """A bag whose index rosbags cannot use (its position zeroed, as in a recording that did
+    not close) and whose clouds' connection record, in an uncompressed chunk, has a damaged
+    message definition: the definition of the copy in the index section decodes them."""
+    seq_dir, messages, tmp = recording
+    data = bytearray(ros1_bag(tmp / "definition.bag", messages, chunk_bytes=4096).read_bytes())
+    at = data.index(b"index_pos=") + len(b"index_pos=")
+    data[at : at + 8] = bytes(8)
+    text = data.index(b"uint32 height")  # (the first copy: in the clouds' first chunk)
+    data[text : text + 40] = bytes(40)
+    bag = tmp / "definition_damaged.bag"
+    bag.write_bytes(bytes(data))
+    scans, report = read(bag)
+    assert same_clouds(scans, list(SemanticKittiSequence(seq_dir)), range(4))
+    assert report.losses == []
