@@ -1,7 +1,8 @@
-"""A longer fuzz campaign: seeded damaged MCAP recordings and SemanticKITTI folders through the
-readers, each case judged by one oracle (`tisem.testing.oracle`).
+"""A longer fuzz campaign: seeded damaged MCAP recordings, ROS 1 bags and SemanticKITTI folders
+through the readers, each case judged by one oracle (`tisem.testing.oracle`).
 
-    python benchmarks/fuzz_inputs.py --minutes 10                  # both targets, half each
+    python benchmarks/fuzz_inputs.py --minutes 10                  # every target, a third each
+    python benchmarks/fuzz_inputs.py --minutes 5 --target rosbag   # (needs rosbags: tisem[mcap])
     python benchmarks/fuzz_inputs.py --minutes 5 --target mcap --seed 3
     python benchmarks/fuzz_inputs.py --cases 500 --target kitti --json results/fuzz.json
     python benchmarks/fuzz_inputs.py --target mcap --seed 3 --case 86 --keep /tmp/case86
@@ -18,6 +19,7 @@ from __future__ import annotations
 
 import argparse
 import datetime as dt
+import importlib.util
 import sys
 from pathlib import Path
 
@@ -39,7 +41,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     )
     p.add_argument("--cases", type=int, help="run this many cases per target instead")
     p.add_argument("--seed", type=int, default=0, help="the campaign's seed (default 0)")
-    p.add_argument("--target", choices=("mcap", "kitti", "all"), default="all")
+    p.add_argument("--target", choices=("mcap", "kitti", "rosbag", "all"), default="all")
     p.add_argument("--case", type=int, help="replay this one case (with --keep)")
     p.add_argument("--keep", type=Path, help="the folder a replayed case's input is kept in")
     p.add_argument("--json", type=Path, help="also write the results here")
@@ -55,6 +57,9 @@ def run(args: argparse.Namespace) -> dict:
     from tisem.testing.fuzz import TARGETS, replay, run_campaign
 
     targets = TARGETS if args.target == "all" else (args.target,)
+    if args.target == "all" and importlib.util.find_spec("rosbags") is None:
+        print("rosbag target skipped: the rosbags package (tisem[mcap]) is not installed")
+        targets = tuple(t for t in targets if t != "rosbag")
     if args.case is not None:
         args.keep.mkdir(parents=True, exist_ok=True)
         what, path, outcome = replay(args.target, args.seed, args.case, args.keep)

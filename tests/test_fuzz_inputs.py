@@ -1,4 +1,4 @@
-"""A bounded, seeded fuzz of both readers: a few hundred damaged MCAP recordings and
+"""A bounded, seeded fuzz of the readers: a few hundred damaged MCAP recordings, ROS 1 bags and
 SemanticKITTI folders, each read in a worker process (a signal is one failed case, not a dead
 pytest). The promise: no signal, no exception but the project's own errors, and every scan a
 reader yields is byte-identical to the intact input's or reported as damaged (see
@@ -16,7 +16,7 @@ from benchmarks import fuzz_inputs
 from tisem.testing.fuzz import run_campaign, summary_table
 
 SEED = 20240613
-MCAP_CASES, KITTI_CASES = 300, 180
+MCAP_CASES, KITTI_CASES, BAG_CASES = 300, 180, 300
 
 
 def _failures(results) -> list[str]:
@@ -41,6 +41,16 @@ def test_damaged_kitti_folders_are_read_or_reported():
     assert {"identical", "reported", "refused"} <= kinds, summary_table(results)
 
 
+@pytest.mark.slow
+def test_damaged_ros1_bags_are_read_or_reported_never_silently_wrong():
+    pytest.importorskip("rosbags", reason="the rosbags package (tisem[mcap]) is not installed")
+    results = run_campaign("rosbag", SEED, count=BAG_CASES)
+    assert len(results) == BAG_CASES
+    assert not _failures(results), summary_table(results)
+    kinds = {r.outcome for r in results}
+    assert {"identical", "reported", "refused"} <= kinds, summary_table(results)
+
+
 def test_a_reader_process_that_dies_is_one_failed_case_and_the_campaign_goes_on():
     results = run_campaign("mcap", SEED, count=4, crash_case=1)
     assert [r.case for r in results] == [0, 1, 2, 3]
@@ -54,10 +64,10 @@ def test_the_campaign_benchmark_runs_and_replays(tmp_path, capsys):
     out = tmp_path / "fuzz.json"
     assert fuzz_inputs.main(["--cases", "6", "--seed", "1", "--json", str(out)]) == 0
     results = json.loads(out.read_text())["results"]
-    assert [r["target"] for r in results] == ["mcap"] * 6 + ["kitti"] * 6
+    assert [r["target"] for r in results] == ["mcap"] * 6 + ["kitti"] * 6 + ["rosbag"] * 6
     assert not [r for r in results if r["outcome"] == "failure"], results
     printed = capsys.readouterr().out
-    assert "| mcap | 6 |" in printed and "| kitti | 6 |" in printed
+    assert "| mcap | 6 |" in printed and "| kitti | 6 |" in printed and "| rosbag | 6 |" in printed
     assert (
         fuzz_inputs.main(
             ["--target", "mcap", "--seed", "1", "--case", "2", "--keep", str(tmp_path / "case")]

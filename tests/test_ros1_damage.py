@@ -117,3 +117,36 @@ def test_a_damaged_message_definition_is_taken_from_the_index(recording):
     scans, report = read(bag)
     assert same_clouds(scans, list(SemanticKittiSequence(seq_dir)), range(4))
     assert report.losses == []
+
+
+def test_bytes_inserted_in_an_uncompressed_cloud_lose_that_cloud(recording):
+    """ROS 1 bags hold no checksums: bytes inserted inside a cloud's data of an uncompressed
+    chunk go unnoticed in the cloud itself, but push the chunk's end out of line with the
+    record after it. The cloud, which may hold them, is lost with the chunk's report."""
+    seq_dir, messages, tmp = recording
+    data = ros1_bag(tmp / "plain.bag", messages, chunk_bytes=4096).read_bytes()
+    at, size, held = chunks(data)[2]
+    assert held[-1] == (2, None)  # (the chunk ends with its cloud)
+    middle = at + size // 2
+    bag = tmp / "plain_inserted.bag"
+    bag.write_bytes(data[:middle] + bytes(range(5)) + data[middle:])
+    scans, report = read(bag)
+    expected = list(SemanticKittiSequence(seq_dir))
+    assert same_clouds(scans, expected, (0, 1, 3))
+    assert report.losses[0].where == f"chunk at byte {at}"
+    assert "out of line" in report.losses[0].what
+    assert scans[-1].index in report.suspect  # (after a loss of unknown size)
+
+
+def test_a_closed_bag_cut_between_two_records_says_so(recording):
+    """A cut that falls between two records leaves every record whole; the bag header still
+    says where the index was written, past the end: the cut is reported."""
+    seq_dir, messages, tmp = recording
+    data = ros1_bag(tmp / "whole_records.bag", messages, BZ2, chunk_bytes=4096).read_bytes()
+    at = chunks(data)[2][0]
+    bag = tmp / "cut_between.bag"
+    bag.write_bytes(data[:at])
+    scans, report = read(bag)
+    assert same_clouds(scans, list(SemanticKittiSequence(seq_dir)), (0, 1))
+    (loss,) = report.losses
+    assert loss.where == f"the file's end (byte {at})" and "cut short" in loss.what

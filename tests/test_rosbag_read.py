@@ -6,7 +6,6 @@ that says how to convert it."""
 
 from __future__ import annotations
 
-import dataclasses
 import shutil
 import sqlite3
 import subprocess
@@ -30,7 +29,7 @@ from rosbags.interfaces import (  # noqa: E402  # noqa: E402
 from rosbags.rosbag1 import Writer as Ros1Writer  # noqa: E402
 from rosbags.rosbag2 import CompressionFormat, CompressionMode, StoragePlugin, Writer  # noqa: E402,E501
 from rosbags.rosbag2 import Reader as Ros2Reader  # noqa: E402
-from rosbags.typesys import Stores, get_types_from_msg, get_typestore  # noqa: E402
+from rosbags.typesys import Stores, get_typestore  # noqa: E402
 from test_mcap_kitti import write_tiny_sequence  # noqa: E402
 from test_pointcloud2 import decoded_clouds  # noqa: E402
 
@@ -43,6 +42,7 @@ from tisem.io.pointcloud2 import unpack_rgb  # noqa: E402
 from tisem.io.semantickitti import SemanticKittiSequence  # noqa: E402
 from tisem.labels import CLASS_COLORS_RGB  # noqa: E402
 from tisem.scan import Scan  # noqa: E402
+from tisem.testing.bag_damage import write_ros1_bag  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 HUMBLE = get_typestore(Stores.ROS2_HUMBLE)
@@ -141,38 +141,10 @@ def humble_db3(path: Path) -> Path:
 
 
 def ros1_bag(path: Path, messages, compression=None, chunk_bytes: int | None = None) -> Path:
-    """The same messages as a ROS 1 bag (ROS 1 headers carry a `seq`; noetic has no tf2), its
-    chunks compressed with `compression` (a Ros1Writer.CompressionFormat) and closed after
-    `chunk_bytes`."""
-    noetic = get_typestore(Stores.ROS1_NOETIC)
-    noetic.register(
-        get_types_from_msg("geometry_msgs/TransformStamped[] transforms", "tf2_msgs/msg/TFMessage")
-    )
-
-    def to_ros1(obj):
-        if dataclasses.is_dataclass(obj):
-            cls = noetic.types[obj.__msgtype__]
-            return cls(
-                **{
-                    f.name: to_ros1(getattr(obj, f.name)) if hasattr(obj, f.name) else 0
-                    for f in dataclasses.fields(cls)
-                }
-            )
-        return [to_ros1(x) for x in obj] if isinstance(obj, list) else obj
-
-    writer = Ros1Writer(path)
-    if compression is not None:
-        writer.set_compression(compression)
-    if chunk_bytes is not None:
-        writer.chunk_threshold = chunk_bytes
-    with writer:
-        connections = {}
-        for topic, msgtype, t, data in messages:
-            if topic not in connections:
-                connections[topic] = writer.add_connection(topic, msgtype, typestore=noetic)
-            msg = to_ros1(HUMBLE.deserialize_cdr(data, msgtype))
-            writer.write(connections[topic], t, noetic.serialize_ros1(msg, msgtype))
-    return path
+    """The same messages as a ROS 1 bag, its chunks compressed with `compression` (a
+    Ros1Writer.CompressionFormat) and closed after `chunk_bytes`."""
+    name = None if compression is None else compression.name
+    return write_ros1_bag(path, messages, name, chunk_bytes)
 
 
 @pytest.fixture(scope="module")

@@ -142,6 +142,30 @@ def _starts_records(buf, at: int, op_at: int, size: int) -> bool:
         return False
 
 
+def _followed(buf, end: int, size: int) -> bool:
+    """Whether the file ends at `end` (or the data of the record that ends there do), or a
+    record header with a known op starts there."""
+    if end >= size:
+        return True
+    try:
+        _op(_header(buf, end, size)[0])
+    except Malformed:
+        return False
+    return True
+
+
+def _index_position(buf, size: int) -> int:
+    """Where the bag header says the index section starts: 0 for a recording that did not
+    close (or a damaged bag header)."""
+    try:
+        fields, _, _ = _framed(buf, len(MAGIC), size, "")
+        if _op(fields) != OP_BAG_HEADER:
+            return 0
+        return struct.unpack("<Q", fields.get("index_pos", b""))[0]
+    except (Malformed, struct.error):
+        return 0
+
+
 def _connection_records(buf, size: int) -> dict[int, list[tuple[dict[str, bytes], bytes]]]:
     """conn -> [(header fields, data)] of the whole connection records anywhere in the file: a
     bag that closed holds a copy of each in its index section, after the chunks, which a walk
@@ -163,21 +187,31 @@ def _connection_records(buf, size: int) -> dict[int, list[tuple[dict[str, bytes]
     return found
 
 
-def _inflate(compression: bytes, data, size: int) -> tuple[bytes, bool]:
-    """A chunk's records, and whether they are all there (a cut chunk gives what it holds)."""
+def _inflate(compression: bytes, data, size: int) -> tuple[bytes, str]:
+    """A chunk's records, and why they are not all there ("" when they are; a cut chunk gives
+    what it holds)."""
     if size > MAX_CHUNK_BYTES:
         raise Malformed(f"a chunk that declares {size} bytes")
     if compression == b"none":
-        return bytes(data[:size]), len(data) >= size
+        if len(data) > size:
+            raise Malformed("its data are longer than it declares")
+        return bytes(data), "" if len(data) == size else "it holds fewer bytes than it declares"
     if compression == b"bz2":
         dec = bz2.BZ2Decompressor()
-        out = dec.decompress(bytes(data), max_length=size + 1)
     elif compression == b"lz4":
         dec = lz4.frame.LZ4FrameDecompressor()
-        out = dec.decompress(bytes(data), max_length=size + 1)
     else:
         raise Malformed(f"a chunk compressed as {compression!r}")
-    return out[:size], len(out) >= size
+    out = dec.decompress(bytes(data), max_length=size + 1)
+    # on to the stream's end, where bz2 checks its last block (and lz4 its frame): stopped at
+    # max_length, a decompressor returns damaged bytes unchecked
+    while len(out) <= size and not dec.eof and not dec.needs_input:
+        out += dec.decompress(b"", max_length=size + 1 - len(out))
+    if len(out) > size:
+        raise Malformed("it inflates to more bytes than it declares")
+    if len(out) < size:
+        return out, "it inflates to fewer bytes than it declares"
+    return out, "" if dec.eof else "its compressed stream does not end in it"
 
 
 class Ros1LinearRecords:
@@ -211,19 +245,27 @@ class Ros1LinearRecords:
     def _walk(self, buf, size: int, report: ReadReport) -> Iterator:
         self._maps = _Connections(lambda: _connection_records(buf, size))
         at = len(MAGIC)
+        cut = False  # (a loss already says that the rest of the file is lost)
         while at < size:
             try:
                 fields, start, end = _framed(buf, at, size, "the file ends inside it (cut short)")
                 op = _op(fields)
             except Malformed as exc:  # the chain of record lengths is broken here
                 lost, at = _lost_up_to_next(report, buf, f"record at byte {at}", exc, at, size)
+                cut = at >= size
                 yield lost
                 continue
             data = memoryview(buf)[start : min(end, size)]
             kind = "chunk" if op == OP_CHUNK else "record"
             try:
                 if op == OP_CHUNK:
-                    yield from self._chunk(fields, data, end <= size, report)
+                    # bytes inserted in an uncompressed one push its end past its length: no
+                    # check tells, but the record after it is then out of line
+                    out_of_line = fields.get("compression") == b"none" and not _followed(
+                        buf, end, size
+                    )
+                    where = f"chunk at byte {at}"
+                    yield from self._chunk(fields, data, end <= size, out_of_line, where, report)
                 elif end > size:
                     raise Malformed("the file ends inside it (cut short)")
                 elif op in (OP_CONNECTION, OP_MESSAGE):
@@ -234,29 +276,46 @@ class Ros1LinearRecords:
                 elif op == OP_CHUNK and fields.get("compression") == b"none":
                     # its records, the format of the bag's own, were read to the file's end
                     yield _lost(report, f"{kind} at byte {at}", f"{exc}; anything after it is lost")
+                    cut = True
                 else:  # cut short, or its length is damaged: records may follow its header
                     lost, end = _lost_up_to_next(
                         report, buf, f"{kind} at byte {at}", exc, start, size
                     )
+                    cut = end >= size
                     yield lost
             at = end
+        index_at = _index_position(buf, size)
+        if not cut and index_at >= size:  # a closed bag cut between two records
+            yield _lost(
+                report,
+                f"the file's end (byte {size})",
+                f"the bag's index was written at byte {index_at}: the file was cut short",
+            )
         self._maps.report_unknown(report)
 
-    def _chunk(self, fields, data, whole: bool, report) -> Iterator:
-        """The connections and messages of a chunk; for a cut or damaged one, what it holds
-        whole, then `Malformed`."""
-        records, complete = _inflate(fields.get("compression", b""), data, _u32(fields, "size"))
+    def _chunk(self, fields, data, whole: bool, out_of_line: bool, where: str, report) -> Iterator:
+        """The connections and messages of a chunk; a cut one gives the records it holds whole,
+        then `Malformed`. Damage inside a chunk the file holds whole (records that do not add
+        up, a stream that inflates short or does not end, the record after it `out_of_line`)
+        is reported first, so that the reader marks what follows suspect, and the last record
+        before it is lost with it: it may hold bytes that are not its own."""
+        records, short = _inflate(fields.get("compression", b""), data, _u32(fields, "size"))
+        held, broken = [], ""
         try:
             for op, inner, body, _ in _records(records, 0, len(records)):
-                if op in (OP_CONNECTION, OP_MESSAGE):
-                    yield from self._record(op, inner, body, report)
-        except Malformed:
-            if complete:
-                raise
+                held.append((op, inner, body))
+        except Malformed as exc:
+            broken = str(exc)
+        if out_of_line and not broken:
+            broken = "the record after it is out of line (bytes inserted in it?)"
+        if whole and (short or broken):
+            yield _lost(report, where, short or broken)
+            held = held[:-1]
+        for op, inner, body in held:
+            if op in (OP_CONNECTION, OP_MESSAGE):
+                yield from self._record(op, inner, body, report)
         if not whole:
             raise Malformed("the file ends inside it (cut short)")
-        if not complete:
-            raise Malformed("it inflates to fewer bytes than it declares")
 
     def _record(self, op: int, fields, data, report) -> Iterator:
         conn = _u32(fields, "conn")

@@ -28,7 +28,7 @@ import numpy as np
 
 from tisem.testing.oracle import OUTCOMES, Outcome
 
-TARGETS = ("mcap", "kitti")
+TARGETS = ("mcap", "kitti", "rosbag")
 MEMORY_LIMIT_MB = 3072
 CASE_TIMEOUT_S = 30
 
@@ -62,6 +62,14 @@ class _Target:
         if name == "mcap":
             self.bases = mcap_damage.write_bases(folder)
             self.refs = {b: reference(McapScanReader(base.path)) for b, base in self.bases.items()}
+        elif name == "rosbag":
+            from tisem.io.bag_open import open_scan_reader
+            from tisem.testing import bag_damage
+
+            self.bases = bag_damage.write_bases(folder)
+            self.refs = {
+                b: reference(open_scan_reader(base.path)) for b, base in self.bases.items()
+            }
         else:
             self.base = kitti_damage.write_base(folder / "intact")
             self.ref = reference(SemanticKittiSequence(self.base))
@@ -72,11 +80,15 @@ class _Target:
         rng = np.random.default_rng([seed, case])
         if self.name == "mcap":
             return mcap_damage.mcap_mutation(self.bases, rng, case)
+        if self.name == "rosbag":
+            from tisem.testing import bag_damage
+
+            return bag_damage.bag_mutation(self.bases, rng, case)
         return kitti_damage.kitti_mutation(rng, case)
 
     def build(self, mutation, case: int) -> Path:
-        if self.name == "mcap":
-            path = self.folder / f"case{case}.mcap"
+        if self.name in ("mcap", "rosbag"):
+            path = self.folder / f"case{case}.{'mcap' if self.name == 'mcap' else 'bag'}"
             mutation.write(self.bases, path)
         else:
             path = self.folder / f"case{case}"
@@ -84,10 +96,12 @@ class _Target:
         return path
 
     def judge(self, mutation, path: Path) -> Outcome:
-        from tisem.testing.oracle import judge_kitti, judge_mcap
+        from tisem.testing.oracle import judge_bag, judge_kitti, judge_mcap
 
         if self.name == "mcap":
             return judge_mcap(path, self.refs[mutation.base], mutation.detectable)
+        if self.name == "rosbag":
+            return judge_bag(path, self.refs[mutation.base], mutation.detectable)
         return judge_kitti(path, self.ref, mutation.detectable)
 
 
@@ -158,6 +172,7 @@ def _worker(
                 signal.alarm(0)
             emit(case=case, outcome=outcome.kind, detail=outcome.detail)
             _remove(runner.folder / f"case{case}.mcap")
+            _remove(runner.folder / f"case{case}.bag")
             _remove(runner.folder / f"case{case}")
             case += 1
 

@@ -145,8 +145,19 @@ def judge_mcap(path: Path, ref: dict[int, Scan], detectable: bool) -> Outcome:
     """Read a damaged recording twice (as a run does, for the final map) and judge it."""
     from tisem.io.mcap_reader import McapScanReader
 
+    return judge_recording(McapScanReader, path, ref, detectable)
+
+
+def judge_bag(path: Path, ref: dict[int, Scan], detectable: bool) -> Outcome:
+    """`judge_mcap` for any recording `open_scan_reader` takes (a ROS 1 bag, ...)."""
+    from tisem.io.bag_open import open_scan_reader
+
+    return judge_recording(open_scan_reader, path, ref, detectable)
+
+
+def judge_recording(open_reader, path: Path, ref: dict[int, Scan], detectable: bool) -> Outcome:
     try:
-        reader = McapScanReader(path)
+        reader = open_reader(path)
         first, second = list(reader), list(reader)
         json.dumps(reader.report.to_dict())
         reader.report.lines()
