@@ -27,6 +27,10 @@ from tisem.io.mcap_report import Loss, id_ranges, one_line
 # ids probed past the last row found when the table cannot say its largest id
 MAX_ID_GAP = 1_000
 
+# what reading a damaged database raises: sqlite's errors, and UnicodeDecodeError where the
+# text sqlite3 decodes (a garbled schema in its message) is not UTF-8
+DAMAGE = (sqlite3.DatabaseError, UnicodeDecodeError)
+
 
 class Db3RowRecords:
     """The Schema, Channel and message records of the `.db3` files of one recording (its
@@ -79,7 +83,7 @@ class _Db3File:
         with closing(self._connect()) as db:
             try:
                 rows = db.execute("SELECT id, name, type FROM topics").fetchall()
-            except sqlite3.DatabaseError as exc:
+            except DAMAGE as exc:
                 raise DatasetError(
                     f"{self.path}: its topics table is unreadable ({one_line(str(exc))})"
                 ) from None
@@ -92,9 +96,13 @@ class _Db3File:
 
     def _connect(self) -> sqlite3.Connection:
         try:  # immutable: no journal or lock files next to a damaged recording
-            return sqlite3.connect(f"file:{self.path}?mode=ro&immutable=1", uri=True)
+            db = sqlite3.connect(f"file:{self.path}?mode=ro&immutable=1", uri=True)
         except sqlite3.Error as exc:
             raise DatasetError(f"{self.path}: cannot open ({one_line(str(exc))})") from None
+        # text a damaged page garbled is not UTF-8: decoded with replacement characters, a
+        # damaged name matches nothing, where sqlite3's own decoding would raise mid-query
+        db.text_factory = lambda raw: raw.decode("utf-8", "replace")
+        return db
 
     @staticmethod
     def _definitions(db: sqlite3.Connection) -> list[tuple[str, str]]:
@@ -104,13 +112,14 @@ class _Db3File:
                 "SELECT topic_type, encoded_message_definition FROM message_definitions "
                 "WHERE encoding = 'ros2msg'"
             ).fetchall()
-        except sqlite3.DatabaseError:
+        except DAMAGE:
             return []
         return [(str(t), str(d)) for t, d in rows if t and d]
 
     def messages(self, report: ReadReport, ids: dict[int, int], named: bool) -> Iterator:
         """Its messages on the channels `ids` gives its topics; `named`: losses name the file."""
         unreadable: list[int] = []
+        yield from short_page_loss(self.path, report, named)
         with closing(self._connect()) as db:
             last = self._last_id(db)
             k, found = 0, 0
@@ -124,11 +133,13 @@ class _Db3File:
                     row = db.execute(
                         "SELECT topic_id, timestamp, data FROM messages WHERE id = ?", (k,)
                     ).fetchone()
-                except sqlite3.DatabaseError:
+                except DAMAGE:
                     row = ()
-                if row is None:
-                    continue  # (ids can have gaps)
-                if not _whole(row, self.topics):
+                if row is None and last < 0:
+                    continue  # (probing past the end, or a gap in the ids)
+                if row is None or not _whole(row, self.topics):
+                    # (rosbag2 numbers its rows 1, 2, ...: below the largest id, in a file that
+                    # rosbags could not read, a row that is not there was on a damaged page)
                     unreadable.append(k)
                     yield LostMessages(None, None, f"{self.path.name}: messages table row {k}")
                     continue
@@ -169,7 +180,7 @@ class _Db3File:
         """The largest message id, or -1 when the table cannot say (then ids are probed)."""
         try:
             (last,) = db.execute("SELECT max(id) FROM messages").fetchone()
-        except sqlite3.DatabaseError:
+        except DAMAGE:
             return -1
         if last is None:
             return 0  # (no messages)
@@ -187,3 +198,27 @@ def _whole(row: tuple, topics: dict) -> bool:
         and 0 <= row[1] < 2**63
         and isinstance(row[2], bytes)
     )
+
+
+def short_page_loss(path: Path, report: ReadReport, named: bool) -> Iterator[LostMessages]:
+    """A loss, first in the stream, for a `.db3` that ends inside a page (cut, or bytes
+    inserted): sqlite reads what its short page lacks as zeros, unchecked, and which rows lay
+    there is not known, so every row after the mark is suspect. Its header gives the page
+    size (bytes 16-17, big-endian; 1 means 65536)."""
+    try:
+        with open(path, "rb") as f:
+            head = f.read(100)
+            size = f.seek(0, 2)
+    except OSError:
+        return  # (opening it says so)
+    page = int.from_bytes(head[16:18], "big") if len(head) >= 18 else 0
+    page = 65536 if page == 1 else page
+    if page < 512 or page & (page - 1) or size % page == 0:
+        return  # (whole pages, or a damaged header: sqlite says what it makes of it)
+    where = f"{path.name}: its end" if named else "the file's end"
+    what = (
+        f"the file ends {size % page} bytes into a page of {page} (cut short, or bytes "
+        f"inserted): rows on that page may read as zeros"
+    )
+    report.losses.append(Loss(where, what, uncounted=True))
+    yield LostMessages(None, None, where)

@@ -1,12 +1,13 @@
-"""Damaged ROS 1 bags: small intact bags to start from, and seeded byte edits of them.
+"""Damaged bags that `tisem.io.bag_open` reads: small intact ones, and seeded byte edits of them.
 
 The intact bags hold the synthetic recording of `tisem.synth.mcap_log` written again by
-`rosbags` as ROS 1 (noetic types), in small chunks, bz2, lz4 or uncompressed. An edit is a cut,
-bit flips, a run of bytes overwritten or inserted (at a record's start or anywhere), or the
-bag header's index position zeroed (a recording that did not close), with or without a cut.
-ROS 1 bags hold no checksums: a change inside the message data of an uncompressed or lz4 chunk
-can give other values that are still valid, which no reader can notice (`detectable` False);
-bz2 checks each of its blocks.
+`rosbags`: as ROS 1 (noetic types) in small chunks, bz2, lz4 or uncompressed, and as the `.db3`
+of a rosbag2 folder. An edit is a cut, bit flips, a run of bytes overwritten or inserted (at a
+record's or page's start, or anywhere), or a ROS 1 bag header's index position zeroed (a
+recording that did not close), with or without a cut. Neither format checksums its data: a
+change inside the message data of an uncompressed or lz4 chunk, or anywhere in a `.db3`, can
+give other values that are still valid, which no reader can notice (`detectable` False); bz2
+checks each of its blocks.
 """
 
 from __future__ import annotations
@@ -22,7 +23,8 @@ from tisem.io.ros1_linear import OP_BAG_HEADER, OP_CHUNK, OP_CHUNK_INFO, OP_INDE
 from tisem.synth.mcap_log import write_synthetic_log
 from tisem.testing.mcap_damage import Mutation  # (a byte edit: what, of which base, its bytes)
 
-BASES = ("bz2", "lz4", "uncompressed")
+BASES = ("bz2", "lz4", "uncompressed", "db3")
+PAGE = 4096  # a .db3's page size (rosbags' writer keeps SQLite's default)
 _COMMON = dict(n_scans=5, n_points=40, tf_rate_hz=20.0, seed=7)
 CHUNK_BYTES = 1500  # (a chunk or two per cloud)
 
@@ -79,6 +81,21 @@ def write_ros1_bag(
     return path
 
 
+def write_db3(folder: Path, messages) -> Path:
+    """ROS 2 messages (`recorded_messages`) as the one `.db3` file of a rosbag2 folder."""
+    from rosbags.rosbag2 import StoragePlugin, Writer
+    from rosbags.typesys import Stores, get_typestore
+
+    humble = get_typestore(Stores.ROS2_HUMBLE)
+    with Writer(folder, version=9, storage_plugin=StoragePlugin.SQLITE3) as writer:
+        connections = {}
+        for topic, msgtype, t, data in messages:
+            if topic not in connections:
+                connections[topic] = writer.add_connection(topic, msgtype, typestore=humble)
+            writer.write(connections[topic], t, data)
+    return next(folder.glob("*.db3"))
+
+
 @dataclass
 class Base:
     name: str
@@ -90,7 +107,9 @@ class Base:
         """Whether a change of byte `at` can be noticed: in the header of a record other than
         the index's (its framing; `rosbags` trusts the index, whose counts and positions, once
         changed, can drop a message unseen), in the bag header's padding (it changes nothing),
-        in a bz2 chunk's data."""
+        in a bz2 chunk's data. SQLite checks no page: a `.db3` byte, never."""
+        if self.name == "db3":
+            return False
         for head, start, end, op in self.records:
             if head <= at < end:
                 if op in (OP_INDEX_DATA, OP_CHUNK_INFO):
@@ -117,6 +136,13 @@ def write_bases(folder: Path) -> dict[str, Base]:
     messages = recorded_messages(folder / "source.mcap")
     out = {}
     for name in BASES:
+        if name == "db3":  # (its "records": its pages)
+            path = write_db3(folder / "db3_bag", messages)
+            data = path.read_bytes()
+            out[name] = Base(
+                name, path, data, [(a, a, a + PAGE, 0) for a in range(0, len(data), PAGE)]
+            )
+            continue
         compression = None if name == "uncompressed" else name.upper()
         path = write_ros1_bag(folder / f"{name}.bag", messages, compression, CHUNK_BYTES)
         data = path.read_bytes()
@@ -183,6 +209,8 @@ BYTE_EDITS = (_cut, _flip, _overwrite, _insert, _no_index)
 
 
 def bag_mutation(bases: dict[str, Base], rng: np.random.Generator, kind: int) -> Mutation:
-    """Mutation number `kind` (cycling over the edits) of a base `rng` picks."""
+    """Mutation number `kind` (cycling over the edits) of a base `rng` picks (a `.db3` has no
+    index position: a cut instead)."""
     name = BASES[int(rng.integers(len(BASES)))]
-    return BYTE_EDITS[kind % len(BYTE_EDITS)](bases[name], rng)
+    edit = BYTE_EDITS[kind % len(BYTE_EDITS)]
+    return (_cut if edit is _no_index and name == "db3" else edit)(bases[name], rng)
