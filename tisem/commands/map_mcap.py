@@ -238,11 +238,11 @@ def write_map(
         )
     info = write_recording_maps(path.parent, result.mapper.snapshot(), frame_id, scans)
     log.info(
-        "wrote %s and %s: %d voxels, %d scans",
+        "wrote %s and %s: %d voxels%s",
         info["mcap"],
         info["bag"],
         info["voxels"],
-        info["scans"],
+        f", {info['scans']} labelled scans" if save_scans else "",
     )
     return path
 
