@@ -122,9 +122,19 @@ def _next_record(buf, after: int, size: int) -> int | None:
     pos = after
     while (pos := buf.find(OP_FIELD, pos + 1)) >= 0:
         if pos + len(OP_FIELD) < size and buf[pos + len(OP_FIELD)] in OPS:
-            for at in range(pos - 4, max(after, pos - 4 - FIELDS_BEFORE_OP), -1):
-                if _starts_records(buf, at, pos, size):
-                    return at
+            at = _header_start(buf, pos, after, lambda at: _starts_records(buf, at, pos, size))
+            if at is not None:
+                return at
+    return None
+
+
+def _header_start(buf, op_at: int, floor: int, accept: Callable[[int], bool]) -> int | None:
+    """The nearest byte before the `op` field at `op_at`, and after `floor`, where a record
+    header that `accept`s starts (the field's 4-byte length and the fields before it, of fewer
+    than FIELDS_BEFORE_OP bytes, lie between), or None."""
+    for at in range(op_at - 4, max(floor, op_at - 4 - FIELDS_BEFORE_OP), -1):
+        if accept(at):
+            return at
     return None
 
 
@@ -137,9 +147,9 @@ def _starts_records(buf, at: int, op_at: int, size: int) -> bool:
     try:
         fields, _, end = _framed(buf, at, size, "")
         _op(fields)
-        return end == size or (end < size and _op(_header(buf, end, size)[0]) in OPS)
     except Malformed:
         return False
+    return end <= size and _followed(buf, end, size)
 
 
 def _followed(buf, end: int, size: int) -> bool:
@@ -170,20 +180,25 @@ def _connection_records(buf, size: int) -> dict[int, list[tuple[dict[str, bytes]
     """conn -> [(header fields, data)] of the whole connection records anywhere in the file: a
     bag that closed holds a copy of each in its index section, after the chunks, which a walk
     from the start meets last (and whose `index_pos` damage before it may have shifted)."""
+
+    def whole_connection(at: int) -> bool:
+        try:
+            fields, _, end = _framed(buf, at, size, "")
+        except Malformed:
+            return False
+        return (
+            end <= size
+            and fields.get("op") == bytes([OP_CONNECTION])
+            and len(fields.get("conn", b"")) == 4
+        )
+
     found: dict[int, list] = {}
-    pattern = OP_FIELD + bytes([OP_CONNECTION])
     pos = 0
-    while (pos := buf.find(pattern, pos + 1)) >= 0:
-        for at in range(pos - 4, max(0, pos - 4 - FIELDS_BEFORE_OP), -1):
-            try:
-                fields, start, end = _framed(buf, at, size, "")
-                if end <= size and fields.get("op") == bytes([OP_CONNECTION]):
-                    found.setdefault(_u32(fields, "conn"), []).append(
-                        (fields, bytes(buf[start:end]))
-                    )
-                    break
-            except Malformed:
-                continue
+    while (pos := buf.find(OP_FIELD + bytes([OP_CONNECTION]), pos + 1)) >= 0:
+        at = _header_start(buf, pos, 0, whole_connection)
+        if at is not None:
+            fields, start, end = _framed(buf, at, size, "")
+            found.setdefault(_u32(fields, "conn"), []).append((fields, bytes(buf[start:end])))
     return found
 
 
