@@ -61,3 +61,26 @@ def test_a_db3_that_ends_inside_a_page_marks_its_scans_suspect(recording):
     assert scans and all(s.index in report.suspect for s in scans)
     assert report.losses[0].where == "the file's end" and report.losses[0].uncounted
     assert "3996 bytes into a page of 4096" in report.losses[0].what
+
+
+def test_a_db3_cut_short_by_whole_pages_gives_the_scans_on_the_pages_left(recording):
+    """SQLite refuses a file shorter than its header says as a whole ("malformed"), though the
+    pages it holds are whole: the scans whose rows lie on them are read, each identical to the
+    intact file's, and the cut is reported with the pages missing."""
+    seq_dir, messages, tmp = recording
+    db3 = make_input("humble db3 file", messages, tmp / "cut_pages")
+    data = db3.read_bytes()
+    pages = len(data) // 4096
+    db3.write_bytes(data[: -2 * 4096])
+    scans, report = read(db3)
+    expected = list(SemanticKittiSequence(seq_dir))
+    assert 0 < len(scans) < len(expected)
+    assert [s.index for s in scans] == list(range(len(scans)))
+    for s in scans:
+        assert np.array_equal(s.points_sensor, expected[s.index].points_sensor)
+        assert np.array_equal(s.labels, expected[s.index].labels)
+    assert report.losses[0].where == "the file's end"
+    assert report.losses[0].what == (
+        f"the file holds {pages - 2} of the {pages} pages its header gives (cut short)"
+    )
+    assert any(loss.where.startswith("messages table after row") for loss in report.losses)

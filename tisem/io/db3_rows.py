@@ -99,6 +99,11 @@ class _Db3File:
             db = sqlite3.connect(f"file:{self.path}?mode=ro&immutable=1", uri=True)
         except sqlite3.Error as exc:
             raise DatasetError(f"{self.path}: cannot open ({one_line(str(exc))})") from None
+        # a file shorter than its header says (cut short) is refused as a whole ("malformed"),
+        # even the pages it still holds, unless the schema is writable: then sqlite reads the
+        # pages there are and calls a row on a missing page malformed (one lost message). The
+        # connection stays read-only and immutable: nothing is written
+        db.execute("PRAGMA writable_schema=ON")
         # text a damaged page garbled is not UTF-8: decoded with replacement characters, a
         # damaged name matches nothing, where sqlite3's own decoding would raise mid-query
         db.text_factory = lambda raw: raw.decode("utf-8", "replace")
@@ -204,7 +209,8 @@ def short_page_loss(path: Path, report: ReadReport, named: bool) -> Iterator[Los
     """A loss, first in the stream, for a `.db3` that ends inside a page (cut, or bytes
     inserted): sqlite reads what its short page lacks as zeros, unchecked, and which rows lay
     there is not known, so every row after the mark is suspect. Its header gives the page
-    size (bytes 16-17, big-endian; 1 means 65536)."""
+    size (bytes 16-17, big-endian; 1 means 65536). A file cut at a page's end reads whole
+    pages: the loss then only says so, and the rows on the missing pages are lost one by one."""
     try:
         with open(path, "rb") as f:
             head = f.read(100)
@@ -213,12 +219,25 @@ def short_page_loss(path: Path, report: ReadReport, named: bool) -> Iterator[Los
         return  # (opening it says so)
     page = int.from_bytes(head[16:18], "big") if len(head) >= 18 else 0
     page = 65536 if page == 1 else page
-    if page < 512 or page & (page - 1) or size % page == 0:
-        return  # (whole pages, or a damaged header: sqlite says what it makes of it)
+    if page < 512 or page & (page - 1):
+        return  # (a damaged header: sqlite says what it makes of it)
     where = f"{path.name}: its end" if named else "the file's end"
-    what = (
-        f"the file ends {size % page} bytes into a page of {page} (cut short, or bytes "
-        f"inserted): rows on that page may read as zeros"
-    )
-    report.losses.append(Loss(where, what, uncounted=True))
-    yield LostMessages(None, None, where)
+    if size % page:
+        what = (
+            f"the file ends {size % page} bytes into a page of {page} (cut short, or bytes "
+            f"inserted): rows on that page may read as zeros"
+        )
+        report.losses.append(Loss(where, what, uncounted=True))
+        yield LostMessages(None, None, where)
+    elif size // page < (declared := _pages_in_header(head)):
+        what = f"the file holds {size // page} of the {declared} pages its header gives (cut short)"
+        report.losses.append(Loss(where, what, uncounted=True))
+
+
+def _pages_in_header(head: bytes) -> int:
+    """The database's size in pages by its header (bytes 28-31), 0 where the header does not
+    vouch for it: SQLite trusts that field only while the change counter (bytes 24-27) equals
+    the version it was written at (bytes 92-95)."""
+    if len(head) < 100 or head[24:28] != head[92:96]:
+        return 0
+    return int.from_bytes(head[28:32], "big")
