@@ -27,7 +27,7 @@ from pathlib import Path
 import yaml
 
 from tisem.errors import DatasetError
-from tisem.io.bag_records import ZSTD_MAGIC, SplitMcapRecords
+from tisem.io.bag_records import ZSTD_MAGIC, SplitMcapRecords, split_files
 from tisem.io.mcap_reader import McapOptions, McapScanReader
 from tisem.io.mcap_summary import MAGIC as MCAP_MAGIC
 
@@ -92,7 +92,7 @@ def _read_around(found: BagInput) -> BagInput | None:
     lacks); a `.db3`, or the one of a rosbag2 folder (whatever its metadata), row by row."""
     if found.kind != "rosbags" or importlib.util.find_spec("rosbags") is None:
         return None  # (without rosbags, the refusal says to install it)
-    db3s = [found.path] if found.path.is_file() else _files(found.path, ".db3")
+    db3s = [found.path] if found.path.is_file() else split_files(found.path, ".db3")
     if found.storage == "sqlite3" and db3s:
         note = (
             f"rosbags cannot read {_listing(db3s)} (damaged database pages? its metadata?): its "
@@ -263,17 +263,10 @@ def _identify_folder(folder: Path) -> BagInput:
     return BagInput(folder, "rosbags", what, storage=storage)
 
 
-def _split_order(path: Path) -> tuple:
-    """rosbag2 names its splits NAME_0, NAME_1, ... NAME_10: order them by that number."""
-    stem = path.stem
-    digits = len(stem) - len(stem.rstrip("0123456789"))
-    return (stem[: len(stem) - digits], int(stem[len(stem) - digits :] or -1), path.name)
-
-
 def _without_metadata(folder: Path, why: str) -> BagInput | None:
     """A rosbag2 folder whose metadata is missing or unreadable, read from its storage files:
     its MCAP files in split order, or its one `.db3`; None when it holds neither."""
-    mcaps, db3s = _files(folder, ".mcap"), _files(folder, ".db3")
+    mcaps, db3s = split_files(folder, ".mcap"), split_files(folder, ".db3")
     hint = f"`ros2 bag reindex {folder}` rebuilds it"
     if mcaps and not db3s:
         note = (
@@ -297,11 +290,6 @@ def _without_metadata(folder: Path, why: str) -> BagInput | None:
 
 def _listing(files: list[Path]) -> str:
     return ", ".join(p.name for p in files[:4]) + (", ..." if len(files) > 4 else "")
-
-
-def _files(folder: Path, suffix: str) -> list[Path]:
-    """The folder's files with this suffix, in split order."""
-    return sorted((p for p in folder.glob(f"*{suffix}") if p.is_file()), key=_split_order)
 
 
 def _message_compressed_split(path: Path) -> bool:

@@ -208,7 +208,7 @@ class RosbagRecords:
         if self.storage == "sqlite3":  # (sqlite checks no page: a short one reads as zeros)
             from tisem.io.db3_rows import short_page_loss
 
-            db3s = [self.path] if self.path.is_file() else sorted(self.path.glob("*.db3"))
+            db3s = [self.path] if self.path.is_file() else split_files(self.path, ".db3")
             for db3 in db3s:
                 yield from short_page_loss(db3, report, len(db3s) > 1)
         with self._open() as reader:
@@ -280,3 +280,15 @@ class RosbagDecoders:
 def _reason(exc: Exception) -> str:
     text = str(exc).strip().splitlines()[0] if str(exc).strip() else ""
     return f"{type(exc).__name__}: {text[:200]}" if text else type(exc).__name__
+
+
+def split_files(folder: Path, suffix: str) -> list[Path]:
+    """The folder's files with this suffix, in split order."""
+    return sorted((p for p in folder.glob(f"*{suffix}") if p.is_file()), key=_split_order)
+
+
+def _split_order(path: Path) -> tuple:
+    """rosbag2 names its splits NAME_0, NAME_1, ... NAME_10: order them by that number."""
+    stem = path.stem
+    digits = len(stem) - len(stem.rstrip("0123456789"))
+    return (stem[: len(stem) - digits], int(stem[len(stem) - digits :] or -1), path.name)
