@@ -2,12 +2,14 @@
 
 The intact bags hold the synthetic recording of `tisem.synth.mcap_log` written again by
 `rosbags`: as ROS 1 (noetic types) in small chunks, bz2, lz4 or uncompressed, and as the `.db3`
-of a rosbag2 folder. An edit is a cut, bit flips, a run of bytes overwritten or inserted (at a
-record's or page's start, or anywhere), or a ROS 1 bag header's index position zeroed (a
-recording that did not close), with or without a cut. Neither format checksums its data: a
-change inside the message data of an uncompressed or lz4 chunk, or anywhere in a `.db3`, can
-give other values that are still valid, which no reader can notice (`detectable` False); bz2
-checks each of its blocks.
+of a rosbag2 folder; and a longer recording as a second `.db3` (`db3-long`: larger clouds, whose
+data runs over pages of its own, and /tf at a high rate, so that the messages table takes many
+leaf pages under an interior root, as a real recording's does). An edit is a cut, bit flips, a
+run of bytes overwritten or inserted (at a record's or page's start, or anywhere), or a ROS 1
+bag header's index position zeroed (a recording that did not close), with or without a cut.
+Neither format checksums its data: a change inside the message data of an uncompressed or lz4
+chunk, or anywhere in a `.db3`, can give other values that are still valid, which no reader can
+notice (`detectable` False); bz2 checks each of its blocks.
 """
 
 from __future__ import annotations
@@ -23,9 +25,11 @@ from tisem.io.ros1_linear import OP_BAG_HEADER, OP_CHUNK, OP_CHUNK_INFO, OP_INDE
 from tisem.synth.mcap_log import write_synthetic_log
 from tisem.testing.mcap_damage import Mutation  # (a byte edit: what, of which base, its bytes)
 
-BASES = ("bz2", "lz4", "uncompressed", "db3")
+BASES = ("bz2", "lz4", "uncompressed", "db3", "db3-long")
 PAGE = 4096  # a .db3's page size (rosbags' writer keeps SQLite's default)
 _COMMON = dict(n_scans=5, n_points=40, tf_rate_hz=20.0, seed=7)
+# the longer .db3: clouds of ~25 kB (a chain of overflow pages each), /tf at 250 Hz
+_LONG = dict(n_scans=8, n_points=1200, tf_rate_hz=250.0, seed=8)
 CHUNK_BYTES = 1500  # (a chunk or two per cloud)
 
 
@@ -108,7 +112,7 @@ class Base:
         the index's (its framing; `rosbags` trusts the index, whose counts and positions, once
         changed, can drop a message unseen), in the bag header's padding (it changes nothing),
         in a bz2 chunk's data. SQLite checks no page: a `.db3` byte, never."""
-        if self.name == "db3":
+        if is_db3(self.name):
             return False
         for head, start, end, op in self.records:
             if head <= at < end:
@@ -136,8 +140,11 @@ def write_bases(folder: Path) -> dict[str, Base]:
     messages = recorded_messages(folder / "source.mcap")
     out = {}
     for name in BASES:
-        if name == "db3":  # (its "records": its pages)
-            path = write_db3(folder / "db3_bag", messages)
+        if is_db3(name):  # (its "records": its pages)
+            if name == "db3-long":
+                write_synthetic_log(folder / "long.mcap", **_LONG)
+            source = recorded_messages(folder / "long.mcap") if name == "db3-long" else messages
+            path = write_db3(folder / f"{name.replace('-', '_')}_bag", source)
             data = path.read_bytes()
             out[name] = Base(
                 name, path, data, [(a, a, a + PAGE, 0) for a in range(0, len(data), PAGE)]
@@ -213,4 +220,9 @@ def bag_mutation(bases: dict[str, Base], rng: np.random.Generator, kind: int) ->
     index position: a cut instead)."""
     name = BASES[int(rng.integers(len(BASES)))]
     edit = BYTE_EDITS[kind % len(BYTE_EDITS)]
-    return (_cut if edit is _no_index and name == "db3" else edit)(bases[name], rng)
+    return (_cut if edit is _no_index and is_db3(name) else edit)(bases[name], rng)
+
+
+def is_db3(name: str) -> bool:
+    """Whether base `name` is a `.db3` (the others are ROS 1 bags)."""
+    return name.startswith("db3")
