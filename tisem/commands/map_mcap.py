@@ -7,11 +7,13 @@
     tisem map-mcap 08.mcap --gt-field gt_label --save-scans      # scores like map_kitti.py
     tisem map-mcap drive.mcap --out results/drive --checkpoint-every 100
     tisem map-mcap --resume results/drive                       # after a crash: go on
+    tisem map-mcap drive --static-tf "0.81 -0.32 1.73 0 0 0 1 base_link velodyne"  # no /tf_static
 
 Reads ROS 2 `sensor_msgs/msg/PointCloud2` (cdr) or `foxglove.PointCloud` (protobuf). Poses come
 from /tf + /tf_static (map frame -> the cloud's frame_id at the header stamp, interpolated),
 or from `--pose-topic` (nav_msgs/Odometry, geometry_msgs/PoseStamped; /tf_static still gives
-the sensor mount). Damaged files (cut short, bad chunks, no index) are read as far as they
+the sensor mount; `--static-tf "X Y Z QX QY QZ QW PARENT CHILD"` gives a mount the recording
+lacks). Damaged files (cut short, bad chunks, no index) are read as far as they
 can be; what was lost is printed and written to `mcap_report.json`. The output folder gets
 what `map_kitti.py` writes plus `map.mcap` (topic /semantic_map, open it in Foxglove).
 """
@@ -48,6 +50,7 @@ RECORDING_OPTIONS = {
     "pose_topic": "--pose-topic",
     "pose_child_frame": "--pose-child-frame",
     "tf_tolerance_ms": "--tf-tolerance-ms",
+    "static_tf": "--static-tf",
     "sequence": "--sequence",
 }
 
@@ -88,6 +91,15 @@ def build_parser() -> argparse.ArgumentParser:
         type=float,
         default=0.0,
         help="accept a stamp this far outside a transform's samples (default 0)",
+    )
+    g.add_argument(
+        "--static-tf",
+        action="append",
+        metavar='"X Y Z QX QY QZ QW PARENT CHILD"',
+        help="a static transform the recording lacks or gets wrong, e.g. the sensor mount "
+        "base_link -> velodyne, in quotes (metres, then the quaternion, in the order of "
+        "tf2_ros static_transform_publisher): it replaces the recording's transforms of "
+        "CHILD; repeatable",
     )
     g.add_argument(
         "--sequence",
@@ -140,10 +152,29 @@ def recording_options(args: argparse.Namespace, plan: cli.RunPlan) -> McapOption
             pose_topic=args.pose_topic,
             pose_child_frame=args.pose_child_frame,
             tf_tolerance_s=cli.finite_number("--tf-tolerance-ms", args.tf_tolerance_ms) / 1e3,
+            static_tf=static_tf_option(args.static_tf),
             **frames,
         )
         options.validate()
     return options
+
+
+def static_tf_option(given: list[str] | None) -> tuple:
+    """Each --static-tf "X Y Z QX QY QZ QW PARENT CHILD" as an item of `McapOptions.static_tf`.
+    One quoted argument, not nine: argparse takes a number such as -8e-05 for an option."""
+    out = []
+    for text in given or ():
+        values = text.split()
+        try:
+            if len(values) != 9:
+                raise ValueError
+            *numbers, parent, child = values
+            out.append((parent, child, *(float(v) for v in numbers)))
+        except ValueError:
+            raise ValueError(
+                f"--static-tf {text!r}: expected X Y Z QX QY QZ QW (numbers), then PARENT CHILD"
+            ) from None
+    return tuple(out)
 
 
 def map_recording(args: argparse.Namespace) -> int:

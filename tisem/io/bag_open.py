@@ -61,14 +61,20 @@ def open_scan_reader(path: str | Path, options: McapOptions | None = None) -> Mc
     found = identify(path)
     try:
         reader = _open_noted(found, options)
-    except DatasetError:
+    except DatasetError as refusal:
         around = _read_around(found)
         if around is None:
             raise
-    else:
-        return _past_the_damage(found, reader, options)
-    # (a refusal here says what the records or rows held, and its note what was tried)
-    return _open_noted(around, options)
+        try:
+            return _open_noted(around, options)
+        except DatasetError as other:
+            # read alike both ways, the recording is refused for what it holds (no transform
+            # to the cloud's frame, no clouds): that refusal, not one blaming its pages
+            if str(other) == f"{refusal} ({around.note})":
+                raise refusal from None
+            # (else it says what the records or rows held, and its note what was tried)
+            raise
+    return _past_the_damage(found, reader, options)
 
 
 def _past_the_damage(found: BagInput, reader: McapScanReader, options) -> McapScanReader:

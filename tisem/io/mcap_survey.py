@@ -247,15 +247,27 @@ class Survey:
     def _build_tf(self, samples: list) -> None:
         opts = self.options
         self.tf = TfBuffer(max_extrapolation_s=opts.tf_tolerance_s)
+        # the user's transforms (--static-tf) first, in place of the recording's of their child
+        given = {child: parent for parent, child, _, _ in opts.static_transforms()}
+        for parent, child, xyz, q in opts.static_transforms():
+            self.tf.add(parent, child, 0, xyz, q, static=True)
+        replaced = Counter()
+
+        def replaces(child: str) -> bool:
+            if child.lstrip("/") in given:
+                replaced[child.lstrip("/")] += 1
+                return True
+            return False
+
         for static, _fox, parent, child, t, xyz, q in samples:
-            if static:
+            if static and not replaces(child):
                 self.tf.add(parent, child, t, xyz, q, static=True)
         # a PoseStamped names no child: by default it is the pose of the top of the sensor's
         # static mount (base_link for base_link -> velodyne), or of the sensor when unmounted
         child_default = opts.pose_child_frame or self.tf.root_of(self.frame_id)
         fox_children = set()
         for static, fox, parent, child, t, xyz, q in samples:
-            if static:
+            if static or replaces(child or child_default):
                 continue
             self.tf.add(parent, child or child_default, t, xyz, q)
             if fox:
@@ -267,6 +279,11 @@ class Survey:
                     f"foxglove transforms that never change were taken as "
                     f"static: {', '.join(sorted(promoted))}"
                 )
+        self.report.notes += [
+            f"tf: {given[child]} -> {child} from --static-tf, in place of the recording's "
+            f"{n} transform(s) of {child}"
+            for child, n in replaced.items()
+        ]
         self.report.notes += [f"tf: {w}" for w in self.tf.warnings]
 
     def _check_tf(self) -> None:
@@ -291,5 +308,6 @@ class Survey:
                 raise DatasetError(
                     f"{self.path}: no transform from the map frame "
                     f"{opts.map_frame!r} to the cloud frame {self.frame_id!r} "
-                    f"(--map-frame, --pose-topic): {e}"
+                    f"(--map-frame, --pose-topic; a sensor mount the recording lacks: "
+                    f"--static-tf X Y Z QX QY QZ QW PARENT CHILD): {e}"
                 ) from None
