@@ -123,3 +123,23 @@ def test_map_mcap_takes_the_mount_in_quotes_and_refuses_other_text_in_one_line(t
     (line,) = [x for x in bad.stderr.splitlines() if "--static-tf" in x]
     assert "expected X Y Z QX QY QZ QW (numbers), then PARENT CHILD" in line
     assert "Traceback" not in bad.stderr and not (tmp_path / "bad").exists()
+
+
+def test_a_bag_without_a_mount_is_refused_for_that_alone(tmp_path):
+    """rosbags reads the `.db3` and refuses it for what it holds (no mount); the row reader,
+    tried next, refuses it alike: the refusal is that one line, without a note blaming the
+    file's pages. With --static-tf the bag maps."""
+    pytest.importorskip("rosbags", reason="the rosbags package (tisem[mcap]) is not installed")
+    from tisem.io.bag_open import open_scan_reader
+    from tisem.testing.bag_damage import recorded_messages, write_db3
+
+    messages = recorded_messages(write_recording(tmp_path / "no_mount.mcap", None))
+    db3 = write_db3(tmp_path / "no_mount_bag", messages)
+    with pytest.raises(DatasetError) as info:
+        open_scan_reader(db3.parent)
+    assert "cloud frame 'velodyne'" in str(info.value)
+    assert "rosbags cannot read" not in str(info.value) and "\n" not in str(info.value)
+    given = ("base_link", "velodyne", *mount_of(T_BASE_LIDAR))
+    scans = list(open_scan_reader(db3.parent, McapOptions(static_tf=(given,))))
+    for s, t in zip(scans, CLOUD_AT, strict=True):
+        assert np.abs(s.T_world_sensor - expected_pose(t)).max() < 1e-9
