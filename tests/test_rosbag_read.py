@@ -375,6 +375,26 @@ def test_a_ros1_bag_without_its_index_is_read_record_by_record(recording, compre
     assert loss.where.startswith("chunk at byte ") and "cut short" in loss.what
 
 
+def test_a_ros1_bag_of_tf_before_tf2_is_read(recording):
+    """Bags of older ROS 1 releases carry /tf and /tf_static as `tf/tfMessage`, not
+    `tf2_msgs/TFMessage` (the same fields): read by `rosbags` and record by record (without
+    the index), the scans and their poses are those of the tf2 bag."""
+    seq_dir, messages, tmp = recording
+    bag = write_ros1_bag(tmp / "old_tf.bag", messages, old_tf=True)
+    assert b"tf/tfMessage" in bag.read_bytes()
+    data = bag.read_bytes()
+    at = data.index(b"index_pos=") + len(b"index_pos=")
+    open_bag = tmp / "old_tf_open.bag"
+    open_bag.write_bytes(data[:at] + bytes(8) + data[at + 8 :])
+    expected = list(SemanticKittiSequence(seq_dir))
+    for path in (bag, open_bag):
+        got = list(open_scan_reader(path, McapOptions(gt_field="gt_label")))
+        assert [s.index for s in got] == [0, 1, 2, 3]
+        for a, b in zip(expected, got):
+            assert np.array_equal(a.points_sensor, b.points_sensor)
+            assert np.abs(a.T_world_sensor - b.T_world_sensor).max() < 1e-6
+
+
 def test_a_damaged_chunk_of_a_ros1_bag_costs_that_chunk_alone(recording):
     """rosbags stops at the first chunk that does not inflate; read record by record, the
     chunks after it are mapped too (the scans after the loss are marked suspect: how many

@@ -30,7 +30,9 @@ UNSUPPORTED_CLOUDS = (
     "foxglove.LaserScan",
 )
 # schema names of the pose carriers: transform trees, and single poses (`--pose-topic`)
-TF_SCHEMAS = ("tf2_msgs/msg/TFMessage", "foxglove.FrameTransform", "foxglove.FrameTransforms")
+# (tf/tfMessage: tf before tf2, in the ROS 1 bags of older releases; the same fields)
+TF_MESSAGES = ("tf2_msgs/msg/TFMessage", "tf/msg/tfMessage")
+TF_SCHEMAS = (*TF_MESSAGES, "foxglove.FrameTransform", "foxglove.FrameTransforms")
 POSE_SCHEMAS = (
     "nav_msgs/msg/Odometry",
     "geometry_msgs/msg/PoseStamped",
@@ -105,7 +107,7 @@ def pose_edges(
     Odometry names its child (`child_frame_id`); PoseStamped does not, so `default_child` (the
     frame the user says the pose is of) is used; empty parents mean `default_parent`.
     """
-    if schema_name == "tf2_msgs/msg/TFMessage":
+    if schema_name in TF_MESSAGES:
         return [
             (
                 t.header.frame_id,

@@ -45,19 +45,23 @@ def recorded_messages(mcap_path: Path) -> list[tuple[str, str, int, bytes]]:
 
 
 def write_ros1_bag(
-    path: Path, messages, compression: str | None = None, chunk_bytes: int | None = None
+    path: Path,
+    messages,
+    compression: str | None = None,
+    chunk_bytes: int | None = None,
+    old_tf: bool = False,
 ) -> Path:
     """ROS 2 messages (`recorded_messages`) as a ROS 1 bag of noetic types (ROS 1 headers carry
     a `seq`; noetic has no tf2), chunks compressed with `compression` ("BZ2", "LZ4" or None)
-    and closed after `chunk_bytes`."""
+    and closed after `chunk_bytes`; with `old_tf`, transforms as `tf/tfMessage` (tf before
+    tf2, in bags of older ROS 1 releases) instead of `tf2_msgs/TFMessage`."""
     from rosbags.rosbag1 import Writer
     from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
     humble = get_typestore(Stores.ROS2_HUMBLE)
     noetic = get_typestore(Stores.ROS1_NOETIC)
-    noetic.register(
-        get_types_from_msg("geometry_msgs/TransformStamped[] transforms", "tf2_msgs/msg/TFMessage")
-    )
+    for name in ("tf2_msgs/msg/TFMessage", "tf/msg/tfMessage"):
+        noetic.register(get_types_from_msg("geometry_msgs/TransformStamped[] transforms", name))
 
     def to_ros1(obj):
         if dataclasses.is_dataclass(obj):
@@ -78,10 +82,11 @@ def write_ros1_bag(
     with writer:
         connections = {}
         for topic, msgtype, t, data in messages:
+            ros1_type = "tf/msg/tfMessage" if old_tf and msgtype.startswith("tf2_") else msgtype
             if topic not in connections:
-                connections[topic] = writer.add_connection(topic, msgtype, typestore=noetic)
+                connections[topic] = writer.add_connection(topic, ros1_type, typestore=noetic)
             msg = to_ros1(humble.deserialize_cdr(data, msgtype))
-            writer.write(connections[topic], t, noetic.serialize_ros1(msg, msgtype))
+            writer.write(connections[topic], t, noetic.serialize_ros1(msg, ros1_type))
     return path
 
 
