@@ -70,7 +70,7 @@ def open_scan_reader(path: str | Path, options: McapOptions | None = None) -> Mc
         except DatasetError as other:
             # read alike both ways, the recording is refused for what it holds (no transform
             # to the cloud's frame, no clouds): that refusal, not one blaming its pages
-            if str(other) == f"{refusal} ({around.note})":
+            if str(other) == _noted(str(refusal), around.note):
                 raise refusal from None
             # (else it says what the records or rows held, and its note what was tried)
             raise
@@ -122,9 +122,14 @@ def _open_noted(found: BagInput, options: McapOptions | None) -> McapScanReader:
     try:
         reader = _open(found, options)
     except DatasetError as e:
-        raise DatasetError(f"{e} ({found.note})") from None
+        raise DatasetError(_noted(str(e), found.note)) from None
     reader.report.notes.append(found.note)
     return reader
+
+
+def _noted(refusal: str, note: str) -> str:
+    """A refusal of an input read another way than its own, with how (`BagInput.note`)."""
+    return f"{refusal} ({note})"
 
 
 def _open(found: BagInput, options: McapOptions | None) -> McapScanReader:

@@ -248,9 +248,10 @@ class Survey:
         opts = self.options
         self.tf = TfBuffer(max_extrapolation_s=opts.tf_tolerance_s)
         # the user's transforms (--static-tf) first, in place of the recording's of their child
-        given = {child: parent for parent, child, _, _ in opts.static_transforms()}
+        given = {}
         for parent, child, xyz, q in opts.static_transforms():
             self.tf.add(parent, child, 0, xyz, q, static=True)
+            given[child] = parent
         replaced = Counter()
 
         def replaces(child: str) -> bool:

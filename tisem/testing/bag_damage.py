@@ -146,9 +146,10 @@ def write_bases(folder: Path) -> dict[str, Base]:
     out = {}
     for name in BASES:
         if is_db3(name):  # (its "records": its pages)
+            source = messages
             if name == "db3-long":
                 write_synthetic_log(folder / "long.mcap", **_LONG)
-            source = recorded_messages(folder / "long.mcap") if name == "db3-long" else messages
+                source = recorded_messages(folder / "long.mcap")
             path = write_db3(folder / f"{name.replace('-', '_')}_bag", source)
             data = path.read_bytes()
             out[name] = Base(
