@@ -173,3 +173,40 @@ def test_fleet_benchmark_runs(ray_cluster, tmp_path, capsys):
     assert [r["row"] for r in rows] == ["serial", "fleet (apart)", "fleet (refined)"]
     assert rows[2]["label_agreement"] == 1.0 and rows[1]["peak_reducer_mb"] > 0
     assert "| bki | fleet (refined) |" in capsys.readouterr().out
+
+
+def test_recordings_are_mapped_and_scored_with_their_options(ray_cluster, tmp_path):
+    """A .db3 bag and a ROS 1 bag of the same drive, read with --gt-field's option: a batch
+    cell scores the .db3 as map-mcap would, and its run names the options (so `tisem render`
+    reads the recording again); a fleet maps both into one frame and scores the merged map."""
+    pytest.importorskip("rosbags")
+    from test_mcap_kitti import write_tiny_sequence
+    from test_rosbag_read import make_input, recorded_messages
+
+    from tisem.batch import run_batch
+    from tisem.fleet import FleetOptions, run_fleet
+    from tisem.viz.sources import open_run_scans
+
+    seq = write_tiny_sequence(tmp_path / "seq", n_scans=4, n_points=500)
+    messages = recorded_messages(seq, tmp_path)
+    db3 = make_input("db3 folder", messages, tmp_path / "bags")
+    ros1 = make_input("ros1", messages, tmp_path / "bags")
+    read = {"gt_field": "gt_label"}
+    logs = discover_logs([db3, ros1], recording=read)
+    assert [log.options for log in logs] == [read, read]
+
+    batch = run_batch(logs[:1], tmp_path / "batch", overrides=["mode=bki"])
+    (row,) = batch.rows
+    assert row["scans"] == 4 and row["evaluated"] > 0 and row["miou"] > 0
+    assert row["read_losses"] == []
+    (run_json,) = (tmp_path / "batch").rglob("run.json")
+    run = json.loads(run_json.read_text())
+    assert run["options"] == read
+    scans = open_run_scans(run, {}, run_json.parent, run_json)
+    assert len(scans.scan_ids) == 4 and scans.has_ground_truth
+
+    cfg = load_config(None, ["mode=bki"])
+    result = run_fleet(logs, cfg, tmp_path / "fleet", FleetOptions(threads=1, world_frame="map"))
+    assert not result.failed and list(result.maps) == ["map"]
+    metrics = json.loads((result.maps["map"] / "metrics.json").read_text())
+    assert metrics["scans"] == 8 and metrics["final"]["miou"] > 0

@@ -25,7 +25,7 @@ from pathlib import Path
 
 from tisem import cluster
 from tisem.config import load_config, to_dict
-from tisem.logs import LogSpec, discover_logs, open_log
+from tisem.logs import LogSpec, discover_logs, open_log, read_losses
 
 log = logging.getLogger(__name__)
 
@@ -141,6 +141,7 @@ def run_cell(cell: dict, folder: str, threads: int, arch: str, map_files: bool) 
         total=len(scans),
         source_info={
             "data" if spec.kind == "kitti" else "mcap": spec.path,
+            **({"options": spec.options} if spec.kind == "mcap" else {}),
             "cell": cell["cell"],
             "threads": threads,
         },
@@ -154,6 +155,7 @@ def run_cell(cell: dict, folder: str, threads: int, arch: str, map_files: bool) 
         "seconds_per_scan": m["seconds_per_scan"],
         "wall_seconds": time.perf_counter() - started,
         "evaluated": m["evaluated"],
+        "read_losses": read_losses(scans),
         **{f"{k}": m["final"][k] for k in ("miou", "accuracy", "wiou")},
         "input_miou": m["input"]["miou"],
         "input_accuracy": m["input"]["accuracy"],

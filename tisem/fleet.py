@@ -229,7 +229,7 @@ def run_fleet(
     if any(s is None for s in specs):
         specs = discover_logs([str(Path(p).resolve()) for p in logs])
     if options.world_frame:
-        specs = [LogSpec(s.kind, s.path, s.name, options.world_frame) for s in specs]
+        specs = [dataclasses.replace(s, world_frame=options.world_frame) for s in specs]
     groups = group_logs(specs)
     anchors = group_anchors(groups, cfg)
     tasks = {

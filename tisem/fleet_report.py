@@ -2,8 +2,9 @@
 
 Step 5 of `tisem.fleet` (each log scored in its group's merged map, one Ray task per log),
 then each group's metrics.json and, when the merged map fits, its usual map files, and the
-content of fleet.json: what ran, what failed and which scans are missing. Apart from the
-planning and mapping in `tisem.fleet` because this part only reads what those steps left.
+content of fleet.json: what ran, what failed and which scans are missing (and what a damaged
+recording lost: `lost` lines). Apart from the planning and mapping in `tisem.fleet` because
+this part only reads what those steps left.
 """
 
 from __future__ import annotations
@@ -133,6 +134,8 @@ def _missing(tasks, mine, finals, failed) -> list[dict]:
             out.append(
                 {"task": t, "log": tasks[t].log.path, "scan": s["index"], "reason": s["reason"]}
             )
+        for line in (finals.get(t) or {}).get("read_losses", []):  # (a damaged recording)
+            out.append({"task": t, "log": tasks[t].log.path, "lost": line})
     return out
 
 

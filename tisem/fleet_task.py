@@ -25,7 +25,7 @@ import numpy as np
 
 from tisem.config import run_config_from_dict
 from tisem.errors import NothingMapped, SkippedScan
-from tisem.logs import LogSpec, open_log
+from tisem.logs import LogSpec, open_log, read_losses
 from tisem.merge import contribution, merge_snapshots
 from tisem.snapshot import MapSnapshot
 from tisem.tiles import (
@@ -206,6 +206,7 @@ def map_task(
         "task": task.to_dict(),
         "scans": mapped,
         "skipped": skipped,
+        "read_losses": read_losses(scans),
         "seconds_per_scan": float(np.median(seconds)) if seconds else None,
         "mapping_seconds": float(np.sum(seconds)),
         "wall_seconds": time.perf_counter() - started,

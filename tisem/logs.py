@@ -2,10 +2,15 @@
 
     logs = discover_logs(["/data/kitti/dataset", "robot7.mcap", "bags/robot8/"])
     scans = open_log(logs[0], first=100, last=199)     # Scan | SkippedScan, in order
+    logs = discover_logs(["bags/"], recording={"gt_field": "gt_label"})  # how to read them
 
 A dataset root (a folder with `sequences/NN/`) gives one log per sequence, a sequence folder
-(with `velodyne/`) one, an `.mcap` file one, and a ROS 2 bag (a folder with `metadata.yaml`) one
-per `.mcap` file in it. Scan ranges are positions in the log, inclusive.
+(with `velodyne/`) one; a recording one: an `.mcap`, `.db3` or ROS 1 `.bag` file, or a rosbag2
+folder (one with `metadata.yaml`: its split files are one recording, read in order, and only
+the first holds `/tf_static`). Recordings are read by `tisem.io.bag_open`, each with the
+recording options it was discovered with (`McapOptions` fields: topic, label and ground-truth
+fields, map frame, static transforms ...), which travel with the log to the process that maps
+it. Scan ranges are positions in the log, inclusive.
 
 World frames. Maps merge only in one world frame, so every log names its frame: a SemanticKITTI
 sequence's poses are in its own first camera frame (`kitti:<sequence folder>`), unless the
@@ -17,9 +22,10 @@ share it (`world_frame=`).
 
 from __future__ import annotations
 
+import dataclasses
 import os
 from collections.abc import Iterable
-from dataclasses import dataclass
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 
 import numpy as np
@@ -30,6 +36,8 @@ __all__ = [
     "LogSpec",
     "discover_logs",
     "open_log",
+    "read_losses",
+    "recording_fields",
     "first_pose",
     "log_length",
     "kitti_world_frame",
@@ -41,12 +49,15 @@ WORLD_FRAME_FILE = "world_frame.txt"
 
 @dataclass(frozen=True)
 class LogSpec:
-    """One log: its kind ("kitti" or "mcap"), its file or folder, a short name, its frame."""
+    """One log: its kind ("kitti", or "mcap" for a recording in any of the formats bag_open
+    reads), its file or folder, a short name, its frame, and for a recording how to read it
+    (`McapOptions` fields but the scan range, plain JSON)."""
 
     kind: str
     path: str
     name: str
     world_frame: str
+    options: dict = field(default_factory=dict)
 
     def to_dict(self) -> dict:
         return dict(vars(self))
@@ -67,23 +78,49 @@ def _kitti(folder: Path, name: str | None = None) -> LogSpec:
     return LogSpec("kitti", str(folder), name or folder.name, kitti_world_frame(folder))
 
 
-def _mcap(file: Path, map_frame: str, name: str | None = None) -> LogSpec:
-    return LogSpec("mcap", str(file), name or file.stem, f"mcap:{file.resolve()}#{map_frame}")
+def _recording(path: Path, options: dict) -> LogSpec:
+    """A recording as a log, once bag_open knows what it is (DatasetError in one line if not:
+    a file that is no recording, a folder without one)."""
+    from tisem.io.bag_open import identify
+
+    identify(path)
+    frame = options.get("map_frame", "map")
+    name = path.stem if path.is_file() else path.name
+    return LogSpec("mcap", str(path), name, f"mcap:{path.resolve()}#{frame}", dict(options))
+
+
+def recording_fields(options) -> dict:
+    """The recording options (an `McapOptions` or a dict of its fields) as a log keeps them:
+    plain JSON, without the scan range and class count, which the run's config sets."""
+    from tisem.io.mcap_options import McapOptions
+
+    given = options if isinstance(options, dict) else vars(options)
+    known = {f.name for f in fields(McapOptions)} - {"first", "last", "num_classes"}
+    unknown = sorted(set(given) - known - {"first", "last", "num_classes"})
+    if unknown:
+        raise ValueError(f"recording options: unknown {unknown}; known: {sorted(known)}")
+    kept = {k: v for k, v in given.items() if k in known}
+    if "static_tf" in kept:  # tuples of tuples -> lists, as JSON gives them back
+        kept["static_tf"] = [list(t) for t in kept["static_tf"]]
+    McapOptions(**kept).validate()
+    return kept
 
 
 def discover_logs(
     paths: Iterable[str | os.PathLike],
     sequences: Iterable[str] | None = None,
-    map_frame: str = "map",
+    recording=None,
 ) -> list[LogSpec]:
     """Every log under `paths` (module docstring); `sequences` picks sequences of a dataset
-    root. Raises DatasetError naming a path that holds no log."""
+    root, `recording` (an `McapOptions` or a dict of its fields) says how the recordings are
+    read. Raises DatasetError naming a path that holds no log, ValueError for an option."""
     wanted = None if sequences is None else {str(s).zfill(2) for s in sequences}
+    options = recording_fields(recording or {})
     logs: list[LogSpec] = []
     for given in paths:
         path = Path(given)
-        if path.is_file() and path.suffix == ".mcap":
-            logs.append(_mcap(path, map_frame))
+        if path.is_file():
+            logs.append(_recording(path, options))
         elif (path / "velodyne").is_dir():
             logs.append(_kitti(path))
         elif (path / "sequences").is_dir():
@@ -95,24 +132,16 @@ def discover_logs(
                 )
             logs += [_kitti(p) for p in found]
         elif (path / "metadata.yaml").is_file():
-            files = sorted(path.glob("*.mcap"))
-            if not files:
-                raise DatasetError(
-                    f"{path}: a ROS 2 bag without .mcap files (only MCAP storage is read)"
-                )
-            logs += [_mcap(f, map_frame, f"{path.name}/{f.stem}") for f in files]
+            logs.append(_recording(path, options))
         else:
             raise DatasetError(
-                f"{path}: not a log (expected a SemanticKITTI sequence or "
-                f"dataset root, an .mcap file or a ROS 2 bag folder)"
+                f"{path}: not a log (expected a SemanticKITTI sequence or dataset root, an "
+                f".mcap, .db3 or ROS 1 .bag file, or a rosbag2 folder with its metadata.yaml)"
             )
     names = [log.name for log in logs]
     if len(set(names)) != len(names):
         # logs named alike (two dataset roots with sequence 00): tell them apart by position
-        logs = [
-            LogSpec(log.kind, log.path, f"{k:03d}-{log.name}", log.world_frame)
-            for k, log in enumerate(logs)
-        ]
+        logs = [dataclasses.replace(log, name=f"{k:03d}-{log.name}") for k, log in enumerate(logs)]
     return logs
 
 
@@ -143,10 +172,10 @@ def open_log(
     first: int = 0,
     last: int | None = None,
     input: str = "predictions",
-    mcap_options: dict | None = None,
 ):
     """The scans of positions first..last (inclusive) of the log, as its reader gives them
-    (`len()` and iteration of `Scan | SkippedScan`)."""
+    (`len()` and iteration of `Scan | SkippedScan`; a recording's reader also says what it
+    could not read, `.report`)."""
     if log.kind == "kitti":
         from tisem.io.semantickitti import SemanticKittiSequence
 
@@ -157,8 +186,20 @@ def open_log(
         stop = len(ids) - 1 if last is None else min(last, len(ids) - 1)
         return SemanticKittiSequence(log.path, input=input, first=ids[first], last=ids[stop])
     if log.kind == "mcap":
-        from tisem.io.mcap_reader import McapOptions, McapScanReader
+        from tisem.io.bag_open import open_scan_reader
+        from tisem.io.mcap_options import McapOptions
 
-        options = McapOptions(**dict(mcap_options or {}, first=first, last=last))
-        return McapScanReader(log.path, options)
+        options = McapOptions(**{**log.options, "first": first, "last": last})
+        return open_scan_reader(log.path, options)
     raise ValueError(f"unknown log kind {log.kind!r}")
+
+
+def read_losses(scans) -> list[str]:
+    """What the reader of an opened log (`open_log`, after its scans were read) could not use
+    besides the scans it skipped, one line each: a recording's lost messages, suspect scans,
+    unknown labels (its report); none for a SemanticKITTI sequence, whose skipped scans say
+    it all."""
+    report = getattr(scans, "report", None)
+    if report is None:
+        return []
+    return dataclasses.replace(report, skipped=[]).lines()

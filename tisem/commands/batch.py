@@ -3,7 +3,10 @@
     tisem batch /data/kitti/dataset --sweep mode=bki,st --out results/sweep
     tisem batch data/robots --sweep tau_s=1,2,5,10 --sweep ell_max_m=0.8,1.2
     tisem batch ... --out results/sweep          # again: only what is missing runs
+    tisem batch drive.db3 --gt-field gt_label --sweep tau_s=1,5   # a recording, scored
 
+LOG: a SemanticKITTI dataset root or sequence folder, or a recording (an .mcap, .db3 or ROS 1
+.bag file, a rosbag2 folder), read with the recording options (those of `tisem map-mcap`).
 A cell is one log under one config (--set / --config, then one value of every --sweep); it
 is a mapping run in its own process into <out>/<log>/<cell>/. Finished cells are kept.
 """
@@ -19,6 +22,7 @@ from tisem import cli
 from tisem.commands import entry, new_parser
 from tisem.extras import require
 from tisem.ray_cli import add_cluster_args, add_config_args, results_folder
+from tisem.recording_args import add_recording_args, recording_options
 
 log = logging.getLogger("tisem.batch")
 
@@ -30,10 +34,11 @@ def build_parser() -> argparse.ArgumentParser:
         nargs="+",
         type=Path,
         metavar="LOG",
-        help="a SemanticKITTI dataset root or sequence folder, an .mcap file or a "
-        "ROS 2 bag folder (one or more)",
+        help="a SemanticKITTI dataset root or sequence folder, or a recording: an .mcap, "
+        ".db3 or ROS 1 .bag file, a rosbag2 folder (one or more)",
     )
     add_config_args(p)
+    add_recording_args(p)
     p.add_argument(
         "--sweep",
         action="append",
@@ -55,8 +60,10 @@ def batch(args: argparse.Namespace) -> int:
     from tisem.logs import discover_logs
 
     overrides = list(args.overrides) + ([f"mode={args.mode}"] if args.mode else [])
+    with cli.bad_input("options: "):
+        recording = recording_options(args)
     with cli.bad_input():
-        logs = discover_logs([p.resolve() for p in args.logs], args.sequences)
+        logs = discover_logs([p.resolve() for p in args.logs], args.sequences, recording)
         options = BatchOptions(
             threads=args.threads or 2,
             retries=args.retries,
@@ -75,6 +82,9 @@ def batch(args: argparse.Namespace) -> int:
             config_path=args.config,
         )
     print(batch_table(result.rows))
+    for row in result.rows:
+        for line in row.get("read_losses") or ():
+            print(f"{row['log']} ({row['cell']}): {line}")
     print(
         f"\n{result.ran} cells ran, {result.kept} kept, {len(result.failed)} failed; "
         f"batch.json in {result.out_dir}"

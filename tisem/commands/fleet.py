@@ -4,8 +4,11 @@
     tisem fleet /data/kitti/dataset --sequences 00 05 08 --out results/kitti
     tisem fleet long_drive/ --chunks 8 --overlap-scans 40 --threads 2
     tisem fleet bags/*.mcap --world-frame map --address auto   # join a cluster
+    tisem fleet robot1/ robot2.db3 old.bag --gt-field gt_label \
+           --static-tf "0.8 0 1.7 0 0 0 1 base_link velodyne"     # recordings, scored
 
-LOG: a SemanticKITTI dataset root or sequence folder, an .mcap file or a ROS 2 bag folder.
+LOG: a SemanticKITTI dataset root or sequence folder, or a recording (an .mcap, .db3 or ROS 1
+.bag file, a rosbag2 folder), each read with the recording options (those of `tisem map-mcap`).
 Each log or chunk is one Ray task in its own process (its kernel threads as its CPUs); the
 maps of logs in one world frame are merged by sharded reducers into the tiled map
 `<out>/maps/<frame>/` (plus map.npz and friends when it fits), scored against the logs'
@@ -24,6 +27,7 @@ from tisem import cli
 from tisem.commands import entry, new_parser
 from tisem.extras import require
 from tisem.ray_cli import add_cluster_args, add_config_args, results_folder
+from tisem.recording_args import add_recording_args, recording_options
 
 log = logging.getLogger("tisem.fleet")
 
@@ -35,10 +39,11 @@ def build_parser() -> argparse.ArgumentParser:
         nargs="+",
         type=Path,
         metavar="LOG",
-        help="a SemanticKITTI dataset root or sequence folder, an .mcap file or a "
-        "ROS 2 bag folder (one or more)",
+        help="a SemanticKITTI dataset root or sequence folder, or a recording: an .mcap, "
+        ".db3 or ROS 1 .bag file, a rosbag2 folder (one or more)",
     )
     add_config_args(p)
+    add_recording_args(p)
     p.add_argument("--chunks", type=int, default=1, help="cut every log into N time chunks")
     p.add_argument(
         "--overlap-scans",
@@ -91,8 +96,10 @@ def fleet(args: argparse.Namespace) -> int:
             world_frame=args.world_frame,
         )
         options.validate()
+    with cli.bad_input("options: "):
+        recording = recording_options(args)
     with cli.bad_input():
-        logs = discover_logs([p.resolve() for p in args.logs], args.sequences)
+        logs = discover_logs([p.resolve() for p in args.logs], args.sequences, recording)
     out = results_folder(args.out)
     result = run_fleet(logs, cfg, out, options)
     report = result.report
@@ -107,6 +114,9 @@ def fleet(args: argparse.Namespace) -> int:
         print(f"{group}: {folder} — {score}")
     for task, reason in result.failed.items():
         print(f"FAILED {task}: {reason}")
+    for task, summary in report["tasks"].items():
+        for line in summary.get("read_losses") or ():
+            print(f"{task}: {line}")
     missing = report["missing"]
     print(
         f"\n{len(report['tasks'])} tasks mapped, {len(result.failed)} failed, "

@@ -21,7 +21,6 @@ what `map_kitti.py` writes plus `map.mcap` (topic /semantic_map, open it in Foxg
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import logging
 import sys
@@ -32,6 +31,9 @@ from tisem import cli
 from tisem.commands import entry, new_parser
 from tisem.errors import RunError, os_error_text
 from tisem.extras import require
+from tisem.logs import read_losses
+from tisem.recording_args import add_recording_args
+from tisem.recording_args import recording_options as options_from_args
 
 if TYPE_CHECKING:  # (imported when needed: the help stays fast)
     from tisem.io.mcap_reader import McapOptions, McapScanReader
@@ -64,43 +66,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="the recording: .mcap, a rosbag2 folder, .db3 or ROS 1 .bag (with "
         "--resume: default the one it read)",
     )
-    g = p.add_argument_group("recording")
-    g.add_argument("--topic", help="point-cloud topic (needed only when there are several)")
-    g.add_argument("--label-field", default="label", help="per-point label field (default label)")
-    g.add_argument(
-        "--label-space",
-        choices=("raw", "train"),
-        default="raw",
-        help="label values are raw SemanticKITTI ids (default) or train ids 0..19",
-    )
-    g.add_argument(
-        "--prob-field",
-        help="a count=C float field of class probabilities (instead of --label-field)",
-    )
-    g.add_argument("--gt-field", help="ground-truth label field (same label space): score the map")
-    g.add_argument("--map-frame", default="map", help="the fixed frame of the map (default map)")
-    g.add_argument("--pose-topic", help="Odometry / PoseStamped topic instead of /tf")
-    g.add_argument(
-        "--pose-child-frame",
-        help="the frame a PoseStamped is the pose of (default: "
-        "the top of the cloud frame's /tf_static chain, "
-        "e.g. base_link, or the cloud frame itself)",
-    )
-    g.add_argument(
-        "--tf-tolerance-ms",
-        type=float,
-        default=0.0,
-        help="accept a stamp this far outside a transform's samples (default 0)",
-    )
-    g.add_argument(
-        "--static-tf",
-        action="append",
-        metavar='"X Y Z QX QY QZ QW PARENT CHILD"',
-        help="a static transform the recording lacks or gets wrong, e.g. the sensor mount "
-        "base_link -> velodyne, in quotes (metres, then the quaternion, in the order of "
-        "tf2_ros static_transform_publisher): it replaces the recording's transforms of "
-        "CHILD; repeatable",
-    )
+    g = add_recording_args(p)
     g.add_argument(
         "--sequence",
         default="00",
@@ -142,39 +108,7 @@ def recording_options(args: argparse.Namespace, plan: cli.RunPlan) -> McapOption
             options.validate()
         return options
     with cli.bad_input("options: "):
-        options = McapOptions(
-            topic=args.topic,
-            label_field=args.label_field,
-            label_space=args.label_space,
-            prob_field=args.prob_field,
-            gt_field=args.gt_field,
-            map_frame=args.map_frame,
-            pose_topic=args.pose_topic,
-            pose_child_frame=args.pose_child_frame,
-            tf_tolerance_s=cli.finite_number("--tf-tolerance-ms", args.tf_tolerance_ms) / 1e3,
-            static_tf=static_tf_option(args.static_tf),
-            **frames,
-        )
-        options.validate()
-    return options
-
-
-def static_tf_option(given: list[str] | None) -> tuple:
-    """Each --static-tf "X Y Z QX QY QZ QW PARENT CHILD" as an item of `McapOptions.static_tf`.
-    One quoted argument, not nine: argparse takes a number such as -8e-05 for an option."""
-    out = []
-    for text in given or ():
-        values = text.split()
-        try:
-            if len(values) != 9:
-                raise ValueError
-            *numbers, parent, child = values
-            out.append((parent, child, *(float(v) for v in numbers)))
-        except ValueError:
-            raise ValueError(
-                f"--static-tf {text!r}: expected X Y Z QX QY QZ QW (numbers), then PARENT CHILD"
-            ) from None
-    return tuple(out)
+        return options_from_args(args, **frames)
 
 
 def map_recording(args: argparse.Namespace) -> int:
@@ -228,7 +162,7 @@ def map_recording(args: argparse.Namespace) -> int:
         ) from exc
     print(results_table(result.metrics, per_class=args.per_class))
     # the run has reported each skipped scan once already: here, only what was lost besides
-    lines = dataclasses.replace(reader.report, skipped=[]).lines()
+    lines = read_losses(reader)
     if lines:
         print(f"\n{path.name}: not everything could be used:")
         print("\n".join(f"  - {line}" for line in lines))

@@ -85,10 +85,11 @@ def _recording_scans(path: Path, run: dict) -> RunScans:
     from tisem.extras import require
 
     require("mcap")
-    from tisem.io.mcap_reader import McapOptions, McapScanReader
+    from tisem.io.bag_open import open_scan_reader
+    from tisem.io.mcap_reader import McapOptions
 
     options = McapOptions(**(run.get("options") or {}))
-    reader = McapScanReader(path, options)
+    reader = open_scan_reader(path, options)
     ids, poses = [], []
     for item in reader:  # one pass for the trajectory
         if isinstance(item, Scan):
@@ -99,7 +100,7 @@ def _recording_scans(path: Path, run: dict) -> RunScans:
 
     def load(positions: list[int]) -> Iterator[tuple[int, Scan | str]]:
         wanted = {ids[k]: k for k in positions}
-        for item in McapScanReader(path, options):
+        for item in open_scan_reader(path, options):
             if isinstance(item, Scan) and item.index in wanted:
                 yield wanted[item.index], item
 
