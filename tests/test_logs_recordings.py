@@ -73,6 +73,8 @@ def test_what_is_no_log_is_refused_in_one_line(tmp_path):
     empty.mkdir()
     with pytest.raises(DatasetError, match="empty: not a log .*rosbag2 folder"):
         discover_logs([empty])
+    with pytest.raises(DatasetError, match="missing.db3: no such file or folder"):
+        discover_logs([tmp_path / "missing.db3"])
     with pytest.raises(ValueError, match=r"recording options: unknown \['gt'\]"):
         discover_logs([text], recording={"gt": "gt_label"})
     with pytest.raises(ValueError, match="label_space must be 'raw' or 'train'"):

@@ -119,6 +119,8 @@ def discover_logs(
     logs: list[LogSpec] = []
     for given in paths:
         path = Path(given)
+        if not path.exists():
+            raise DatasetError(f"{path}: no such file or folder")
         if path.is_file():
             logs.append(_recording(path, options))
         elif (path / "velodyne").is_dir():
