@@ -124,3 +124,16 @@ def test_the_three_commands_share_the_recording_options():
     assert built[0].static_tf == (("base_link", "velodyne", 0.8, 0.0, 1.7, 0.0, 0.0, 0.0, 1.0),)
     with pytest.raises(ValueError, match="--static-tf '1 2 3': expected X Y Z"):
         recording_options(fleet.parse_args(["logs", "--static-tf", "1 2 3"]))
+
+
+def test_a_recording_is_read_for_the_maps_classes(recording):  # noqa: F811
+    """open_log's num_classes (the map's, from the task's config) bounds the label values a
+    recording's train-id field may hold: a value the map has no class for is reported, no
+    evidence (here the raw ids, read as train ids: those from 5 up are beyond 5 classes)."""
+    seq_dir, messages, tmp = recording
+    path = make_input("db3 folder", messages, tmp / "logs_classes")
+    (log,) = discover_logs([path], recording={"label_space": "train"})
+    (scan20, *_) = list(scans20 := open_log(log))
+    (scan5, *_) = list(scans5 := open_log(log, num_classes=5))
+    assert np.all(scan5.labels < 5) and np.any(scan20.labels >= 5)
+    assert scans5.report.unknown_labels > scans20.report.unknown_labels

@@ -128,7 +128,7 @@ def run_cell(cell: dict, folder: str, threads: int, arch: str, map_files: bool) 
 
     cfg = run_config_from_dict(cell["config"])
     spec = LogSpec(**cell["log"])
-    scans = open_log(spec, cfg.first, cfg.last, input=cfg.input)
+    scans = open_log(spec, cfg.first, cfg.last, input=cfg.input, num_classes=cfg.mapper.num_classes)
     init_taichi(arch, threads=threads)
     started = time.perf_counter()
     result = run_pipeline(

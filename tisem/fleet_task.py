@@ -152,7 +152,7 @@ def map_task(
     tau = cfg.mapper.decay_tau_s
     res, num_classes = cfg.mapper.resolution_m, cfg.mapper.num_classes
     start = max(task.first - task.warmup, 0)
-    scans = open_log(task.log, start, task.last, input=cfg.input)
+    scans = open_log(task.log, start, task.last, input=cfg.input, num_classes=num_classes)
     seed = None
     if seed_dirs:
         seed = seed_snapshot(

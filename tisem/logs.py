@@ -174,10 +174,12 @@ def open_log(
     first: int = 0,
     last: int | None = None,
     input: str = "predictions",
+    num_classes: int | None = None,
 ):
     """The scans of positions first..last (inclusive) of the log, as its reader gives them
     (`len()` and iteration of `Scan | SkippedScan`; a recording's reader also says what it
-    could not read, `.report`)."""
+    could not read, `.report`). `num_classes`: the map's, which bounds a recording's label
+    values (default the SemanticKITTI 20)."""
     if log.kind == "kitti":
         from tisem.io.semantickitti import SemanticKittiSequence
 
@@ -191,7 +193,8 @@ def open_log(
         from tisem.io.bag_open import open_scan_reader
         from tisem.io.mcap_options import McapOptions
 
-        options = McapOptions(**{**log.options, "first": first, "last": last})
+        classes = {} if num_classes is None else {"num_classes": num_classes}
+        options = McapOptions(**{**log.options, "first": first, "last": last, **classes})
         return open_scan_reader(log.path, options)
     raise ValueError(f"unknown log kind {log.kind!r}")
 

@@ -78,7 +78,7 @@ def score_log(
     final, network = Confusion(tiled.num_classes), Confusion(tiled.num_classes)
     scans = 0
     for first, last in ranges:
-        for item in open_log(log, first, last, input=input):
+        for item in open_log(log, first, last, input=input, num_classes=tiled.num_classes):
             if not isinstance(item, Scan) or item.gt_labels is None:
                 continue
             labels, _ = tiled.query(item.points_world(), with_probs=False)
