@@ -210,3 +210,23 @@ def test_recordings_are_mapped_and_scored_with_their_options(ray_cluster, tmp_pa
     assert not result.failed and list(result.maps) == ["map"]
     metrics = json.loads((result.maps["map"] / "metrics.json").read_text())
     assert metrics["scans"] == 8 and metrics["final"]["miou"] > 0
+
+
+def test_a_log_that_cannot_be_read_is_one_failing_task_when_logs_are_chunked(tmp_path):
+    """--chunks N needs each log's length; a log that cannot be read is not cut (its one task
+    fails with the reason, as any failed task) instead of ending the fleet before it maps the
+    others."""
+    from test_mcap_kitti import write_tiny_sequence
+
+    from tisem.fleet import FleetOptions, plan_tasks
+
+    good = write_tiny_sequence(tmp_path / "good", n_scans=4, n_points=100)
+    broken = tmp_path / "broken.mcap"  # an MCAP header, then nothing a reader can use
+    broken.write_bytes(b"\x89MCAP0\r\n" + b"x" * 100)
+    logs = discover_logs([good, broken])
+    tasks = plan_tasks({"g": logs}, FleetOptions(chunks=2))
+    assert [(t.task_id, t.first, t.last) for t in tasks] == [
+        ("good#chunk0", 0, 1),
+        ("good#chunk1", 2, 3),
+        ("broken", 0, 1 << 62),
+    ]

@@ -34,6 +34,7 @@ from pathlib import Path
 
 from tisem import cluster
 from tisem.config import RunConfig, to_dict
+from tisem.errors import DatasetError
 from tisem.fleet_report import fleet_report, report_json, score_groups, write_group_files
 from tisem.fleet_task import MapTask, anchor_of, dilate, map_task
 from tisem.logs import LogSpec, discover_logs, first_pose, log_length
@@ -109,10 +110,18 @@ def plan_tasks(
     tasks = []
     for group, members in groups.items():
         for spec in members:
+            whole = MapTask(spec.name, spec, 0, 1 << 62, 0, group)
             if options.chunks == 1:
-                tasks.append(MapTask(spec.name, spec, 0, 1 << 62, 0, group))
+                tasks.append(whole)
                 continue
-            n = log_length(spec, input)
+            try:
+                n = log_length(spec, input)
+            except (DatasetError, OSError, ValueError) as exc:
+                # a log that cannot be read is not cut: its one task fails with this reason,
+                # reported like any failed task, and the other logs are mapped
+                log.warning("%s: not cut into chunks, it cannot be read: %s", spec.name, exc)
+                tasks.append(whole)
+                continue
             bounds = [round(k * n / options.chunks) for k in range(options.chunks + 1)]
             for k in range(options.chunks):
                 if bounds[k + 1] > bounds[k]:

@@ -103,7 +103,11 @@ def fleet(args: argparse.Namespace) -> int:
     out = results_folder(args.out)
     result = run_fleet(logs, cfg, out, options)
     report = result.report
+    mapped = {summary["task"]["group"] for summary in report["tasks"].values()}
     for group, folder in result.maps.items():
+        if group not in mapped:  # (its index says so too: no task, no voxel)
+            print(f"{group}: nothing mapped, every task of it failed (below)")
+            continue
         m = report["metrics"].get(group)
         score = (
             f"mIoU {m['final']['miou']:.4f}, accuracy {m['final']['accuracy']:.4f} "
