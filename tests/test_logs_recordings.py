@@ -55,6 +55,9 @@ def test_a_log_keeps_its_options_through_json(recording):  # noqa: F811
     (log,) = discover_logs([path], recording={**READ, "static_tf": (mount,), "map_frame": "/map"})
     again = LogSpec(**log.to_dict())
     assert again == log and again.options["static_tf"] == [list(mount)]
+    kitti = discover_logs([seq_dir])[0]  # no options: the dict of before they existed
+    assert set(kitti.to_dict()) == {"kind", "path", "name", "world_frame"}
+    assert LogSpec(**kitti.to_dict()) == kitti
     (scan, *_) = list(open_log(again))
     (ref, *_) = list(SemanticKittiSequence(seq_dir))
     # the recording's own mount is replaced: the sensor sits where the option puts it

@@ -60,7 +60,12 @@ class LogSpec:
     options: dict = field(default_factory=dict)
 
     def to_dict(self) -> dict:
-        return dict(vars(self))
+        """Plain JSON; a SemanticKITTI log (no options) as before options existed, so that
+        the batch cells and fleet tasks it finished are still recognised as its."""
+        out = dict(vars(self))
+        if not out["options"]:
+            del out["options"]
+        return out
 
 
 def kitti_world_frame(sequence_dir: str | os.PathLike) -> str:
