@@ -76,6 +76,10 @@ def test_what_is_no_log_is_refused_in_one_line(tmp_path):
     empty.mkdir()
     with pytest.raises(DatasetError, match="empty: not a log .*rosbag2 folder"):
         discover_logs([empty])
+    (empty / "robot1.mcap").write_bytes(b"")  # a folder of logs, not a bag: each is a log
+    (empty / "robot2.mcap").write_bytes(b"")
+    with pytest.raises(DatasetError, match=r"it holds robot1.mcap, robot2.mcap: give each as a"):
+        discover_logs([empty])
     with pytest.raises(DatasetError, match="missing.db3: no such file or folder"):
         discover_logs([tmp_path / "missing.db3"])
     with pytest.raises(ValueError, match=r"recording options: unknown \['gt'\]"):

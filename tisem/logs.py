@@ -94,6 +94,20 @@ def _recording(path: Path, options: dict) -> LogSpec:
     return LogSpec("mcap", str(path), name, f"mcap:{path.resolve()}#{frame}", dict(options))
 
 
+def _recordings_inside(folder: Path) -> str:
+    """For a refusal of a folder that is no log: the recordings it holds, and the two ways to
+    give them (several logs, or one bag whose metadata is missing); "" when it holds none."""
+    inside = sorted(p.name for p in folder.iterdir() if p.suffix in (".mcap", ".db3", ".bag"))
+    if not inside:
+        return ""
+    listed = ", ".join(inside[:4]) + (", ..." if len(inside) > 4 else "")
+    return (
+        f"; it holds {listed}: give each as a log ({folder}/*{Path(inside[0]).suffix}), or, "
+        f"if they are the split files of one bag, write its metadata with "
+        f"`ros2 bag reindex {folder}`"
+    )
+
+
 def recording_fields(options) -> dict:
     """The recording options (an `McapOptions` or a dict of its fields) as a log keeps them:
     plain JSON, without the scan range and class count, which the run's config sets."""
@@ -144,6 +158,7 @@ def discover_logs(
             raise DatasetError(
                 f"{path}: not a log (expected a SemanticKITTI sequence or dataset root, an "
                 f".mcap, .db3 or ROS 1 .bag file, or a rosbag2 folder with its metadata.yaml)"
+                + _recordings_inside(path)
             )
     names = [log.name for log in logs]
     if len(set(names)) != len(names):
