@@ -181,23 +181,28 @@ def _connection_records(buf, size: int) -> dict[int, list[tuple[dict[str, bytes]
     bag that closed holds a copy of each in its index section, after the chunks, which a walk
     from the start meets last (and whose `index_pos` damage before it may have shifted)."""
 
+    accepted: dict[int, tuple] = {}  # at -> the record framed there (framed once)
+
     def whole_connection(at: int) -> bool:
         try:
-            fields, _, end = _framed(buf, at, size, "")
+            fields, start, end = _framed(buf, at, size, "")
         except Malformed:
             return False
-        return (
+        whole = (
             end <= size
             and fields.get("op") == bytes([OP_CONNECTION])
             and len(fields.get("conn", b"")) == 4
         )
+        if whole:
+            accepted[at] = (fields, start, end)
+        return whole
 
     found: dict[int, list] = {}
     pos = 0
     while (pos := buf.find(OP_FIELD + bytes([OP_CONNECTION]), pos + 1)) >= 0:
         at = _header_start(buf, pos, 0, whole_connection)
         if at is not None:
-            fields, start, end = _framed(buf, at, size, "")
+            fields, start, end = accepted.pop(at)
             found.setdefault(_u32(fields, "conn"), []).append((fields, bytes(buf[start:end])))
     return found
 
