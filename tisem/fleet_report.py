@@ -134,9 +134,22 @@ def _missing(tasks, mine, finals, failed) -> list[dict]:
             out.append(
                 {"task": t, "log": tasks[t].log.path, "scan": s["index"], "reason": s["reason"]}
             )
-        for line in (finals.get(t) or {}).get("read_losses", []):  # (a damaged recording)
-            out.append({"task": t, "log": tasks[t].log.path, "lost": line})
+    losses = recording_losses({t: finals[t] for t in mine if t in finals})
+    out += [
+        {"task": t, "log": path, "lost": line} for path, lost in losses.items() for t, line in lost
+    ]
     return out
+
+
+def recording_losses(finals: dict[str, dict]) -> dict[str, list[tuple[str, str]]]:
+    """log path -> [(task, line)] of what a damaged recording lost, each line once (with the
+    first task that said it): every chunk of a log reads the same file and says so alike."""
+    out: dict[str, list[tuple[str, str]]] = {}
+    for t, summary in finals.items():
+        lost = out.setdefault(summary["task"]["log"]["path"], [])
+        said = {line for _, line in lost}
+        lost += [(t, line) for line in summary.get("read_losses", []) if line not in said]
+    return {path: lost for path, lost in out.items() if lost}
 
 
 def fleet_report(

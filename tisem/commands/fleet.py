@@ -77,6 +77,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 
 def fleet(args: argparse.Namespace) -> int:
     from tisem.fleet import FleetOptions, run_fleet
+    from tisem.fleet_report import recording_losses
     from tisem.logs import discover_logs
 
     with cli.bad_input("config: "):
@@ -118,9 +119,9 @@ def fleet(args: argparse.Namespace) -> int:
         print(f"{group}: {folder} — {score}")
     for task, reason in result.failed.items():
         print(f"FAILED {task}: {reason}")
-    for task, summary in report["tasks"].items():
-        for line in summary.get("read_losses") or ():
-            print(f"{task}: {line}")
+    for path, lost in recording_losses(report["tasks"]).items():
+        for _, line in lost:
+            print(f"{Path(path).name}: {line}")
     missing = report["missing"]
     print(
         f"\n{len(report['tasks'])} tasks mapped, {len(result.failed)} failed, "

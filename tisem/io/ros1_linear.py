@@ -122,19 +122,22 @@ def _next_record(buf, after: int, size: int) -> int | None:
     pos = after
     while (pos := buf.find(OP_FIELD, pos + 1)) >= 0:
         if pos + len(OP_FIELD) < size and buf[pos + len(OP_FIELD)] in OPS:
-            at = _header_start(buf, pos, after, lambda at: _starts_records(buf, at, pos, size))
+            at = _header_start(
+                buf, pos, after, lambda at: at if _starts_records(buf, at, pos, size) else None
+            )
             if at is not None:
                 return at
     return None
 
 
-def _header_start(buf, op_at: int, floor: int, accept: Callable[[int], bool]) -> int | None:
-    """The nearest byte before the `op` field at `op_at`, and after `floor`, where a record
-    header that `accept`s starts (the field's 4-byte length and the fields before it, of fewer
-    than FIELDS_BEFORE_OP bytes, lie between), or None."""
+def _header_start(buf, op_at: int, floor: int, read: Callable[[int], Any]) -> Any:
+    """What `read(at)` gives for the nearest byte `at` before the `op` field at `op_at`, and
+    after `floor`, where it gives anything but None (a record header there: the field's 4-byte
+    length and the fields before it, of fewer than FIELDS_BEFORE_OP bytes, lie between), or
+    None."""
     for at in range(op_at - 4, max(floor, op_at - 4 - FIELDS_BEFORE_OP), -1):
-        if accept(at):
-            return at
+        if (got := read(at)) is not None:
+            return got
     return None
 
 
@@ -181,28 +184,25 @@ def _connection_records(buf, size: int) -> dict[int, list[tuple[dict[str, bytes]
     bag that closed holds a copy of each in its index section, after the chunks, which a walk
     from the start meets last (and whose `index_pos` damage before it may have shifted)."""
 
-    accepted: dict[int, tuple] = {}  # at -> the record framed there (framed once)
-
-    def whole_connection(at: int) -> bool:
+    def whole_connection(at: int) -> tuple | None:
+        """(header fields, data start, end) of a whole connection record at `at`, or None."""
         try:
             fields, start, end = _framed(buf, at, size, "")
         except Malformed:
-            return False
+            return None
         whole = (
             end <= size
             and fields.get("op") == bytes([OP_CONNECTION])
             and len(fields.get("conn", b"")) == 4
         )
-        if whole:
-            accepted[at] = (fields, start, end)
-        return whole
+        return (fields, start, end) if whole else None
 
     found: dict[int, list] = {}
     pos = 0
     while (pos := buf.find(OP_FIELD + bytes([OP_CONNECTION]), pos + 1)) >= 0:
-        at = _header_start(buf, pos, 0, whole_connection)
-        if at is not None:
-            fields, start, end = accepted.pop(at)
+        record = _header_start(buf, pos, 0, whole_connection)
+        if record is not None:
+            fields, start, end = record
             found.setdefault(_u32(fields, "conn"), []).append((fields, bytes(buf[start:end])))
     return found
 
