@@ -18,7 +18,15 @@ from tisem.io.kitti_files import read_trajectory
 from tisem.io.semantickitti import SemanticKittiSequence
 from tisem.io.tf import matrix_to_quat
 from tisem.label_space import load_label_space
-from tisem.labels import LEARNING_MAP, raw_to_train, train_to_raw, use_label_space
+from tisem.labels import (
+    CLASS_COLORS_RGB,
+    CLASS_NAMES,
+    LEARNING_MAP,
+    LEARNING_MAP_INV,
+    raw_to_train,
+    train_to_raw,
+    use_label_space,
+)
 from tisem.synth.sequence import write_semantickitti
 
 REPO = Path(__file__).resolve().parents[1]
@@ -165,6 +173,53 @@ def test_label_space_from_yaml(tmp_path):
     finally:
         use_label_space(None)
     assert raw_to_train(np.array([40]))[0][0] == 9  # SemanticKITTI's again
+
+
+# semantic-kitti.yaml's `color_map` (BGR) for the raw id of each train id, as published
+KITTI_COLOR_MAP_BGR = {
+    0: [0, 0, 0],
+    10: [245, 150, 100],
+    11: [245, 230, 100],
+    15: [150, 60, 30],
+    18: [180, 30, 80],
+    20: [255, 0, 0],
+    30: [30, 30, 255],
+    31: [200, 40, 255],
+    32: [90, 30, 150],
+    40: [255, 0, 255],
+    44: [255, 150, 255],
+    48: [75, 0, 75],
+    49: [75, 0, 175],
+    50: [0, 200, 255],
+    51: [50, 120, 255],
+    70: [0, 175, 0],
+    71: [0, 60, 135],
+    72: [80, 240, 150],
+    80: [150, 240, 255],
+    81: [0, 0, 255],
+}
+
+
+def test_builtin_classes_are_semantic_kitti_yaml(tmp_path):
+    """The built-in names and colours (maps, PLY, MCAP, pictures) are what semantic-kitti.yaml
+    gives, read through the same loader as a user's class file: a colour converted by hand
+    from BGR once gave other-vehicle traffic-sign's red."""
+    path = tmp_path / "semantic-kitti.yaml"
+    raw_ids = [int(r) for r in LEARNING_MAP_INV]
+    path.write_text(
+        yaml.safe_dump(
+            {
+                "labels": dict(zip(raw_ids, CLASS_NAMES)),
+                "color_map": KITTI_COLOR_MAP_BGR,
+                "learning_map": dict(LEARNING_MAP),
+                "learning_map_inv": dict(enumerate(raw_ids)),
+            }
+        )
+    )
+    space = load_label_space(path)
+    assert space.names == CLASS_NAMES
+    for train, name in enumerate(CLASS_NAMES):
+        assert tuple(CLASS_COLORS_RGB[train]) == tuple(space.colors_rgb[train]), name
 
 
 @pytest.mark.parametrize(
