@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from tisem.errors import DatasetError, SkippedScan
+from tisem.io.mcap_items import McapMessage
 from tisem.io.mcap_reader import McapOptions, McapScanReader
 from tisem.io.mcap_writer import Ros2McapWriter, pose_msg
 from tisem.io.stamps import ros_time
@@ -50,6 +51,18 @@ def test_first_last_select_by_message_order(tmp_path):
     write_synthetic_log(tmp_path / "log.mcap", n_scans=5, n_points=50)
     reader = McapScanReader(tmp_path / "log.mcap", McapOptions(first=1, last=3))
     assert reader.total == 3 and [s.index for s in reader] == [1, 2, 3]
+    # and stops reading at `last`: a chunk of a long log does not read the rest of it
+    records, clouds = reader._records.records, []
+
+    def counted(report):
+        for rec in records(report):
+            cloud = isinstance(rec, McapMessage) and rec.channel_id in reader._channels
+            if cloud and reader._channels[rec.channel_id].topic == reader.topic:
+                clouds.append(rec)
+            yield rec
+
+    reader._records.records = counted
+    assert [s.index for s in reader] == [1, 2, 3] and len(clouds) == 4
 
 
 def write_fields_log(path, arr_fields, label_dtype="<u2", n=64, frames=2):

@@ -118,6 +118,8 @@ class McapScanReader:
                                     f"message lost in a damaged {rec.where}",
                                 )
                             )
+                        if self._past_last(index):
+                            return
                 continue
             if not isinstance(rec, McapMessage) or rec.channel_id not in targets:
                 continue
@@ -132,6 +134,8 @@ class McapScanReader:
                 if isinstance(item, Scan):
                     self._mark_suspect(item, rec, renumbered)
                 yield item
+            if self._past_last(index):
+                return  # the survey has reported the rest: a chunk of a long log stops here
 
     def _mark_suspect(self, scan: Scan, rec: McapMessage, renumbered: str | None) -> None:
         """Scans read from bytes nothing vouches for in a file known to be damaged, or posed
@@ -161,6 +165,9 @@ class McapScanReader:
         return index >= self.options.first and (
             self.options.last is None or index <= self.options.last
         )
+
+    def _past_last(self, index: int) -> bool:
+        return self.options.last is not None and index >= self.options.last
 
     def _skip(self, item: Scan | SkippedScan) -> Scan | SkippedScan:
         """Record a skipped scan once (the pipeline may read the log twice) and pass it on."""
