@@ -122,6 +122,18 @@ def test_app_is_the_library_conversion(tmp_path, capsys):
     assert info.scans == 2
     assert (tmp_path / "app.mcap").read_bytes() == (tmp_path / "lib.mcap").read_bytes()
     assert app.main([str(tmp_path / "missing"), str(tmp_path / "x.mcap")]) == 2
+    # --out, as the other commands take the output, writes the same file
+    argv = ["--compression", "lz4", "--label-type", "uint16", "--first", "1"]
+    assert app.main([str(seq), "--out", str(tmp_path / "opt.mcap"), *argv]) == 0
+    assert (tmp_path / "opt.mcap").read_bytes() == (tmp_path / "lib.mcap").read_bytes()
+    capsys.readouterr()
+    for outputs, problem in [
+        ([], "no output: give the .mcap file"),
+        ([str(tmp_path / "a.mcap"), "--out", str(tmp_path / "b.mcap")], "two outputs"),
+    ]:
+        with pytest.raises(SystemExit) as stop:
+            app.main([str(seq), *outputs])
+        assert stop.value.code == 2 and problem in capsys.readouterr().err
 
 
 def test_real_sequence_round_trips(tmp_path, kitti_mini):

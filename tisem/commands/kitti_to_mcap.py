@@ -1,6 +1,7 @@
 """Write a SemanticKITTI sequence as a ROS 2 MCAP recording, the way rosbag2 would store it.
 
     tisem kitti-to-mcap path/to/semantickitti_08_mini 08_mini.mcap
+    tisem kitti-to-mcap path/to/semantickitti_08_mini --out 08_mini.mcap   # the same
     tisem kitti-to-mcap /data/kitti/dataset 08.mcap --sequence 08 --last 99
 
 Topics: `/velodyne_points` (sensor_msgs/msg/PointCloud2, frame `velodyne`: x y z intensity
@@ -31,7 +32,17 @@ def build_parser() -> argparse.ArgumentParser:
     p = new_parser("kitti_to_mcap", __doc__)
     p.add_argument("data", type=Path, help="a sequence folder, or a dataset root with --sequence")
     p.add_argument(
-        "out", type=Path, help="the .mcap file to write (with --format rosbag2: the bag folder)"
+        "out",
+        type=Path,
+        nargs="?",
+        help="the .mcap file to write (with --format rosbag2: the bag folder); or --out",
+    )
+    p.add_argument(
+        "--out",
+        dest="out_option",
+        type=Path,
+        metavar="OUT",
+        help="the same as OUT, as the other commands take it",
     )
     p.add_argument(
         "--format",
@@ -68,7 +79,14 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
-    return build_parser().parse_args(argv)
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if args.out is not None and args.out_option is not None and args.out != args.out_option:
+        parser.error(f"two outputs: OUT {args.out} and --out {args.out_option}; give one")
+    args.out = args.out if args.out is not None else args.out_option
+    if args.out is None:
+        parser.error("no output: give the .mcap file (or bag folder) to write, as OUT or --out")
+    return args
 
 
 @entry
