@@ -117,16 +117,18 @@ def test_app_is_the_library_conversion(tmp_path, capsys):
         )
         == 0
     )
-    assert "wrote" in capsys.readouterr().out
+    printed = capsys.readouterr()
+    assert "wrote" in printed.out
+    assert "kitti-to-mcap" in printed.err and "2/2" in printed.err  # the progress bar
     info = convert(seq, tmp_path / "lib.mcap", compression="lz4", label_type="uint16", first=1)
     assert info.scans == 2
     assert (tmp_path / "app.mcap").read_bytes() == (tmp_path / "lib.mcap").read_bytes()
     assert app.main([str(tmp_path / "missing"), str(tmp_path / "x.mcap")]) == 2
     # --out, as the other commands take the output, writes the same file
     argv = ["--compression", "lz4", "--label-type", "uint16", "--first", "1"]
-    assert app.main([str(seq), "--out", str(tmp_path / "opt.mcap"), *argv]) == 0
+    assert app.main([str(seq), "--out", str(tmp_path / "opt.mcap"), "--no-progress", *argv]) == 0
     assert (tmp_path / "opt.mcap").read_bytes() == (tmp_path / "lib.mcap").read_bytes()
-    capsys.readouterr()
+    assert "kitti-to-mcap" not in capsys.readouterr().err
     for outputs, problem in [
         ([], "no output: give the .mcap file"),
         ([str(tmp_path / "a.mcap"), "--out", str(tmp_path / "b.mcap")], "two outputs"),

@@ -74,6 +74,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--topic", default="/velodyne_points", help="the point-cloud topic")
     p.add_argument("--frame-id", default="velodyne", help="the cloud frame (child of base_link)")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument("-v", "--verbose", action="store_true", help="also tisem's debug lines")
     return p
 
@@ -117,6 +118,7 @@ def main(argv: list[str] | None = None) -> int:
             output_format=args.format,
             start_time_ns=start_time_ns,
             ros_distro=args.ros_distro,
+            progress=not args.no_progress,
         )
     except (DatasetError, OSError) as exc:  # a bad sequence, or an .mcap it cannot write
         log.error("%s", exc)

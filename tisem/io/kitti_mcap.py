@@ -26,6 +26,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from tqdm import tqdm
 
 from tisem.errors import SkippedScan
 from tisem.io.mcap_writer import Ros2McapWriter
@@ -99,6 +100,7 @@ def write_kitti_mcap(
     output_format: str = "mcap",
     start_time_ns: int = 0,
     ros_distro: str = "humble",
+    progress: bool = False,
 ) -> KittiMcapResult:
     """Write scans `first`..`last` (inclusive scan ids) of a SemanticKITTI sequence.
 
@@ -106,7 +108,8 @@ def write_kitti_mcap(
     lz4 | none. label_type: uint32 (raw id | instance << 16, as in .label files) or uint16
     (raw id only). frame_id: the cloud frame, a child of base_link. output_format: `mcap` (the
     file `out`) or `rosbag2` (the bag folder `out`, for `ros2 bag play`, named after
-    `ros_distro`). start_time_ns: added to every stamp (real epoch stamps). Raises
+    `ros_distro`). start_time_ns: added to every stamp (real epoch stamps). progress: a
+    progress bar per scan (a whole sequence takes minutes). Raises
     `DatasetError` when the sequence cannot be read, FileExistsError for a bag folder that
     holds a bag.
     """
@@ -148,7 +151,8 @@ def write_kitti_mcap(
             },
         )
         static_done = False
-        for k, scan in enumerate(seq):
+        scans = tqdm(seq, total=len(seq), unit="scan", desc="kitti-to-mcap", disable=not progress)
+        for k, scan in enumerate(scans):
             if isinstance(scan, SkippedScan):
                 skipped.append(scan)
                 log.warning("skipped scan %s: %s", scan.index, scan.reason)
