@@ -8,6 +8,7 @@ compared with the map one serial run over the same scans builds, in this process
 from __future__ import annotations
 
 import json
+import re
 import shutil
 
 import numpy as np
@@ -103,7 +104,7 @@ def test_chunked_long_log_gives_the_serial_labels(ray_cluster, long_log, tmp_pat
     assert diff.label_agreement >= 0.999, diff
 
 
-def test_a_failing_task_is_reported_and_the_rest_merged(ray_cluster, robots, tmp_path):
+def test_a_failing_task_is_reported_and_the_rest_merged(ray_cluster, robots, tmp_path, capsys):
     root = tmp_path / "robots"
     shutil.copytree(robots, root)
     broken = root / "sequences" / "02"
@@ -111,6 +112,10 @@ def test_a_failing_task_is_reported_and_the_rest_merged(ray_cluster, robots, tmp
     (broken / "poses.txt").write_text("not a pose\n")
     result, _ = fleet([root], tmp_path / "fleet", "csm", evaluate=False)
     assert list(result.failed) == ["02"] and "malformed" in result.failed["02"]
+    # each step's bar counts its tasks as they end, the failed one among them
+    bars = capsys.readouterr().err
+    assert re.search(r"mapping: 100%.* 3/3 .*failed=1", bars), bars
+    assert re.search(r"merging tiles: 100%.* 2/2 ", bars), bars
     report = json.loads((tmp_path / "fleet" / "fleet.json").read_text())
     assert report["missing"][0]["task"] == "02" and set(report["tasks"]) == {"00", "01"}
     metrics = json.loads((result.maps["synthetic-street-seed0"] / "metrics.json").read_text())
@@ -120,12 +125,13 @@ def test_a_failing_task_is_reported_and_the_rest_merged(ray_cluster, robots, tmp
     assert max(ours) < merged.voxels <= sum(ours)
 
 
-def test_a_finished_batch_runs_nothing_again(ray_cluster, robots, tmp_path):
+def test_a_finished_batch_runs_nothing_again(ray_cluster, robots, tmp_path, capsys):
     from tisem.batch import batch_table, run_batch
 
     logs = discover_logs([robots / "sequences" / "00"])
     first = run_batch(logs, tmp_path / "batch", overrides=SMALL, sweeps=["mode=csm,bki"])
     assert (first.ran, first.kept, first.failed) == (2, 0, {})
+    assert re.search(r"cells: 100%.* 2/2 ", capsys.readouterr().err)
     assert [r["cell"] for r in first.rows] == ["mode=csm", "mode=bki"]
     stamps = {
         p: p.stat().st_mtime_ns
@@ -134,6 +140,7 @@ def test_a_finished_batch_runs_nothing_again(ray_cluster, robots, tmp_path):
     }
     again = run_batch(logs, tmp_path / "batch", overrides=SMALL, sweeps=["mode=csm,bki"])
     assert (again.ran, again.kept) == (0, 2)
+    assert "cells" not in capsys.readouterr().err  # nothing ran: no bar
     assert stamps == {p: p.stat().st_mtime_ns for p in stamps}
     assert [r["miou"] for r in again.rows] == [r["miou"] for r in first.rows]
     table = batch_table(again.rows)

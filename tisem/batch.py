@@ -50,6 +50,7 @@ class BatchOptions:
     num_cpus: int | None = None
     arch: str = "cpu"
     map_files: bool = True
+    progress: bool = True  # a bar counting the cells as they end
 
 
 @dataclass
@@ -206,7 +207,7 @@ def run_batch(
                 )
                 for key, cell in todo.items()
             }
-            done, failed = cluster.gather(refs)
+            done, failed = cluster.gather(refs, "cells" if options.progress else None)
         rows.update({key: {**row, "status": "ran"} for key, row in done.items()})
         for key, reason in failed.items():
             cell = todo[key]

@@ -2,7 +2,7 @@
 
     with ray_cluster(address=None, num_cpus=None):      # a local cluster, or join one
         refs = {name: submit(map_task, cpus=2, retries=1, args=(...))}
-        done, failed = gather(refs)                       # {name: result}, {name: reason}
+        done, failed = gather(refs, "mapping")            # {name: result}, {name: reason}
 
 Taichi holds one runtime per process and each tisem map needs its own runtime, so every task
 runs in a fresh worker process (`max_calls=1`) and reserves as many CPUs as its kernels use
@@ -110,20 +110,25 @@ def _reason(exc: BaseException) -> str:
     return f"{type(exc).__name__}: {text[-1] if text else ''}"[:500]
 
 
-def gather(refs: dict[str, Any]) -> tuple[dict[str, Any], dict[str, str]]:
+def gather(refs: dict[str, Any], what: str | None = None) -> tuple[dict[str, Any], dict[str, str]]:
     """Wait for every task: ({name: result} of those that finished, {name: reason} of those
-    that failed after their retries)."""
+    that failed after their retries). With `what`, a progress bar of that name counts the
+    tasks as they end (a fleet's tasks run for minutes each, and nothing else prints)."""
     import ray
+    from tqdm import tqdm
 
     done, failed = {}, {}
     by_ref = {ref: name for name, ref in refs.items()}
     pending = list(by_ref)
-    while pending:
-        ready, pending = ray.wait(pending, num_returns=1)
-        name = by_ref[ready[0]]
-        try:
-            done[name] = ray.get(ready[0])
-        except (ray.exceptions.RayError, Exception) as exc:  # noqa: B902 (reported)
-            failed[name] = _reason(exc)
-            log.warning("task %s failed: %s", name, failed[name])
+    with tqdm(total=len(pending), desc=what, unit="task", disable=what is None) as bar:
+        while pending:
+            ready, pending = ray.wait(pending, num_returns=1)
+            name = by_ref[ready[0]]
+            try:
+                done[name] = ray.get(ready[0])
+            except (ray.exceptions.RayError, Exception) as exc:  # noqa: B902 (reported)
+                failed[name] = _reason(exc)
+                log.warning("task %s failed: %s", name, failed[name])
+                bar.set_postfix(failed=len(failed))
+            bar.update(1)
     return done, failed

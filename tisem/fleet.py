@@ -64,6 +64,7 @@ class FleetOptions:
     tile_vox: int = TILE_VOX
     arch: str = "cpu"
     reuse: bool = True
+    progress: bool = True  # bars counting each step's tasks as they end
 
     def validate(self) -> None:
         if self.chunks < 1 or self.overlap_scans < 0 or self.reducers < 1 or self.threads < 1:
@@ -174,8 +175,10 @@ def _map_all(
     options: FleetOptions,
     seeds: dict[str, list[str]] | None = None,
     footprints: dict[str, list] | None = None,
+    what: str = "mapping",
 ) -> tuple[dict, dict]:
-    """Run (or reuse) every task; ({id: summary}, {id: reason})."""
+    """Run (or reuse) every task; ({id: summary}, {id: reason}); `what`: the progress bar's
+    name."""
     config = to_dict(cfg)
     done, refs = {}, {}
     for task_id, task in tasks.items():
@@ -196,7 +199,7 @@ def _map_all(
                 "tile_vox": options.tile_vox,
             },
         )
-    ran, failed = cluster.gather(refs)
+    ran, failed = cluster.gather(refs, what if options.progress else None)
     return {**done, **ran}, failed
 
 
@@ -268,6 +271,7 @@ def run_fleet(
                 options,
                 {tid: s for tid, (_, s) in plan.items()},
                 {tid: summaries[tid]["tiles"] for tid in plan},
+                what="refining",
             )
             for tid in refined:
                 final_dirs[tid] = refolders[tid]
@@ -280,7 +284,11 @@ def run_fleet(
         maps, reduction = _reduce(groups, tasks, finals, final_dirs, cfg, options, out_dir)
         seconds["reduce"] = time.perf_counter() - clock
         clock = time.perf_counter()
-        metrics = score_groups(groups, tasks, finals, maps, cfg) if options.evaluate else {}
+        metrics = (
+            score_groups(groups, tasks, finals, maps, cfg, options.progress)
+            if options.evaluate
+            else {}
+        )
         seconds["score"] = time.perf_counter() - clock
     clock = time.perf_counter()
     for name, folder in maps.items():
@@ -316,7 +324,7 @@ def _reduce(groups, tasks, finals, final_dirs, cfg, options, out_dir):
                     retries=options.retries,
                     args=(str(folder), work, cfg.mapper.decay_tau_s, config),
                 )
-    done, failed = cluster.gather(refs)
+    done, failed = cluster.gather(refs, "merging tiles" if options.progress else None)
     if failed:
         raise RuntimeError(f"reducers failed: {failed}")
     reduction = {}

@@ -39,8 +39,10 @@ def score_groups(
     finals: dict[str, dict],
     maps: dict[str, Path],
     cfg: RunConfig,
+    progress: bool = False,
 ) -> dict:
-    """Step 5: {group: {"final": metrics, "input": metrics, "scans": n}}."""
+    """Step 5: {group: {"final": metrics, "input": metrics, "scans": n}}; `progress`: a bar
+    counting the logs scored."""
     refs, of_group = {}, {}
     for group in maps:
         for spec in groups[group]:
@@ -53,7 +55,7 @@ def score_groups(
                 refs[key] = cluster.submit(
                     score_log, cpus=1, args=(str(maps[group]), spec, ranges, cfg.input)
                 )
-    done, failed = cluster.gather(refs)
+    done, failed = cluster.gather(refs, "scoring" if progress else None)
     metrics = {}
     for group in maps:
         final, network = Confusion(cfg.mapper.num_classes), Confusion(cfg.mapper.num_classes)

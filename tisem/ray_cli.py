@@ -24,6 +24,9 @@ def add_cluster_args(p: argparse.ArgumentParser) -> None:
     g.add_argument(
         "--arch", choices=("cpu", "cuda"), default="cpu", help="Taichi backend of the tasks"
     )
+    g.add_argument(
+        "--no-progress", action="store_true", help="no bars counting the tasks as they end"
+    )
 
 
 def add_config_args(p: argparse.ArgumentParser) -> None:

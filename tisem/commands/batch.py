@@ -71,6 +71,7 @@ def batch(args: argparse.Namespace) -> int:
             num_cpus=args.num_cpus,
             arch=args.arch,
             map_files=not args.no_map_files,
+            progress=not args.no_progress,
         )
         out = results_folder(args.out)
         result = run_batch(

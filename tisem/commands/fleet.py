@@ -95,6 +95,7 @@ def fleet(args: argparse.Namespace) -> int:
             max_merged_voxels=args.max_merged_voxels,
             evaluate=not args.no_eval,
             world_frame=args.world_frame,
+            progress=not args.no_progress,
         )
         options.validate()
     with cli.bad_input("options: "):
