@@ -210,8 +210,15 @@ def test_merge_app_refuses_other_frames_in_one_line(tmp_path, capsys):
     argv = [str(tmp_path / "a.npz"), str(tmp_path / "b.npz"), "--out", str(tmp_path / "m")]
     assert module.main(argv) == 2
     assert module.main([*argv, "--transform", "1=1,2"]) == 2
+    capsys.readouterr()
     assert module.main([*argv, "--transform", "1=0.4,0,0"]) == 0
-    assert TiledMap.open(tmp_path / "m").voxels > 0
+    merged = TiledMap.open(tmp_path / "m")
+    assert merged.voxels > 0
+    # the tiles merged, counted by the progress bar (and none with --no-progress)
+    tiles = len(merged.tile_keys)
+    assert "merging tiles: 100%" in (bar := capsys.readouterr().err) and f" {tiles}/{tiles} " in bar
+    assert module.main([*argv, "--transform", "1=0.4,0,0", "--no-progress"]) == 0
+    assert "merging tiles" not in capsys.readouterr().err
 
 
 def test_merge_cost_benchmark_runs():

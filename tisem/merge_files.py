@@ -22,6 +22,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from tqdm import tqdm
 
 from tisem.config import mapper_config_from_dict
 from tisem.io.mapfile import load_map_file, save_map
@@ -160,9 +161,11 @@ def merge_maps(
     transforms: dict[int, np.ndarray] | None = None,
     tile_vox: int = TILE_VOX,
     max_merged_voxels: int = 20_000_000,
+    progress: bool = False,
 ) -> MergeResult:
     """Merge the maps `inputs` into the tiled map `out_dir` (module docstring). `transforms`
-    maps an input's position (>= 1) to T_first_input: its frame into the first map's."""
+    maps an input's position (>= 1) to T_first_input: its frame into the first map's.
+    `progress`: a bar counting the tiles merged."""
     started = time.perf_counter()
     if len(inputs) < 1:
         raise ValueError("give at least one map to merge")
@@ -189,7 +192,8 @@ def merge_maps(
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     entries = []
-    for tile in sorted(set().union(*(m.tile_keys() for m in maps))):
+    tiles = sorted(set().union(*(m.tile_keys() for m in maps)))
+    for tile in tqdm(tiles, desc="merging tiles", unit="tile", disable=not progress):
         held = [(m.tile(tile), m.tau_s) for m in maps]
         held = [(s, tau) for s, tau in held if s is not None and len(s)]
         if held:

@@ -46,6 +46,7 @@ def build_parser() -> argparse.ArgumentParser:
         default=20_000_000,
         help="also write map.npz / map.ply / map_bev.png up to this many voxels",
     )
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument("-v", "--verbose", action="store_true", help="also tisem's debug lines")
     return p
 
@@ -75,6 +76,7 @@ def merge(args: argparse.Namespace) -> int:
             args.out,
             transforms=parse_transforms(args.transform),
             max_merged_voxels=args.max_merged_voxels,
+            progress=not args.no_progress,
         )
     print(
         f"merged {len(args.maps)} maps: {result.voxels:,} voxels in {result.tiles} tiles, "
