@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import importlib.util
 import json
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -182,8 +183,25 @@ def test_comparison_renders_with_region_accuracies(results_dir):
     assert result["scans"] == [0, 1, 2] and result["points"] == 3 * 1600
     assert result["accuracy"]["network"] == pytest.approx(0.75)
     assert result["accuracy"]["map"] == pytest.approx(0.95)
+    # the network is wrong at every 4th point, the map at every 20th: they differ at both
+    assert result["changed"] == 3 * (400 + 80)
     with Image.open(result["out"]) as im:
         assert im.width > 3 * 400 and im.height > 400
+
+
+def test_comparison_without_ground_truth_draws_what_the_map_changed(results_dir):
+    """No labels/: the third panel shows the points whose map label is not the network's."""
+    shutil.rmtree(Path(json.loads((results_dir / "run.json").read_text())["data"]) / "labels")
+    result = render_comparison(results_dir)
+    assert result["accuracy"] == {"network": None, "map": None}
+    assert result["changed"] == 3 * (400 + 80) and result["points"] == 3 * 1600
+    with Image.open(result["out"]) as im:
+        rgb = np.asarray(im.convert("RGB"))
+    third = rgb[: int(0.85 * rgb.shape[0]), 2 * rgb.shape[1] // 3 :]  # (the legend is below)
+    # the changed points are the network's wrong vegetation (now road or sidewalk) and the
+    # map's own vegetation: the third panel holds sidewalk's colour and vegetation's
+    for name in (SIDEWALK, VEGETATION):
+        assert (third == CLASS_COLORS_RGB[name]).all(axis=2).any(), name
 
 
 def _render_app():

@@ -3,8 +3,9 @@
     tisem render RESULTS_DIR [--region x0 y0 x1 y1] [--scan N] [--out FILE]
     tisem render RESULTS_DIR --bev [--out FILE]
 
-Default: the 3-panel comparison (network labels | map | ground truth) of a 40 m square around
-the middle of the trajectory, written to RESULTS_DIR/compare.png. `--bev` instead re-draws the
+Default: the 3-panel comparison (network labels | map | ground truth, or without ground truth
+the points where the map changed the network's label) of a 40 m square around the middle of
+the trajectory, written to RESULTS_DIR/compare.png. `--bev` instead re-draws the
 top-down map picture from RESULTS_DIR/map.npz (default RESULTS_DIR/map_bev.png), e.g. after a
 resumed run.
 """
@@ -74,6 +75,8 @@ def main(argv: list[str] | None = None) -> int:
     )
     for name, acc in result["accuracy"].items():
         print(f"  {name:8s} accuracy: " + ("n/a" if acc is None else f"{100 * acc:.2f} %"))
+    share = 100 * result["changed"] / max(result["points"], 1)
+    print(f"  map changed the network's label at {result['changed']} points ({share:.2f} %)")
     for line in result["skipped"]:
         print(f"  skipped scan {line}", file=sys.stderr)
     return 0

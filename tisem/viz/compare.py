@@ -6,6 +6,8 @@ an MCAP recording: `tisem.viz.sources`), and draws the
 points of a region top-down with the same raster as the BEV (highest point per cell), so the
 three panels differ only by their labels and the map's cleaning shows as colour changes.
 Each panel's title carries its accuracy against the ground truth over the region's points.
+Without ground truth the third panel draws the points whose map label is not the network's,
+in the map's class: where the map overruled the network, which a user can check by eye.
 """
 
 from __future__ import annotations
@@ -186,20 +188,29 @@ def render_comparison(
     def acc_text(a):
         return "accuracy n/a (no ground truth)" if a is None else f"accuracy {100 * a:.2f} %"
 
+    everywhere = np.ones(len(pts["z"]), bool)
+    changed = pts["map"] != pts["net"]
     panels = [
-        (input_title, pts["net"], acc_text(accuracy["network"])),
-        ("map", pts["map"], acc_text(accuracy["map"])),
-        (
-            "ground truth",
-            pts["gt"],
-            f"{n_eval} labelled points" if has_gt else "no ground truth in the sequence",
-        ),
+        (input_title, pts["net"], everywhere, acc_text(accuracy["network"])),
+        ("map", pts["map"], everywhere, acc_text(accuracy["map"])),
     ]
+    if has_gt:
+        panels.append(("ground truth", pts["gt"], everywhere, f"{n_eval} labelled points"))
+    else:  # what a user without ground truth can check: where the map overruled the network
+        share = 100 * changed.mean() if len(changed) else 0.0
+        panels.append(
+            (
+                "where the map changed the network's label (no ground truth)",
+                pts["map"],
+                changed,
+                f"{int(changed.sum())} points ({share:.2f} %), in the map's class",
+            )
+        )
     fig = Figure(figsize=(18, 7.4), dpi=100, layout="constrained", facecolor="white")
     axes = fig.subplots(1, 3, sharex=True, sharey=True)
     present = set()
-    for ax, (name, labels, subtitle) in zip(axes, panels):
-        image = top_labels(grid, pts["xy"], pts["z"], labels)
+    for ax, (name, labels, drawn, subtitle) in zip(axes, panels):
+        image = top_labels(grid, pts["xy"][drawn], pts["z"][drawn], labels[drawn])
         present.update(np.unique(image[image >= 0]).tolist())
         draw_label_image(ax, grid, image)
         draw_trajectory(ax, trajectory)
@@ -236,4 +247,5 @@ def render_comparison(
         "points": int(len(pts["z"])),
         "evaluated": n_eval,
         "accuracy": accuracy,
+        "changed": int(changed.sum()),  # points whose map label is not the network's
     }
