@@ -17,7 +17,8 @@ import numpy as np
 import pytest
 import taichi as ti
 
-from tisem.labels import LEARNING_MAP_INV
+from tisem.labels import LEARNING_MAP_INV, raw_to_train
+from tisem.report import results_table
 from tisem.synth.sequence import write_semantickitti
 
 REPO = Path(__file__).resolve().parents[1]
@@ -169,6 +170,34 @@ def test_metrics_json_has_every_protocol_and_figure(damaged):
             assert 0.0 <= summary[key] <= 1.0, (protocol, key, summary[key])
         assert len(summary["per_class_iou"]) == 19
     assert metrics["final"]["accuracy"] > 0.5
+
+
+@pytest.mark.slow
+def test_relabelled_points_are_counted_from_the_files(damaged):
+    """metrics.json says at how many finite points of the mapped scans the final map answers
+    another class than the network's labels; recounted here from the written predictions,
+    the input's labels and the .bin files (scan 3's NaN points are no measurement)."""
+    seq, out, rc, _, metrics = damaged
+    assert rc == 0
+    points = changed = 0
+    for k in MAPPED:
+        xyz = np.fromfile(seq / "velodyne" / f"{k:06d}.bin", "<f4").reshape(-1, 4)[:, :3]
+        finite = np.isfinite(xyz).all(axis=1)
+        net, _ = raw_to_train(np.fromfile(seq / "predictions" / f"{k:06d}.label", "<u4"))
+        ours, _ = raw_to_train(
+            np.fromfile(out / "sequences" / "08" / "predictions" / f"{k:06d}.label", "<u4")
+        )
+        points += int(finite.sum())
+        changed += int(((net != ours) & finite).sum())
+    assert 0 < changed < points
+    assert metrics["relabelled"] == {
+        "points": points,
+        "changed": changed,
+        "share": pytest.approx(changed / points),
+    }
+    assert f"changed the input's label at {changed:,} of {points:,} points" in results_table(
+        metrics
+    )
 
 
 @pytest.mark.slow

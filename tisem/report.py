@@ -121,4 +121,10 @@ def results_table(metrics: dict, per_class: bool = False, input_name: str = "net
         f"\nunmapped points: {band:,} outside the height band, {out_of_range:,} outside "
         f"the range band"
     )
+    relabelled = metrics.get("relabelled")  # (metrics of older runs lack it)
+    if relabelled and relabelled["points"]:
+        text += (
+            f"\nthe final map changed the input's label at {relabelled['changed']:,} of "
+            f"{relabelled['points']:,} points ({100 * relabelled['share']:.2f} %)"
+        )
     return text

@@ -42,13 +42,31 @@ from tisem.pose_gate import Anchor, PoseGate, Verdict
 from tisem.progress import RunProgress
 from tisem.report import run_metrics
 from tisem.run_writer import RunWriter
-from tisem.scan import Scan
+from tisem.scan import Scan, finite_rows
 
 log = logging.getLogger(__name__)
 
 __all__ = ["MappingRun", "RunResult"]
 
 OnScan = Callable[[Mapper, Scan, int], None]
+
+
+@dataclass
+class Relabelled:
+    """How many points of the mapped scans the final map answers with another class than the
+    network gave them: what a run without ground truth can say about what the map did."""
+
+    points: int = 0  # finite points of the mapped scans
+    changed: int = 0  # of them, answered with another class than the network's
+
+    def add(self, scan: Scan, labels: np.ndarray) -> None:
+        finite = finite_rows(scan.points_sensor)
+        self.points += int(finite.sum())
+        self.changed += int(((labels != network_labels(scan)) & finite).sum())
+
+    def to_dict(self) -> dict:
+        share = self.changed / self.points if self.points else None
+        return {"points": self.points, "changed": self.changed, "share": share}
 
 
 @dataclass
@@ -114,6 +132,7 @@ class MappingRun:
         self.files = RunWriter(self.out_dir, cfg, self.info, sequence_name, self.checkpoint_dir)
         self.mapper = mapper or Mapper(cfg.mapper)
         self.progress = progress or RunProgress.start(self.mapper.C)
+        self.relabelled = Relabelled()  # counted by the final pass
         self._stop = StopRequest()
 
     # the writer keeps these two, set by the run: a write that fails names them
@@ -201,6 +220,7 @@ class MappingRun:
                 raise NothingMapped(self._nothing_mapped())
             final = self.final_pass(final_scans, show_progress)
         metrics = run_metrics(self.progress, final, self.mapper, self.cfg)
+        metrics["relabelled"] = self.relabelled.to_dict()
         if self.stopped:
             metrics["stopped"] = self.stopped
         self.files.write_metrics(metrics)
@@ -360,6 +380,7 @@ class MappingRun:
         Scans that were not mapped are passed over: no predictions file, not scored."""
         self.files.write_info()
         final = Confusion(self.mapper.C)
+        self.relabelled = Relabelled()
         # minutes on a long drive: the bar counts the mapped scans it looks up
         for item in tqdm(
             scans,
@@ -372,6 +393,7 @@ class MappingRun:
                 continue
             labels, _ = self.mapper.query(item.points_world(), with_probs=False)
             self.files.write_predictions(item.index, labels)
+            self.relabelled.add(item, labels)
             if item.gt_labels is not None:
                 score_scan(final, item, labels)
             if self._stop.requested:
