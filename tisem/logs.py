@@ -114,8 +114,9 @@ def recording_fields(options) -> dict:
     from tisem.io.mcap_options import McapOptions
 
     given = options if isinstance(options, dict) else vars(options)
-    known = {f.name for f in fields(McapOptions)} - {"first", "last", "num_classes"}
-    unknown = sorted(set(given) - known - {"first", "last", "num_classes"})
+    set_by_run = {"first", "last", "num_classes"}  # accepted, and left out
+    known = {f.name for f in fields(McapOptions)} - set_by_run
+    unknown = sorted(set(given) - known - set_by_run)
     if unknown:
         raise ValueError(f"recording options: unknown {unknown}; known: {sorted(known)}")
     kept = {k: v for k, v in given.items() if k in known}

@@ -188,7 +188,7 @@ def render_comparison(
     def acc_text(a):
         return "accuracy n/a (no ground truth)" if a is None else f"accuracy {100 * a:.2f} %"
 
-    everywhere = np.ones(len(pts["z"]), bool)
+    everywhere = slice(None)  # (a view: the panels of every point copy nothing)
     changed = pts["map"] != pts["net"]
     panels = [
         (input_title, pts["net"], everywhere, acc_text(accuracy["network"])),

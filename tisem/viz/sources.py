@@ -9,7 +9,7 @@ it names under `mcap`, read with the options the run used (`options`).
 from __future__ import annotations
 
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -100,7 +100,10 @@ def _recording_scans(path: Path, run: dict) -> RunScans:
 
     def load(positions: list[int]) -> Iterator[tuple[int, Scan | str]]:
         wanted = {ids[k]: k for k in positions}
-        for item in open_scan_reader(path, options):
+        if not wanted:
+            return
+        # the reader stops at the last scan wanted, not at the end of the recording
+        for item in open_scan_reader(path, replace(options, last=max(wanted))):
             if isinstance(item, Scan) and item.index in wanted:
                 yield wanted[item.index], item
 
