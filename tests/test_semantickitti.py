@@ -264,6 +264,63 @@ def test_short_times_file(tmp_path):
     assert _kinds(SemanticKittiSequence(d)) == ["Scan", "SkippedScan", "Scan"]
 
 
+def _renumber(folder: Path, ids: list[int]) -> None:
+    """Give the folder's scans (000000, 000001, ...) the numbers `ids`, in order, as a
+    sequence's extract keeps them."""
+    for sub in ("velodyne", "labels", "predictions"):
+        files = sorted((folder / sub).iterdir())
+        for path, sid in zip(files, ids):
+            path.rename(path.with_name(f"tmp_{sid:06d}{path.suffix}"))
+        for path in (folder / sub).iterdir():
+            path.rename(path.with_name(path.name[len("tmp_") :]))
+
+
+def test_an_extract_pairs_its_own_poses_and_times_in_order(tmp_path, caplog):
+    """Scans 1000, 1001 and 1005 of a sequence, carried with their three poses and times: every
+    number lies past the files' ends, so the k-th entry is the k-th scan's, and a log line
+    says so; the scans read as the same folder numbered 0-2 does."""
+    whole = SemanticKittiSequence(make_sequence(tmp_path / "whole"))
+    d = make_sequence(tmp_path / "extract")
+    (d / "times.txt").write_text("100.0\n100.1\n100.5\n")
+    _renumber(d, [1000, 1001, 1005])
+    with caplog.at_level("WARNING"):
+        seq = SemanticKittiSequence(d)
+    assert seq.scan_ids == [1000, 1001, 1005] and list(seq.has_pose) == [True] * 3
+    assert len(seq.entry_notes) == 2 and "scan 1000 takes the first entry" in caplog.text
+    assert "poses.txt: 3 entries for the 3 scans 1000..1005" in seq.entry_notes[0]
+    assert "times.txt: 3 entries" in seq.entry_notes[1]
+    for k in range(3):
+        np.testing.assert_array_equal(seq[k].T_world_sensor, whole[k].T_world_sensor)
+        np.testing.assert_array_equal(seq[k].points_sensor, whole[k].points_sensor)
+    assert [seq[k].stamp_s for k in range(3)] == [100.0, 100.1, 100.5]
+    # a selected range keeps each scan's entry: its place in the folder, not in the range
+    tail = SemanticKittiSequence(d, first=1001)
+    np.testing.assert_array_equal(tail[1].T_world_sensor, whole[2].T_world_sensor)
+    assert tail[1].stamp_s == 100.5
+
+
+@pytest.mark.parametrize(
+    "ids, n_poses, skipped",
+    [
+        ([0, 1, 3, 4], 4, [4]),  # a scan file missing and the file a pose short
+        ([3, 4, 5, 6], 4, [4, 5, 6]),  # some numbers within the file: by number
+        ([1000, 1001, 1002, 1003], 3, [1000, 1001, 1002, 1003]),  # one pose short
+    ],
+)
+def test_other_mismatches_keep_pairing_by_number(tmp_path, ids, n_poses, skipped):
+    """Pairing in order only where every scan is numbered past the file's end and the file holds
+    exactly one entry per scan: after a gap it would give each scan its neighbour's pose."""
+    d = make_sequence(tmp_path / "seq", n_scans=len(ids), n_poses=n_poses)
+    _renumber(d, ids)
+    seq = SemanticKittiSequence(d)
+    assert seq.entry_notes == []
+    items = list(seq)
+    assert [s.index for s in items if isinstance(s, SkippedScan)] == skipped
+    for s in items:
+        if isinstance(s, Scan):  # pose i moves 1 m along lidar x: scan i's, by its number
+            np.testing.assert_allclose(s.T_world_sensor[:3, 3], [s.index, 0, 0], atol=1e-12)
+
+
 def test_missing_poses_and_calib(tmp_path):
     d = make_sequence(tmp_path / "seq")
     (d / "poses.txt").unlink()

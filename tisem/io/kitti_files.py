@@ -6,7 +6,7 @@ one scan and map the others; `read_calib_tr` refuses the sequence (there is one 
 
 A plausible time is a finite number of seconds in [0, MAX_TIME_S] (seconds since the start of
 the drive, or since the Unix epoch); `out_of_order` finds the times that would run the map's
-clock backwards.
+clock backwards. `entry_of_scan` says which entry of poses.txt or times.txt is a scan's.
 """
 
 from __future__ import annotations
@@ -29,6 +29,7 @@ __all__ = [
     "read_times",
     "read_trajectory",
     "out_of_order",
+    "entry_of_scan",
     "camera_poses_to_lidar",
     "MAX_TIME_S",
 ]
@@ -324,3 +325,27 @@ def out_of_order(times: np.ndarray, scan_ids: list[int], path: Path) -> dict[int
             f"({around}): the map's clock cannot run backwards"
         )
     return problems
+
+
+def entry_of_scan(
+    folder_ids: list[int], scan_ids: list[int], entries: int, path: Path
+) -> tuple[np.ndarray, str | None]:
+    """The entry of `path` (a pose or time, by index) for each of `scan_ids`, and a note when
+    they are not paired by number.
+
+    SemanticKITTI numbers the entries by scan: entry i is scan i's. A folder cut out of a
+    sequence (scans 1000-1004, say) often carries only its own entries, one per scan file
+    (`folder_ids`, the whole folder, not the selected range), every scan numbered past the
+    file's end: then the k-th entry is the folder's k-th scan's, and the note says so. Any
+    other mismatch (a scan file missing, a file cut short) keeps the numbers: pairing those in
+    order would shift every scan after the gap onto its neighbour's entry."""
+    ids = np.asarray(scan_ids, dtype=np.int64)
+    if entries != len(folder_ids) or folder_ids[0] < entries:
+        return ids, None
+    position = {sid: k for k, sid in enumerate(folder_ids)}
+    note = (
+        f"{path}: {entries} entries for the {entries} scans {folder_ids[0]}..{folder_ids[-1]}, "
+        f"all numbered past its end: paired in order (scan {folder_ids[0]} takes the first "
+        f"entry), as for a sequence's extract that kept only its own"
+    )
+    return np.array([position[s] for s in scan_ids], dtype=np.int64), note

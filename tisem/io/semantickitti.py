@@ -9,7 +9,9 @@ Layout of one sequence folder::
     calib.txt                with a `Tr:` line (velodyne -> camera, 3x4 row-major)
     times.txt                optional, seconds per scan (absent -> 0.1 s spacing)
 
-The LiDAR pose of scan i is ``T_world_lidar = Tr^-1 . pose_i . Tr``. In the KITTI odometry
+The LiDAR pose of scan i is ``T_world_lidar = Tr^-1 . pose_i . Tr``, pose_i the i-th line of
+poses.txt (the same for times.txt); a folder cut out of a sequence whose files hold one entry
+per scan, all its scans numbered past their end, pairs them in order instead (logged). In the KITTI odometry
 layout the poses are `dataset/poses/NN.txt` beside `dataset/sequences/NN/` (same format), used
 when the sequence folder has no poses.txt. `poses=FILE` instead reads a trajectory that is
 already in the LiDAR frame (KITTI or TUM format, `kitti_files.read_trajectory`); calib.txt is
@@ -35,6 +37,7 @@ sequence folder and its scans tisem/io/kitti_layout.py, and writing a run's per-
 
 from __future__ import annotations
 
+import logging
 import os
 from collections.abc import Iterator
 from pathlib import Path
@@ -45,6 +48,7 @@ from tisem.errors import DatasetError, ScanError, SkippedScan
 from tisem.io.kitti_files import (
     MAX_TIME_S,
     camera_poses_to_lidar,
+    entry_of_scan,
     out_of_order,
     read_calib_tr,
     read_pose_lines,
@@ -78,6 +82,8 @@ __all__ = [
     "MAX_TIME_S",
 ]
 
+log = logging.getLogger(__name__)
+
 DEFAULT_SCAN_PERIOD_S = 0.1  # 10 Hz, used when there is no times.txt
 INPUTS = ("predictions", "labels")
 
@@ -101,7 +107,9 @@ class SemanticKittiSequence:
     poses_lidar ((len, 4, 4) float64 T_world_lidar aligned with `scan_ids`; NaN where
     poses.txt has no pose for that scan, see `has_pose`), times ((len,) float64 seconds aligned
     with `scan_ids`; NaN where times.txt is too short), has_ground_truth (a `labels/` folder),
-    input_dir (the folder the input labels come from), num_poses (poses in poses.txt).
+    input_dir (the folder the input labels come from), num_poses (poses in poses.txt),
+    entry_notes (a line each for poses.txt and times.txt when their entries are paired with
+    the scans in order, as for a sequence's extract: `kitti_files.entry_of_scan`; logged).
 
     ``seq[k]`` is the k-th scan of the selected range (not the scan id) and raises `ScanError`
     for a bad scan; iteration yields `Scan` or `SkippedScan` and never stops on a bad scan.
@@ -153,36 +161,45 @@ class SemanticKittiSequence:
         lidar_all, pose_problems, stamps = self._read_poses(poses)
         self.num_poses = int(lidar_all.shape[0])
         ids = np.asarray(self.scan_ids, dtype=np.int64)
-        self.has_pose = ids < self.num_poses
+        # the pose of each scan: poses.txt's entry of its number, or of its place in an extract
+        pose_of, note = entry_of_scan(all_ids, self.scan_ids, self.num_poses, self.poses_file)
+        self.entry_notes = [note] if note else []
+        self.has_pose = pose_of < self.num_poses
         self.poses_lidar = np.full((len(ids), 4, 4), np.nan)
-        self.poses_lidar[self.has_pose] = lidar_all[ids[self.has_pose]]
+        self.poses_lidar[self.has_pose] = lidar_all[pose_of[self.has_pose]]
         # why a scan cannot be used although its files can: {scan id: the ScanError message}
         self.problems: dict[int, str] = {
-            int(sid): pose_problems[int(sid)] for sid in ids if int(sid) in pose_problems
+            sid: pose_problems[int(e)]
+            for sid, e in zip(self.scan_ids, pose_of)
+            if int(e) in pose_problems
         }
 
         self.times_file = d / "times.txt"
         if self.times_file.is_file():
             all_times, time_problems = read_time_lines(self.times_file)
+            time_of, note = entry_of_scan(all_ids, self.scan_ids, all_times.size, self.times_file)
+            self.entry_notes += [note] if note else []
             self.times = np.full(len(ids), np.nan)
-            ok = ids < all_times.size
-            self.times[ok] = all_times[ids[ok]]
+            ok = time_of < all_times.size
+            self.times[ok] = all_times[time_of[ok]]
             self._num_times = int(all_times.size)
-            for sid in self.scan_ids:
-                if sid in time_problems:
-                    self.problems.setdefault(sid, time_problems[sid])
+            for sid, e in zip(self.scan_ids, time_of):
+                if int(e) in time_problems:
+                    self.problems.setdefault(sid, time_problems[int(e)])
             for k, why in out_of_order(self.times, self.scan_ids, self.times_file).items():
                 self.problems.setdefault(self.scan_ids[k], why)
         elif stamps is not None:  # a TUM trajectory's stamps
             self.times_file = self.poses_file
             self.times = np.full(len(ids), np.nan)
-            self.times[self.has_pose] = stamps[ids[self.has_pose]]
+            self.times[self.has_pose] = stamps[pose_of[self.has_pose]]
             self._num_times = int(stamps.size)
             for k, why in out_of_order(self.times, self.scan_ids, self.poses_file).items():
                 self.problems.setdefault(self.scan_ids[k], why)
         else:
             self.times = ids.astype(np.float64) * DEFAULT_SCAN_PERIOD_S
             self._num_times = None
+        for note in self.entry_notes:
+            log.warning(note)
 
     def _read_poses(
         self, trajectory: str | os.PathLike | None
