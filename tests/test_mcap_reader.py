@@ -111,6 +111,31 @@ def test_train_label_space_probabilities_and_ground_truth(tmp_path):
     assert p.labels is None and np.array_equal(p.probs, arrays[1]["probs"].astype(np.float32))
 
 
+def test_train_ids_in_the_label_field_are_found_by_default(tmp_path, caplog):
+    """A recording whose label field holds train ids, read with the default label space
+    ("auto"), gives the scans "train" gives, and says so once; "raw" counts them unknown."""
+    path = tmp_path / "f.mcap"
+    arrays = write_fields_log(path, (), label_dtype="u1", frames=3)
+    rng = np.random.default_rng(2)
+    for arr in arrays:
+        arr["label"] = rng.integers(0, 20, len(arr))
+    with Ros2McapWriter(path) as w:
+        w.write_transforms([("map", "velodyne", 0, np.eye(4))], 0, static=True)
+        for i, arr in enumerate(arrays):
+            w.write_cloud("/points", arr, "velodyne", (i + 1) * 10**8, (i + 1) * 10**8)
+    with caplog.at_level("WARNING"):
+        reader = McapScanReader(path)
+        found = list(reader)
+    said = [r.getMessage() for r in caplog.records if "train ids, not raw" in r.getMessage()]
+    assert len(said) == 1 and "field 'label'" in said[0]
+    assert reader.train_ids.sources == {"labels": 3} and reader.report.unknown_labels == 0
+    for s, arr in zip(found, arrays):
+        assert np.array_equal(s.labels, arr["label"])
+    raw = McapScanReader(path, McapOptions(label_space="raw"))
+    list(raw)
+    assert raw.report.unknown_labels > 0 and raw.train_ids.sources == {}
+
+
 def test_a_probability_field_of_the_wrong_width_skips_with_a_reason(tmp_path):
     write_fields_log(tmp_path / "f.mcap", (("probs", "<f4", (3,)),), frames=1)
     (item,) = scans_of(tmp_path / "f.mcap", prob_field="probs")

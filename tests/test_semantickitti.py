@@ -15,7 +15,7 @@ from tisem.io.semantickitti import (
     read_poses,
     write_predictions,
 )
-from tisem.labels import LEARNING_MAP_INV, raw_to_train
+from tisem.labels import LEARNING_MAP_INV, holds_train_ids, raw_to_train
 from tisem.scan import Scan, finite_rows
 
 # A KITTI-like calibration: camera x = -lidar y, camera y = -lidar z, camera z = lidar x,
@@ -262,6 +262,46 @@ def test_short_times_file(tmp_path):
     with pytest.raises(ScanError, match=r"times\.txt:2: malformed time line"):
         SemanticKittiSequence(d)[1]
     assert _kinds(SemanticKittiSequence(d)) == ["Scan", "SkippedScan", "Scan"]
+
+
+def test_real_labels_are_told_from_train_ids(kitti_mini):
+    """Every real scan's predictions and ground truth (instance bits) are raw ids; the same
+    predictions after the learning map are train ids; so are no ids of a scan of vehicles
+    (raw ids below 20, all known) or of an unlabeled one."""
+    for k in range(5):
+        pred = np.fromfile(kitti_mini / "predictions" / f"{k:06d}.label", "<u4")
+        gt = np.fromfile(kitti_mini / "labels" / f"{k:06d}.label", "<u4")
+        assert not holds_train_ids(pred) and not holds_train_ids(gt)
+        assert holds_train_ids(raw_to_train(pred)[0])
+    assert not holds_train_ids(np.array([0, 1, 10, 11, 13, 15, 16, 18], np.uint32))
+    assert not holds_train_ids(np.zeros(100, np.uint32))
+    assert not holds_train_ids(np.array([9, 40], np.uint32))  # road as raw: 40 is no train id
+
+
+def test_train_id_label_files_read_as_train_ids(tmp_path, caplog):
+    """Label files saved as train ids (a network's argmax without the inverse learning map)
+    give the scans the raw files give, with one warning per folder; "raw" reads them as raw
+    ids, most of them unknown, as before."""
+    raw_seq = SemanticKittiSequence(make_sequence(tmp_path / "raw"))
+    d = make_sequence(tmp_path / "train")
+    for sub in ("predictions", "labels"):
+        for path in (d / sub).iterdir():
+            raw_to_train(np.fromfile(path, "<u4"))[0].astype("<u4").tofile(path)
+    with caplog.at_level("WARNING"):
+        seq = SemanticKittiSequence(d)
+        scans = list(seq)
+    assert seq.train_ids.sources == {"predictions": 3, "labels": 3}
+    said = [r.getMessage() for r in caplog.records if "train ids, not raw" in r.getMessage()]
+    assert len(said) == 2 and "train/predictions/000000.label: the predictions are" in said[0]
+    for s, r in zip(scans, raw_seq):
+        np.testing.assert_array_equal(s.labels, r.labels)
+        np.testing.assert_array_equal(s.gt_labels, r.gt_labels)
+        assert s.source.unknown_raw_ids == 0
+    as_raw = SemanticKittiSequence(d, label_space="raw")[0]
+    assert as_raw.source.unknown_raw_ids > 0
+    assert not np.array_equal(as_raw.labels, raw_seq[0].labels)
+    with pytest.raises(ValueError, match="label_space must be one of"):
+        SemanticKittiSequence(d, label_space="ids")
 
 
 def _renumber(folder: Path, ids: list[int]) -> None:

@@ -10,6 +10,8 @@ given `--classes FILE` sets (`use_label_space`, tisem/label_space.py).
 
 from __future__ import annotations
 
+import logging
+
 import numpy as np
 
 NUM_CLASSES = 20  # train ids 0..19, 0 = unlabeled
@@ -139,6 +141,68 @@ def raw_to_train(raw_label: np.ndarray) -> tuple[np.ndarray, int]:
     train_id = to_train[semantic]
     unknown = int(np.count_nonzero(~known[semantic]))
     return train_id, unknown
+
+
+LABEL_SPACES = ("auto", "raw", "train")
+
+
+def holds_train_ids(values: np.ndarray) -> bool:
+    """Whether label values are train ids, not raw ids: every value lies below num_classes()
+    (no instance bits either), and one at least is no raw id of the label space.
+
+    A scan in raw SemanticKITTI ids holds ground, whose ids are all past 19 (road 40, sidewalk
+    48, terrain 72), and the raw ids below 20 (unlabeled, outlier and the vehicles) are known
+    ones; a network's argmax saved without the inverse learning map holds 0..19, among them
+    ids that name no raw class (9, road, is the most common)."""
+    values = np.asarray(values)
+    if values.size == 0 or values.min() < 0 or values.max() >= num_classes():
+        return False
+    known = _RAW_KNOWN if _active is None else _active.lookup[1]
+    return not known[values.astype(np.int64)].all()
+
+
+def to_train_ids(
+    values: np.ndarray, label_space: str = "auto", classes: int | None = None
+) -> tuple[np.ndarray, int, str]:
+    """(train ids int32, how many values are no label of the space (they become 0: no
+    evidence), the space they were read in: "raw" or "train").
+
+    `label_space`: "raw" (SemanticKITTI ids, instance bits allowed: `raw_to_train`), "train"
+    (0..classes - 1, num_classes() by default), or "auto": train ids where `holds_train_ids`
+    says so, raw ids otherwise."""
+    if label_space not in LABEL_SPACES:
+        raise ValueError(f"label_space must be one of {LABEL_SPACES}, got {label_space!r}")
+    if label_space == "auto":
+        label_space = "train" if holds_train_ids(values) else "raw"
+    if label_space == "raw":
+        return (*raw_to_train(values), "raw")
+    values = np.asarray(values).astype(np.int64)
+    bad = (values < 0) | (values >= (num_classes() if classes is None else classes))
+    return np.where(bad, 0, values).astype(np.int32), int(np.count_nonzero(bad)), "train"
+
+
+class TrainIdNotes:
+    """A reader's warning, once per label source (the predictions, the ground truth), that
+    `to_train_ids` read its values as train ids: a run on labels in the other space is
+    otherwise silently wrong everywhere."""
+
+    def __init__(self, log: logging.Logger) -> None:
+        self.log = log
+        self.sources: dict[str, int] = {}  # label source -> scans read as train ids
+
+    def read(self, source: str, where: str, space: str) -> None:
+        if space != "train":
+            return
+        if source not in self.sources:
+            self.log.warning(
+                "%s: the %s are train ids, not raw SemanticKITTI ids (every value below %d, "
+                "some naming no raw class): read as train ids, here and in every other scan "
+                "that holds them",
+                where,
+                source,
+                num_classes(),
+            )
+        self.sources[source] = self.sources.get(source, 0) + 1
 
 
 def train_to_raw(train_id: np.ndarray) -> np.ndarray:

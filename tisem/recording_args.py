@@ -11,6 +11,7 @@ from __future__ import annotations
 import argparse
 
 from tisem import cli
+from tisem.labels import LABEL_SPACES
 
 
 def add_recording_args(p: argparse.ArgumentParser) -> argparse._ArgumentGroup:
@@ -20,9 +21,10 @@ def add_recording_args(p: argparse.ArgumentParser) -> argparse._ArgumentGroup:
     g.add_argument("--label-field", default="label", help="per-point label field (default label)")
     g.add_argument(
         "--label-space",
-        choices=("raw", "train"),
-        default="raw",
-        help="label values are raw SemanticKITTI ids (default) or train ids 0..19",
+        choices=LABEL_SPACES,
+        default="auto",
+        help="label values are raw SemanticKITTI ids, train ids 0..19, or either (auto, the "
+        "default: train ids in a scan whose values all are, and some are no raw id)",
     )
     g.add_argument(
         "--prob-field",

@@ -17,7 +17,7 @@ from tisem.errors import ScanError
 from tisem.io import pointcloud2 as pc2
 from tisem.io.stamps import stamp_to_ns
 from tisem.io.tf import make_transform
-from tisem.labels import raw_to_train
+from tisem.labels import to_train_ids
 
 PROBABILITY_SLACK = 1e-3  # rounding in a network's softmax may leave a value just above 1
 
@@ -148,15 +148,14 @@ def pose_edges(
 
 def cloud_labels(
     arr: np.ndarray, field_name: str, label_space: str, num_classes: int
-) -> tuple[np.ndarray, int]:
-    """Train ids of a cloud's label field, and how many points had an unknown or invalid
-    label (those become 0, no evidence). `label_space`: raw SemanticKITTI ids or train ids."""
+) -> tuple[np.ndarray, int, str]:
+    """Train ids of a cloud's label field, how many points had an unknown or invalid label
+    (those become 0, no evidence), and the space the values were read in ("raw" or "train").
+    `label_space`: raw SemanticKITTI ids, train ids, or "auto" (`tisem.labels.to_train_ids`)."""
     values, invalid = pc2.integer_labels(pc2.column(arr, field_name), field_name)
-    if label_space == "raw":
-        train, unknown = raw_to_train(values)  # invalid values are 0 there: no evidence
-        return train, unknown + int(np.count_nonzero(invalid))
-    bad = invalid | (values < 0) | (values >= num_classes)
-    return np.where(bad, 0, values).astype(np.int32), int(np.count_nonzero(bad))
+    # an invalid value is 0 in `values`: unlabeled in either space, and counted once here
+    train, unknown, space = to_train_ids(values, label_space, num_classes)
+    return train, unknown + int(np.count_nonzero(invalid)), space
 
 
 def cloud_probabilities(

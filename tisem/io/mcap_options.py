@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from tisem.labels import NUM_CLASSES
+from tisem.labels import LABEL_SPACES, NUM_CLASSES
 
 
 @dataclass
@@ -21,7 +21,8 @@ class McapOptions:
 
     topic: str | None = None  # the cloud topic; found automatically when there is one
     label_field: str = "label"  # per-point label field ...
-    label_space: str = "raw"  # ... holding raw SemanticKITTI ids or train ids
+    label_space: str = "auto"  # ... holding raw SemanticKITTI ids, train ids, or either
+    # ("auto": train ids where every value is one and some are no raw id, tisem.labels)
     prob_field: str | None = None  # or a count=C float field of class probabilities
     gt_field: str | None = None  # ground-truth label field (same label space), for metrics
     map_frame: str = "map"
@@ -38,8 +39,10 @@ class McapOptions:
 
     def validate(self) -> None:
         """ValueError naming the option, its value and what is allowed."""
-        if self.label_space not in ("raw", "train"):
-            raise ValueError(f"label_space must be 'raw' or 'train', got {self.label_space!r}")
+        if self.label_space not in LABEL_SPACES:
+            raise ValueError(
+                f"label_space must be one of {', '.join(LABEL_SPACES)}, got {self.label_space!r}"
+            )
         tolerance = self.tf_tolerance_s
         if not (isinstance(tolerance, (int, float)) and 0 <= tolerance < math.inf):
             raise ValueError(f"tf_tolerance_s must be a finite number >= 0, got {tolerance!r}")

@@ -37,6 +37,7 @@ from tisem.io.mcap_report import error_text
 from tisem.io.mcap_survey import Survey
 from tisem.io.stamps import split_ns
 from tisem.io.tf import TfError
+from tisem.labels import TrainIdNotes
 from tisem.scan import McapSource, Scan, finite_rows
 
 __all__ = ["McapOptions", "McapScanReader"]
@@ -71,6 +72,7 @@ class McapScanReader:
         self._records = records if records is not None else McapRecords(path)
         self._decoders = decoders if decoders is not None else MessageDecoders()
         self._unknown: dict[int, tuple[int, int]] = {}  # scan index -> unknown labels, gt
+        self.train_ids = TrainIdNotes(log)  # label_space "auto" reading train ids
         survey = Survey(self.path, self.options, self._records, self._decoders, self.report)
         self.topic, self.frame_id = survey.topic, survey.frame_id
         self.tf, self.total = survey.tf, survey.total
@@ -209,13 +211,15 @@ class McapScanReader:
             if opts.prob_field:
                 probs, unknown = cloud_probabilities(arr, opts.prob_field, opts.num_classes)
             else:
-                labels, unknown = cloud_labels(
+                labels, unknown, space = cloud_labels(
                     arr, opts.label_field, opts.label_space, opts.num_classes
                 )
+                self.train_ids.read("labels", f"{name} field {opts.label_field!r}", space)
             if opts.gt_field:
-                gt, unknown_gt = cloud_labels(
+                gt, unknown_gt, space = cloud_labels(
                     arr, opts.gt_field, opts.label_space, opts.num_classes
                 )
+                self.train_ids.read("ground truth", f"{name} field {opts.gt_field!r}", space)
             self._count_unknown(index, unknown, unknown_gt)
             return Scan(
                 points_sensor=points,

@@ -64,7 +64,7 @@ from tisem.io.kitti_predictions import (
     write_dynamic_flags,
     write_predictions,
 )
-from tisem.labels import moving_raw, raw_to_train
+from tisem.labels import LABEL_SPACES, TrainIdNotes, moving_raw, to_train_ids
 from tisem.scan import KittiSource, Scan, finite_rows
 
 __all__ = [
@@ -100,6 +100,9 @@ class SemanticKittiSequence:
     input: "predictions" (the network's labels feed the map) or "labels" (ground truth as input).
     first, last: inclusive range of scan ids (the numbers of the `velodyne/*.bin` files).
     poses: a trajectory file of LiDAR poses, one per scan (instead of poses.txt and `Tr`).
+    label_space: the label files hold raw SemanticKITTI ids ("raw", with instance bits), train
+        ids ("train"), or either ("auto", per file: `tisem.labels.to_train_ids`; a warning
+        names the first file read as train ids, `train_ids.sources` counts them).
 
     Attributes
     ----------
@@ -123,10 +126,14 @@ class SemanticKittiSequence:
         first: int = 0,
         last: int | None = None,
         poses: str | os.PathLike | None = None,
+        label_space: str = "auto",
     ):
         if input not in INPUTS:
             raise ValueError(f"input must be one of {INPUTS}, got {input!r}")
-        self.input = input
+        if label_space not in LABEL_SPACES:
+            raise ValueError(f"label_space must be one of {LABEL_SPACES}, got {label_space!r}")
+        self.input, self.label_space = input, label_space
+        self.train_ids = TrainIdNotes(log)
         self.sequence_dir, self.sequence_name = find_sequence(path, sequence)
 
         d = self.sequence_dir
@@ -339,14 +346,16 @@ class SemanticKittiSequence:
             # rule) and the predictions file keeps one label per point of the .bin
             if not finite_rows(data[:, :3]).any():
                 raise ScanError(f"{bin_path}: all {n} points are non-finite (NaN/inf)", sid, name)
-            labels, unknown = raw_to_train(raw_in)
+            labels, unknown, space = to_train_ids(raw_in, self.label_space)
+            self.train_ids.read(self.input, str(in_path), space)
             gt = None
             unknown_gt = 0
             if raw_gt is not None:
                 if self.input == "labels":
                     gt, unknown_gt = labels, unknown
                 else:
-                    gt, unknown_gt = raw_to_train(raw_gt)
+                    gt, unknown_gt, space = to_train_ids(raw_gt, self.label_space)
+                    self.train_ids.read("labels", str(gt_path), space)
             return Scan(
                 points_sensor=data[:, :3],
                 T_world_sensor=self.poses_lidar[k],
