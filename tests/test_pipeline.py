@@ -198,6 +198,12 @@ def test_relabelled_points_are_counted_from_the_files(damaged):
     assert f"changed the input's label at {changed:,} of {points:,} points" in results_table(
         metrics
     )
+    # scan 4's 40 predictions of raw id 999, which the label space has no class for
+    assert metrics["dropped"]["unknown_raw_ids"] == 40
+    assert (
+        f"input labels with no class: 40 ({100 * 40 / points:.2f} % of the points), no evidence"
+        in results_table(metrics)
+    )
 
 
 @pytest.mark.slow

@@ -122,6 +122,14 @@ def results_table(metrics: dict, per_class: bool = False, input_name: str = "net
         f"the range band"
     )
     relabelled = metrics.get("relabelled")  # (metrics of older runs lack it)
+    unknown = dropped.get("unknown_raw_ids", 0)
+    if unknown and relabelled and relabelled["points"]:
+        # labels the label space has no class for: a wrong --classes or label space, which a
+        # run must not pass over in the per-scan lines only
+        text += (
+            f"\ninput labels with no class: {unknown:,} ({100 * unknown / relabelled['points']:.2f}"
+            f" % of the points), no evidence; their ids are not in the label space (--classes)"
+        )
     if relabelled and relabelled["points"]:
         text += (
             f"\nthe final map changed the input's label at {relabelled['changed']:,} of "
