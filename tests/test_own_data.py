@@ -147,10 +147,71 @@ def test_missing_predictions_suggest_input_labels(street, tmp_path):
         (seq_dir / name).symlink_to(street / name)
     with pytest.raises(
         DatasetError,
-        match=r"predictions: input label folder missing.*--input "
+        match=r"predictions: input label folder missing.*--predictions DIR.*--input "
         r"labels",
     ):
         SemanticKittiSequence(seq_dir)
+
+
+def _without_predictions(street: Path, folder: Path) -> Path:
+    folder.mkdir(parents=True)
+    for name in ("velodyne", "labels", "poses.txt", "calib.txt"):
+        (folder / name).symlink_to(street / name)
+    return folder
+
+
+def test_predictions_from_another_folder_or_a_prediction_root(street, tmp_path):
+    """`predictions=`: a folder of .label files, or a semantic-kitti-api style root holding
+    sequences/NN/predictions: the scans are the ones the sequence's own predictions/ give."""
+    own = list(SemanticKittiSequence(street))
+    seq_dir = _without_predictions(street, tmp_path / "data" / "17")
+    flat = tmp_path / "flat"
+    flat.symlink_to(street / "predictions")
+    root = tmp_path / "run"
+    (root / "sequences" / "17").mkdir(parents=True)
+    (root / "sequences" / "17" / "predictions").symlink_to(street / "predictions")
+    for given in (flat, root):
+        seq = SemanticKittiSequence(seq_dir, predictions=given)
+        assert seq.input_dir.samefile(street / "predictions")
+        for a, b in zip(seq, own):
+            np.testing.assert_array_equal(a.labels, b.labels)
+            np.testing.assert_array_equal(a.gt_labels, b.gt_labels)
+    with pytest.raises(DatasetError, match=r"sequences/18/predictions: no predictions of "
+                       r"sequence 18 under this prediction root; it has 17"):
+        SemanticKittiSequence(seq_dir, sequence="18", predictions=root)
+    with pytest.raises(DatasetError, match=r"nowhere: predictions folder does not exist"):
+        SemanticKittiSequence(seq_dir, predictions=tmp_path / "nowhere")
+
+
+def test_map_kitti_predictions_option(street, tmp_path, caplog):
+    """--predictions feeds the map from another folder, which run.json keeps for render (and
+    --resume); with --input labels or without --data it is refused in one line."""
+    seq_dir = _without_predictions(street, tmp_path / "17")
+    out = tmp_path / "out"
+    preds = street / "predictions"
+    argv = ["--data", seq_dir, "--predictions", preds, "--no-progress", "--out"]
+    assert run_map_kitti([*argv, out]) == 0
+    run = json.loads((out / "run.json").read_text())
+    assert Path(run["predictions"]) == preds.resolve()
+    assert len(list((out / "sequences" / "17" / "predictions").iterdir())) == 3
+    # render finds the network's labels where the run took them (the data folder has none)
+    from tisem.viz.compare import render_comparison
+
+    drawn = render_comparison(out)
+    assert drawn["accuracy"]["network"] is not None and drawn["scans"] == [0, 1, 2]
+    for extra, problem in (
+        (["--input", "labels"], "the map is fed the ground truth"),
+        ([], None),
+    ):
+        caplog.clear()
+        if problem is None:  # no --data: the synthetic street
+            rc = run_map_kitti(["--predictions", preds, "--out", tmp_path / "o2"])
+            problem = "give the sequence they belong to with --data"
+        else:
+            rc = run_map_kitti([*argv, tmp_path / "o1", *extra])
+        assert rc != 0
+        errors = [r.getMessage() for r in caplog.records if r.levelname == "ERROR"]
+        assert len(errors) == 1 and f"--predictions {preds}: {problem}" in errors[0]
 
 
 # --------------------------------------------------------------------------- label space

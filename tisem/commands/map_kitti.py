@@ -4,6 +4,7 @@ tisem map-kitti --arch cpu                      # synthetic street, under a minu
 tisem map-kitti --data path/to/semantickitti_08_mini --sequence 08
 tisem map-kitti --data /data/kitti/dataset --sequence 08 --first 0 --last 99
 tisem map-kitti --data my_drive/ --poses kiss_icp_poses.txt --classes my_classes.yaml
+tisem map-kitti --data /data/kitti/dataset --sequence 08 --predictions runs/cylinder3d
 tisem map-kitti --data ... --out results/run --checkpoint-every 100
 tisem map-kitti --resume results/run            # after a crash: go on
 """
@@ -26,7 +27,7 @@ if TYPE_CHECKING:  # (imported when needed: the help stays fast)
     from tisem.io.semantickitti import SemanticKittiSequence
 
 log = logging.getLogger("tisem.map_kitti")
-KEPT_ON_RESUME = {"input": "--input", "poses": "--poses"}
+KEPT_ON_RESUME = {"input": "--input", "poses": "--poses", "predictions": "--predictions"}
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -54,6 +55,14 @@ def build_parser() -> argparse.ArgumentParser:
         "sequence's poses.txt or dataset/poses/NN.txt with calib.txt's Tr)",
     )
     p.add_argument(
+        "--predictions",
+        type=Path,
+        metavar="DIR",
+        help="the network's label files, when not the sequence's predictions/: a folder of "
+        "NNNNNN.label, or the root a semantic-kitti-api style run writes "
+        "(DIR/sequences/NN/predictions/)",
+    )
+    p.add_argument(
         "--synthetic-scans",
         type=int,
         default=20,
@@ -69,13 +78,23 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 
 
 def open_sequence(
-    data: Path, sequence: str | None, cfg: RunConfig, poses: Path | None = None
+    data: Path,
+    sequence: str | None,
+    cfg: RunConfig,
+    poses: Path | None = None,
+    predictions: Path | None = None,
 ) -> SemanticKittiSequence:
     from tisem.io.semantickitti import SemanticKittiSequence
 
     with cli.bad_input():
         return SemanticKittiSequence(
-            data, sequence=sequence, input=cfg.input, first=cfg.first, last=cfg.last, poses=poses
+            data,
+            sequence=sequence,
+            input=cfg.input,
+            first=cfg.first,
+            last=cfg.last,
+            poses=poses,
+            predictions=predictions,
         )
 
 
@@ -128,8 +147,20 @@ def map_sequence(args: argparse.Namespace) -> int:
     data = plan.input_path(args.data, "data", "--data")
     sequence = args.sequence or plan.source.get("sequence")
     poses = args.poses or (Path(plan.source["poses"]) if plan.source.get("poses") else None)
+    predictions = args.predictions or (
+        Path(plan.source["predictions"]) if plan.source.get("predictions") else None
+    )
+    if predictions is not None and (cfg.input == "labels" or data is None):
+        raise cli.AppError(
+            f"--predictions {predictions}: "
+            + (
+                "the map is fed the ground truth (--input labels), not predictions"
+                if cfg.input == "labels"
+                else "give the sequence they belong to with --data"
+            )
+        )
     # the input is opened before anything is made: a bad one leaves no results folder
-    seq = open_sequence(data, sequence, cfg, poses) if data is not None else None
+    seq = open_sequence(data, sequence, cfg, poses, predictions) if data is not None else None
     plan.start(args)
     if seq is None:
         with cli.bad_input("synthetic street: "):
@@ -152,6 +183,7 @@ def map_sequence(args: argparse.Namespace) -> int:
         "arch": args.arch,
         "threads": plan.threads,
         "poses": str(poses.resolve()) if poses else None,
+        "predictions": str(seq.predictions_dir.resolve()) if predictions else None,
         "classes": str(plan.classes) if plan.classes else None,
     }
     run = plan.mapping_run(

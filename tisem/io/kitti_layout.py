@@ -84,3 +84,25 @@ def scan_files(velodyne_dir: Path) -> dict[int, str]:
     if not bin_names:
         raise DatasetError(f"{velodyne_dir}: no NNNNNN.bin scans")
     return bin_names
+
+
+def predictions_folder(path: Path, sequence: str) -> Path:
+    """The folder of a sequence's prediction files that `path` names: `path` itself, or, for
+    the root a semantic-kitti-api style run writes, `path/sequences/NN/predictions`; a
+    `DatasetError` when there is no such folder."""
+    nested = path / "sequences" / sequence / "predictions"
+    if nested.is_dir():
+        return nested
+    if (path / "sequences").is_dir():
+        found = _list_predictions(path)
+        raise DatasetError(
+            f"{nested}: no predictions of sequence {sequence} under this prediction root; "
+            f"it has {', '.join(found) or 'none'}"
+        )
+    if not path.is_dir():
+        raise DatasetError(f"{path}: predictions folder does not exist")
+    return path
+
+
+def _list_predictions(root: Path) -> list[str]:
+    return sorted(p.name for p in (root / "sequences").iterdir() if (p / "predictions").is_dir())

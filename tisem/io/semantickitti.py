@@ -57,7 +57,7 @@ from tisem.io.kitti_files import (
     read_times,
     read_trajectory,
 )
-from tisem.io.kitti_layout import find_sequence, scan_files
+from tisem.io.kitti_layout import find_sequence, predictions_folder, scan_files
 from tisem.io.kitti_predictions import (
     prediction_file,
     read_dynamic_flags,
@@ -100,6 +100,9 @@ class SemanticKittiSequence:
     input: "predictions" (the network's labels feed the map) or "labels" (ground truth as input).
     first, last: inclusive range of scan ids (the numbers of the `velodyne/*.bin` files).
     poses: a trajectory file of LiDAR poses, one per scan (instead of poses.txt and `Tr`).
+    predictions: the network's label files, when not the sequence's `predictions/`: a folder of
+        `NNNNNN.label` files, or the root a semantic-kitti-api style run writes
+        (`ROOT/sequences/NN/predictions/`).
     label_space: the label files hold raw SemanticKITTI ids ("raw", with instance bits), train
         ids ("train"), or either ("auto", per file: `tisem.labels.to_train_ids`; a warning
         names the first file read as train ids, `train_ids.sources` counts them).
@@ -127,6 +130,7 @@ class SemanticKittiSequence:
         last: int | None = None,
         poses: str | os.PathLike | None = None,
         label_space: str = "auto",
+        predictions: str | os.PathLike | None = None,
     ):
         if input not in INPUTS:
             raise ValueError(f"input must be one of {INPUTS}, got {input!r}")
@@ -139,15 +143,19 @@ class SemanticKittiSequence:
         d = self.sequence_dir
         self.velodyne_dir = d / "velodyne"
         self.labels_dir = d / "labels"
-        self.predictions_dir = d / "predictions"
+        self.predictions_dir = (
+            d / "predictions"
+            if predictions is None
+            else predictions_folder(Path(predictions), self.sequence_name)
+        )
         self.has_ground_truth = self.labels_dir.is_dir()
-        self.input_dir = d / input
+        self.input_dir = self.predictions_dir if input == "predictions" else self.labels_dir
         if not self.input_dir.is_dir():
-            hint = (
-                "; to map the ground truth instead give --input labels (input='labels')"
-                if input == "predictions" and self.has_ground_truth
-                else ""
-            )
+            hint = ""
+            if input == "predictions" and predictions is None:
+                hint = "; give the network's label files with --predictions DIR (predictions=)"
+                if self.has_ground_truth:
+                    hint += ", or map the ground truth with --input labels (input='labels')"
             raise DatasetError(
                 f"{self.input_dir}: input label folder missing (input={input!r}); "
                 f"folders present: "

@@ -53,6 +53,7 @@ def _kitti_scans(data: Path, run: dict, config: dict) -> RunScans:
         first=int(run.get("first", config.get("first", 0))),
         last=run.get("last", config.get("last")),
         poses=run.get("poses"),
+        predictions=run.get("predictions"),
     )
     try:  # the network's labels as input when the folder has them
         seq, title = SemanticKittiSequence(data, input="predictions", **kwargs), "network labels"
