@@ -216,6 +216,33 @@ def test_label_count_mismatch(tmp_path):
         seq[0]
 
 
+@pytest.mark.parametrize(
+    "dtype, said", [("<i8", "64-bit integers"), ("<u2", "16-bit integers"), ("u1", "8-bit")]
+)
+def test_label_files_of_another_width(tmp_path, caplog, dtype, said):
+    """A label file whose size is another integer width times the points (a network's argmax
+    saved as it is: int64) gives the labels uint32 files give, with one warning per folder;
+    int64 values that fit no label width leave the count error."""
+    reference = list(SemanticKittiSequence(make_sequence(tmp_path / "ref")))
+    d = make_sequence(tmp_path / "seq")
+    for path in (d / "predictions").iterdir():
+        np.fromfile(path, "<u4").astype(dtype).tofile(path)
+    with caplog.at_level("WARNING"):
+        scans = list(SemanticKittiSequence(d))
+    said_lines = [r.getMessage() for r in caplog.records if "not SemanticKITTI's uint32" in
+                  r.getMessage()]
+    assert len(said_lines) == 1 and f"predictions labels are {said}" in said_lines[0]
+    for s, r in zip(scans, reference):
+        np.testing.assert_array_equal(s.labels, r.labels)
+    if dtype == "<i8":
+        path = d / "predictions" / "000001.label"
+        values = np.fromfile(path, "<i8")
+        values[0] = -1
+        values.tofile(path)
+        with pytest.raises(ScanError, match=r"label count differs.*100 labels for 50 points"):
+            SemanticKittiSequence(d)[1]
+
+
 def test_missing_label_file(tmp_path):
     d = make_sequence(tmp_path / "seq")
     (d / "predictions" / "000001.label").unlink()

@@ -84,6 +84,13 @@ __all__ = [
 
 log = logging.getLogger(__name__)
 
+# label files of another width than uint32, told by their size: (bytes per label, dtype, name)
+OTHER_LABEL_WIDTHS = (
+    (8, "<i8", "64-bit integers"),
+    (2, "<u2", "16-bit integers"),
+    (1, "u1", "8-bit integers"),
+)
+
 DEFAULT_SCAN_PERIOD_S = 0.1  # 10 Hz, used when there is no times.txt
 INPUTS = ("predictions", "labels")
 
@@ -138,6 +145,7 @@ class SemanticKittiSequence:
             raise ValueError(f"label_space must be one of {LABEL_SPACES}, got {label_space!r}")
         self.input, self.label_space = input, label_space
         self.train_ids = TrainIdNotes(log)
+        self.label_widths: dict[str, str] = {}  # label source -> the width its files have
         self.sequence_dir, self.sequence_name = find_sequence(path, sequence)
 
         d = self.sequence_dir
@@ -282,13 +290,41 @@ class SemanticKittiSequence:
                     index=self.scan_ids[k], name=str(self.scan_path(k)), reason=str(exc)
                 )
 
-    def _read_labels(self, path: Path, sid: int, what: str) -> np.ndarray:
+    def _read_labels(self, path: Path, sid: int, what: str, n: int, bin_name: str) -> np.ndarray:
+        """The n labels of a scan's label file, as uint32: SemanticKITTI's width, or one whose
+        size says another (a network's argmax saved as it is, int64) when its values fit."""
         if not path.is_file():
             raise ScanError(f"{path}: {what} label file missing for scan {sid}", sid, str(path))
         size = path.stat().st_size
-        if size % 4:
+        if size != 4 * n:
+            for width, dtype, said in OTHER_LABEL_WIDTHS:
+                if size == width * n:
+                    values = np.fromfile(path, dtype=dtype)
+                    if n and (values.min() < 0 or values.max() >= 1 << 32):
+                        break  # no labels of another width either: the count is wrong
+                    if what not in self.label_widths:
+                        log.warning(
+                            "%s: the %s labels are %s, not SemanticKITTI's uint32 (%d bytes for "
+                            "%d points): read as such, here and in every other file so saved",
+                            path,
+                            what,
+                            said,
+                            size,
+                            n,
+                        )
+                    self.label_widths[what] = said
+                    return values.astype(np.uint32)
+            if size % 4:
+                raise ScanError(
+                    f"{path}: truncated label file ({size} bytes, not a multiple of 4)",
+                    sid,
+                    str(path),
+                )
             raise ScanError(
-                f"{path}: truncated label file ({size} bytes, not a multiple of 4)", sid, str(path)
+                f"{path}: label count differs from point count: {size // 4} labels for {n} "
+                f"points in {bin_name}",
+                sid,
+                str(path),
             )
         return np.fromfile(path, dtype="<u4")
 
@@ -327,29 +363,14 @@ class SemanticKittiSequence:
             data = np.fromfile(bin_path, dtype="<f4").reshape(-1, 4)
             n = data.shape[0]
             in_path = self._label_path(self.input_dir, sid)
-            raw_in = self._read_labels(in_path, sid, self.input)
-            if raw_in.size != n:
-                raise ScanError(
-                    f"{in_path}: label count differs from point count: {raw_in.size} "
-                    f"labels for {n} points in {bin_path.name}",
-                    sid,
-                    name,
-                )
+            raw_in = self._read_labels(in_path, sid, self.input, n, bin_path.name)
             raw_gt = None
             if self.has_ground_truth:
                 gt_path = self._label_path(self.labels_dir, sid)
                 if self.input == "labels":
                     raw_gt = raw_in
                 else:
-                    raw_gt = self._read_labels(gt_path, sid, "ground-truth")
-                    if raw_gt.size != n:
-                        raise ScanError(
-                            f"{gt_path}: label count differs from point count: "
-                            f"{raw_gt.size} labels for {n} points in "
-                            f"{bin_path.name}",
-                            sid,
-                            name,
-                        )
+                    raw_gt = self._read_labels(gt_path, sid, "ground-truth", n, bin_path.name)
             # non-finite points stay: the mapper drops them (tisem.scan.finite_rows, the one
             # rule) and the predictions file keeps one label per point of the .bin
             if not finite_rows(data[:, :3]).any():
