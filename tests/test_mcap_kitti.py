@@ -18,6 +18,7 @@ from tisem.io.kitti_mcap import KittiMcapResult, write_kitti_mcap
 from tisem.io.mcap_reader import McapOptions, McapScanReader
 from tisem.io.semantickitti import SemanticKittiSequence
 from tisem.io.tf import quat_to_matrix
+from tisem.labels import raw_to_train
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -97,6 +98,19 @@ def test_conversion_round_trips_through_the_reader(tmp_path, extra):
     tf = McapScanReader(tmp_path / "out.mcap").tf
     mount = tf.lookup("base_link", "velodyne", 0)
     assert np.abs(mount - np.eye(4)).max() > 0.1  # a real mount, not an identity
+
+
+def test_argmax_label_files_convert_as_the_raw_ones(tmp_path):
+    """Predictions saved as a network's argmax (int64 train ids) convert into a recording whose
+    scans read as the uint32 raw files' do."""
+    seq = write_tiny_sequence(tmp_path / "seq")
+    for path in (seq / "predictions").iterdir():
+        raw_to_train(np.fromfile(path, "<u4"))[0].astype(np.int64).tofile(path)
+    assert convert(seq, tmp_path / "out.mcap").scans == 3
+    assert_same_scans(seq, tmp_path / "out.mcap", pose_tol=1e-12)
+    reference = write_tiny_sequence(tmp_path / "raw")
+    for a, b in zip(SemanticKittiSequence(reference), SemanticKittiSequence(seq)):
+        assert np.array_equal(a.labels, b.labels)
 
 
 def test_app_is_the_library_conversion(tmp_path, capsys):

@@ -80,9 +80,9 @@ def scan_stamps_ns(seq: SemanticKittiSequence) -> list[int]:
     return stamps
 
 
-def _raw_labels(path: Path, label_type: str) -> np.ndarray:
-    """The raw .label values, one per point of the scan (the reader keeps every point)."""
-    raw = np.fromfile(path, dtype="<u4")
+def _field_labels(raw: np.ndarray, label_type: str) -> np.ndarray:
+    """A scan's .label values (uint32, one per point: the reader keeps every point) in the
+    cloud's label type."""
     return raw if label_type == "uint32" else (raw & 0xFFFF).astype("<u2")
 
 
@@ -170,14 +170,14 @@ def write_kitti_mcap(
             T_map_base = scan.T_world_sensor @ T_velodyne_base
             w.write_transforms([("map", "base_link", stamp_ns, T_map_base)], stamp_ns)
             # intensity and raw label ids come from the files: the Scan holds train ids only
-            stem = seq.scan_path(k).stem
             data_xyzi = np.fromfile(seq.scan_path(k), dtype="<f4").reshape(-1, 4)
             arr = np.empty(scan.num_points, np.dtype(fields))
             arr["x"], arr["y"], arr["z"] = scan.points_sensor.T
             arr["intensity"] = data_xyzi[:, 3]
-            arr["label"] = _raw_labels(seq.predictions_dir / f"{stem}.label", label_type)
+            n = scan.num_points
+            arr["label"] = _field_labels(seq.label_values(k, "predictions", n), label_type)
             if seq.has_ground_truth:
-                arr["gt_label"] = _raw_labels(seq.labels_dir / f"{stem}.label", label_type)
+                arr["gt_label"] = _field_labels(seq.label_values(k, "labels", n), label_type)
             w.write_cloud(
                 topic, arr, frame_id, stamp_ns, stamp_ns + RECEIVE_LAG_NS, sequence=written
             )

@@ -290,6 +290,16 @@ class SemanticKittiSequence:
                     index=self.scan_ids[k], name=str(self.scan_path(k)), reason=str(exc)
                 )
 
+    def label_values(self, k: int, what: str, n: int) -> np.ndarray:
+        """The values of the k-th scan's label file as uint32, as the files hold them (raw ids
+        or train ids), for a scan of n points: `what` "predictions" or "labels"; ScanError
+        when there is no such file or it does not hold n labels."""
+        sid = self.scan_ids[k]
+        folder = self.predictions_dir if what == "predictions" else self.labels_dir
+        kind = "predictions" if what == "predictions" else "ground-truth"
+        path = self._label_path(folder, sid)
+        return self._read_labels(path, sid, kind, n, self.scan_path(k).name)
+
     def _read_labels(self, path: Path, sid: int, what: str, n: int, bin_name: str) -> np.ndarray:
         """The n labels of a scan's label file, as uint32: SemanticKITTI's width, or one whose
         size says another (a network's argmax saved as it is, int64) when its values fit."""
