@@ -176,8 +176,11 @@ def test_predictions_from_another_folder_or_a_prediction_root(street, tmp_path):
         for a, b in zip(seq, own):
             np.testing.assert_array_equal(a.labels, b.labels)
             np.testing.assert_array_equal(a.gt_labels, b.gt_labels)
-    with pytest.raises(DatasetError, match=r"sequences/18/predictions: no predictions of "
-                       r"sequence 18 under this prediction root; it has 17"):
+    with pytest.raises(
+        DatasetError,
+        match=r"sequences/18/predictions: no predictions of "
+        r"sequence 18 under this prediction root; it has 17",
+    ):
         SemanticKittiSequence(seq_dir, sequence="18", predictions=root)
     with pytest.raises(DatasetError, match=r"nowhere: predictions folder does not exist"):
         SemanticKittiSequence(seq_dir, predictions=tmp_path / "nowhere")

@@ -229,9 +229,10 @@ def test_label_files_of_another_width(tmp_path, caplog, dtype, said):
         np.fromfile(path, "<u4").astype(dtype).tofile(path)
     with caplog.at_level("WARNING"):
         scans = list(SemanticKittiSequence(d))
-    said_lines = [r.getMessage() for r in caplog.records if "not SemanticKITTI's uint32" in
-                  r.getMessage()]
-    assert len(said_lines) == 1 and f"predictions labels are {said}" in said_lines[0]
+    said_lines = [
+        r.getMessage() for r in caplog.records if "not SemanticKITTI's uint32" in r.getMessage()
+    ]
+    assert len(said_lines) == 1 and f"this predictions file holds {said}" in said_lines[0]
     for s, r in zip(scans, reference):
         np.testing.assert_array_equal(s.labels, r.labels)
     if dtype == "<i8":

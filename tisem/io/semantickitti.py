@@ -9,13 +9,17 @@ Layout of one sequence folder::
     calib.txt                with a `Tr:` line (velodyne -> camera, 3x4 row-major)
     times.txt                optional, seconds per scan (absent -> 0.1 s spacing)
 
+Label files of another integer width (int64, uint16, uint8: told by their size) or holding
+train ids (`tisem.labels.to_train_ids`) are read too, with one warning per label folder.
+
 The LiDAR pose of scan i is ``T_world_lidar = Tr^-1 . pose_i . Tr``, pose_i the i-th line of
 poses.txt (the same for times.txt); a folder cut out of a sequence whose files hold one entry
-per scan, all its scans numbered past their end, pairs them in order instead (logged). In the KITTI odometry
-layout the poses are `dataset/poses/NN.txt` beside `dataset/sequences/NN/` (same format), used
-when the sequence folder has no poses.txt. `poses=FILE` instead reads a trajectory that is
-already in the LiDAR frame (KITTI or TUM format, `kitti_files.read_trajectory`); calib.txt is
-then optional, and TUM's stamps are the scan times where there is no times.txt.
+per scan, all its scans numbered past their end, pairs them in order instead (logged). In the
+KITTI odometry layout the poses are `dataset/poses/NN.txt` beside `dataset/sequences/NN/`
+(same format), used when the sequence folder has no poses.txt. `poses=FILE` instead reads a
+trajectory that is already in the LiDAR frame (KITTI or TUM format,
+`kitti_files.read_trajectory`); calib.txt is then optional, and TUM's stamps are the scan times
+where there is no times.txt.
 
 Errors: a problem with the sequence as a whole (no `velodyne/`, two scan files with the same
 number, no `Tr:` or two of them, a `Tr` that is not a rigid transform, no or empty
@@ -314,8 +318,8 @@ class SemanticKittiSequence:
                         break  # no labels of another width either: the count is wrong
                     if what not in self.label_widths:
                         log.warning(
-                            "%s: the %s labels are %s, not SemanticKITTI's uint32 (%d bytes for "
-                            "%d points): read as such, here and in every other file so saved",
+                            "%s: this %s file holds %s, not SemanticKITTI's uint32 (%d bytes "
+                            "for %d points): read as such, here and in every other file so saved",
                             path,
                             what,
                             said,
