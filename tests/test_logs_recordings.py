@@ -84,7 +84,7 @@ def test_what_is_no_log_is_refused_in_one_line(tmp_path):
         discover_logs([tmp_path / "missing.db3"])
     with pytest.raises(ValueError, match=r"recording options: unknown \['gt'\]"):
         discover_logs([text], recording={"gt": "gt_label"})
-    with pytest.raises(ValueError, match="label_space must be 'raw' or 'train'"):
+    with pytest.raises(ValueError, match="label_space must be one of auto, raw, train, got 'ids'"):
         discover_logs([text], recording={"label_space": "ids"})
 
 

@@ -216,32 +216,33 @@ def test_label_count_mismatch(tmp_path):
         seq[0]
 
 
-@pytest.mark.parametrize(
-    "dtype, said", [("<i8", "64-bit integers"), ("<u2", "16-bit integers"), ("u1", "8-bit")]
-)
-def test_label_files_of_another_width(tmp_path, caplog, dtype, said):
-    """A label file whose size is another integer width times the points (a network's argmax
-    saved as it is: int64) gives the labels uint32 files give, with one warning per folder;
-    int64 values that fit no label width leave the count error."""
+def test_int64_label_files_are_read_cut_ones_refused(tmp_path, caplog):
+    """A label file of int64 labels (a network's argmax saved as it is) gives the labels uint32
+    files give, with one warning per folder. Of twice the size with values past uint32's range
+    (two files end to end), or of half the size (a uint32 file cut, or 16-bit labels), it is
+    the count error: read so, either would give the scan garbage labels."""
     reference = list(SemanticKittiSequence(make_sequence(tmp_path / "ref")))
     d = make_sequence(tmp_path / "seq")
     for path in (d / "predictions").iterdir():
-        np.fromfile(path, "<u4").astype(dtype).tofile(path)
+        np.fromfile(path, "<u4").astype(np.int64).tofile(path)
     with caplog.at_level("WARNING"):
         scans = list(SemanticKittiSequence(d))
-    said_lines = [
+    said = [
         r.getMessage() for r in caplog.records if "not SemanticKITTI's uint32" in r.getMessage()
     ]
-    assert len(said_lines) == 1 and f"this predictions file holds {said}" in said_lines[0]
+    assert len(said) == 1 and "000000.label: this predictions file holds 64-bit integers" in said[0]
     for s, r in zip(scans, reference):
         np.testing.assert_array_equal(s.labels, r.labels)
-    if dtype == "<i8":
-        path = d / "predictions" / "000001.label"
-        values = np.fromfile(path, "<i8")
-        values[0] = -1
-        values.tofile(path)
-        with pytest.raises(ScanError, match=r"label count differs.*100 labels for 50 points"):
-            SemanticKittiSequence(d)[1]
+    doubled = d / "predictions" / "000001.label"
+    raw = np.fromfile(tmp_path / "ref" / "predictions" / "000001.label", "<u4")
+    np.concatenate([raw, raw]).tofile(doubled)
+    half = d / "predictions" / "000002.label"
+    raw.astype("<u2").tofile(half)
+    seq = SemanticKittiSequence(d)
+    with pytest.raises(ScanError, match=r"000001\.label: label count differs.*100 labels for 50"):
+        seq[1]
+    with pytest.raises(ScanError, match=r"000002\.label: label count differs.*25 labels for 50"):
+        seq[2]
 
 
 def test_missing_label_file(tmp_path):

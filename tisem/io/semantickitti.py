@@ -9,7 +9,7 @@ Layout of one sequence folder::
     calib.txt                with a `Tr:` line (velodyne -> camera, 3x4 row-major)
     times.txt                optional, seconds per scan (absent -> 0.1 s spacing)
 
-Label files of another integer width (int64, uint16, uint8: told by their size) or holding
+Label files of int64 (told by their size: a network's argmax saved as it is) or holding
 train ids (`tisem.labels.to_train_ids`) are read too, with one warning per label folder.
 
 The LiDAR pose of scan i is ``T_world_lidar = Tr^-1 . pose_i . Tr``, pose_i the i-th line of
@@ -88,12 +88,11 @@ __all__ = [
 
 log = logging.getLogger(__name__)
 
-# label files of another width than uint32, told by their size: (bytes per label, dtype, name)
-OTHER_LABEL_WIDTHS = (
-    (8, "<i8", "64-bit integers"),
-    (2, "<u2", "16-bit integers"),
-    (1, "u1", "8-bit integers"),
-)
+# A network's argmax saved as it is (numpy's int64) is twice uint32's size: told by the size,
+# with every value within uint32's range. Two uint32 files end to end give values past it.
+# Files of half or a quarter the size are left to the count error: a uint32 file cut short is
+# as likely as labels of 16 or 8 bits, and read so it would give every scan garbage labels.
+INT64_BYTES = 8
 
 DEFAULT_SCAN_PERIOD_S = 0.1  # 10 Hz, used when there is no times.txt
 INPUTS = ("predictions", "labels")
@@ -149,7 +148,7 @@ class SemanticKittiSequence:
             raise ValueError(f"label_space must be one of {LABEL_SPACES}, got {label_space!r}")
         self.input, self.label_space = input, label_space
         self.train_ids = TrainIdNotes(log)
-        self.label_widths: dict[str, str] = {}  # label source -> the width its files have
+        self.label_widths: dict[str, str] = {}  # label source -> "int64" where its files are
         self.sequence_dir, self.sequence_name = find_sequence(path, sequence)
 
         d = self.sequence_dir
@@ -305,35 +304,31 @@ class SemanticKittiSequence:
         return self._read_labels(path, sid, kind, n, self.scan_path(k).name)
 
     def _read_labels(self, path: Path, sid: int, what: str, n: int, bin_name: str) -> np.ndarray:
-        """The n labels of a scan's label file, as uint32: SemanticKITTI's width, or one whose
-        size says another (a network's argmax saved as it is, int64) when its values fit."""
+        """The n labels of a scan's label file, as uint32: SemanticKITTI's width, or int64 (a
+        network's argmax saved as it is) where the size says so and the values fit."""
         if not path.is_file():
             raise ScanError(f"{path}: {what} label file missing for scan {sid}", sid, str(path))
         size = path.stat().st_size
+        if size == INT64_BYTES * n and n:
+            values = np.fromfile(path, dtype="<i8")
+            if values.min() >= 0 and values.max() < 1 << 32:
+                if what not in self.label_widths:
+                    log.warning(
+                        "%s: this %s file holds 64-bit integers, not SemanticKITTI's uint32 "
+                        "(%d bytes for %d points): read as such, here and in every other file "
+                        "so saved",
+                        path,
+                        what,
+                        size,
+                        n,
+                    )
+                self.label_widths[what] = "int64"
+                return values.astype(np.uint32)
+        if size % 4:
+            raise ScanError(
+                f"{path}: truncated label file ({size} bytes, not a multiple of 4)", sid, str(path)
+            )
         if size != 4 * n:
-            for width, dtype, said in OTHER_LABEL_WIDTHS:
-                if size == width * n:
-                    values = np.fromfile(path, dtype=dtype)
-                    if n and (values.min() < 0 or values.max() >= 1 << 32):
-                        break  # no labels of another width either: the count is wrong
-                    if what not in self.label_widths:
-                        log.warning(
-                            "%s: this %s file holds %s, not SemanticKITTI's uint32 (%d bytes "
-                            "for %d points): read as such, here and in every other file so saved",
-                            path,
-                            what,
-                            said,
-                            size,
-                            n,
-                        )
-                    self.label_widths[what] = said
-                    return values.astype(np.uint32)
-            if size % 4:
-                raise ScanError(
-                    f"{path}: truncated label file ({size} bytes, not a multiple of 4)",
-                    sid,
-                    str(path),
-                )
             raise ScanError(
                 f"{path}: label count differs from point count: {size // 4} labels for {n} "
                 f"points in {bin_name}",
