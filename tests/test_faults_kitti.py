@@ -59,11 +59,15 @@ def test_a_pose_that_is_not_a_rotation_costs_its_scan(tmp_path, kind):
         ("Tr: " + _fmt(np.multiply(TR_ROWS, 0.5)) + "\n", "scaled by 0.5"),
         (
             "Tr: " + _fmt(TR_ROWS) + "\nTr: " + _fmt(IDENTITY_ROWS) + "\n",
-            "calib.txt:3: a second 'Tr:' line (the first is line 2)",
+            "calib.txt:3: a second 'Tr:' line (the first velodyne -> camera line is line 2)",
+        ),
+        (
+            "Tr: " + _fmt(TR_ROWS) + "\nTr_velo_to_cam: " + _fmt(TR_ROWS) + "\n",
+            "calib.txt:3: a second 'Tr_velo_to_cam:' line (the first velodyne -> camera line",
         ),
         ("Tr: " + _fmt(pose_row(np.diag([1.0, 1.0, -1.0]))) + "\n", "mirrored"),
     ],
-    ids=["scaled by 0.5", "two Tr lines", "mirrored"],
+    ids=["scaled by 0.5", "two Tr lines", "Tr and Tr_velo_to_cam", "mirrored"],
 )
 def test_a_bad_calibration_refuses_the_sequence(tmp_path, calib, problem):
     d = make_sequence(tmp_path / "seq")
@@ -75,6 +79,17 @@ def test_a_bad_calibration_refuses_the_sequence(tmp_path, calib, problem):
     assert f"{d / 'calib.txt'}:" in message
     with pytest.raises(DatasetError):
         read_calib_tr(d / "calib.txt")
+
+
+@pytest.mark.parametrize("key", ["Tr_velo_to_cam", "Tr_velo_cam"])
+def test_the_object_and_tracking_calibration_keys_are_read(tmp_path, key):
+    """KITTI's 3D object and tracking calibrations name the velodyne -> camera line otherwise:
+    the same transform, the same scans."""
+    reference = list(SemanticKittiSequence(make_sequence(tmp_path / "ref")))
+    d = make_sequence(tmp_path / "seq")
+    (d / "calib.txt").write_text(f"P0: {_fmt(range(12))}\n{key}: {_fmt(TR_ROWS)}\n")
+    for a, b in zip(SemanticKittiSequence(d), reference):
+        np.testing.assert_array_equal(a.T_world_sensor, b.T_world_sensor)
 
 
 def test_two_files_for_one_scan_number_refuse_the_sequence(tmp_path):

@@ -89,8 +89,14 @@ def _read_text(path: Path, what: str) -> str:
         raise DatasetError(f"{path}: cannot read {what}: {exc}") from exc
 
 
+# the velodyne -> camera line: odometry and SemanticKITTI's key, the 3D object and tracking
+# benchmarks' (the same 12 numbers)
+TR_KEYS = ("Tr", "Tr_velo_to_cam", "Tr_velo_cam")
+
+
 def read_calib_tr(path: str | os.PathLike) -> np.ndarray:
-    """The `Tr:` line of a SemanticKITTI calib.txt as a (4, 4) float64 velodyne -> camera matrix.
+    """The `Tr:` line of a SemanticKITTI calib.txt as a (4, 4) float64 velodyne -> camera matrix
+    (or `Tr_velo_to_cam:` / `Tr_velo_cam:`, as KITTI's object and tracking calibrations name it).
 
     Raises DatasetError (naming the file and line) when the file is missing, has no `Tr:`
     line or two of them, or the line is not 12 finite numbers forming a rigid transform
@@ -104,18 +110,19 @@ def read_calib_tr(path: str | os.PathLike) -> np.ndarray:
     found: tuple[int, np.ndarray] | None = None
     for lineno, line in enumerate(_read_text(path, "calibration file").splitlines(), start=1):
         key, sep, rest = line.partition(":")
-        if not sep or key.strip() != "Tr":
+        if not sep or key.strip() not in TR_KEYS:
             continue
+        name = f"'{key.strip()}:'"
         if found is not None:
             raise DatasetError(
-                f"{path}:{lineno}: a second 'Tr:' line (the first is line "
-                f"{found[0]}); the calibration must be one transform"
+                f"{path}:{lineno}: a second {name} line (the first velodyne -> camera line is "
+                f"line {found[0]}); the calibration must be one transform"
             )
-        T = _parse_pose_row(rest, f"{path}:{lineno}", "'Tr:' line", "'Tr:' line")
+        T = _parse_pose_row(rest, f"{path}:{lineno}", f"{name} line", f"{name} line")
         problem = pose_problem(T)
         if problem is not None:
             raise DatasetError(
-                f"{path}:{lineno}: 'Tr:' (velodyne -> camera) is not a rigid transform: {problem}"
+                f"{path}:{lineno}: {name} (velodyne -> camera) is not a rigid transform: {problem}"
             )
         found = (lineno, T)
     if found is None:
