@@ -113,6 +113,20 @@ def test_argmax_label_files_convert_as_the_raw_ones(tmp_path):
         assert np.array_equal(a.labels, b.labels)
 
 
+def test_predictions_kept_apart_convert_as_the_folder_s_own(tmp_path):
+    """`--predictions DIR` (predictions=): a sequence without predictions/ whose labels lie in
+    a folder of their own converts into the recording the whole folder gives."""
+    seq = write_tiny_sequence(tmp_path / "seq")
+    bare = tmp_path / "bare"
+    bare.mkdir()
+    for name in ("velodyne", "labels", "poses.txt", "calib.txt"):
+        (bare / name).symlink_to(seq / name)
+    load_app("kitti_to_mcap").main(
+        [str(bare), "--predictions", str(seq / "predictions"), "--out", str(tmp_path / "a.mcap")]
+    )
+    assert_same_scans(seq, tmp_path / "a.mcap", pose_tol=1e-12)
+
+
 def test_app_is_the_library_conversion(tmp_path, capsys):
     seq = write_tiny_sequence(tmp_path / "seq")
     app = load_app("kitti_to_mcap")

@@ -58,6 +58,13 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--ros-distro", default="humble", help="the ROS distro the bag names")
     p.add_argument("--sequence", help="sequence name under a dataset root, e.g. 08")
+    p.add_argument(
+        "--predictions",
+        type=Path,
+        metavar="DIR",
+        help="the network's label files, when not the sequence's predictions/: a folder of "
+        "NNNNNN.label, or a semantic-kitti-api style prediction root",
+    )
     p.add_argument("--first", type=int, default=0, help="first scan id (inclusive)")
     p.add_argument("--last", type=int, help="last scan id (inclusive)")
     p.add_argument(
@@ -119,6 +126,7 @@ def main(argv: list[str] | None = None) -> int:
             start_time_ns=start_time_ns,
             ros_distro=args.ros_distro,
             progress=not args.no_progress,
+            predictions=args.predictions,
         )
     except (DatasetError, OSError) as exc:  # a bad sequence, or an .mcap it cannot write
         log.error("%s", exc)

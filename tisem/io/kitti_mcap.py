@@ -101,6 +101,7 @@ def write_kitti_mcap(
     start_time_ns: int = 0,
     ros_distro: str = "humble",
     progress: bool = False,
+    predictions: str | Path | None = None,
 ) -> KittiMcapResult:
     """Write scans `first`..`last` (inclusive scan ids) of a SemanticKITTI sequence.
 
@@ -109,7 +110,8 @@ def write_kitti_mcap(
     (raw id only). frame_id: the cloud frame, a child of base_link. output_format: `mcap` (the
     file `out`) or `rosbag2` (the bag folder `out`, for `ros2 bag play`, named after
     `ros_distro`). start_time_ns: added to every stamp (real epoch stamps). progress: a
-    progress bar per scan (a whole sequence takes minutes). Raises
+    progress bar per scan (a whole sequence takes minutes). predictions: the network's label
+    files when not the sequence's predictions/ (`SemanticKittiSequence`'s). Raises
     `DatasetError` when the sequence cannot be read, FileExistsError for a bag folder that
     holds a bag.
     """
@@ -121,7 +123,12 @@ def write_kitti_mcap(
         raise ValueError(f"start_time_ns must be whole nanoseconds >= 0, got {start_time_ns!r}")
     out = Path(out)
     seq = SemanticKittiSequence(
-        data, sequence=sequence, input="predictions", first=first, last=last
+        data,
+        sequence=sequence,
+        input="predictions",
+        first=first,
+        last=last,
+        predictions=predictions,
     )
     fields = [
         ("x", "<f4"),
