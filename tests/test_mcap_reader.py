@@ -165,7 +165,8 @@ def test_topic_choice(tmp_path):
     with pytest.raises(
         DatasetError,
         match=r"several point-cloud topics, choose one with --topic: "
-        r"/front/points \(sensor_msgs/msg/PointCloud2, 1 msgs\), /rear/points",
+        r"/front/points \(sensor_msgs/msg/PointCloud2, 1 msgs\), /rear/points.*; "
+        r"/front/points .*, /rear/points .* carry the fields asked for",
     ):
         McapScanReader(path)
     assert McapScanReader(path, McapOptions(topic="/rear/points")).frame_id == "b"
@@ -173,6 +174,27 @@ def test_topic_choice(tmp_path):
         McapScanReader(path, McapOptions(topic="/lidar"))
     with pytest.raises(DatasetError, match="carries tf2_msgs/msg/TFMessage, not a point cloud"):
         McapScanReader(path, McapOptions(topic="/tf_static"))
+
+
+def test_the_one_labelled_cloud_topic_is_mapped(tmp_path, caplog):
+    """The raw sensor topic beside the labelled one a segmentation node publishes: the clouds
+    with the label field are mapped, and a line says which; with both labelled, --topic."""
+    path = tmp_path / "two.mcap"
+    rng = np.random.default_rng(0)
+    labelled = synthetic_points(10, rng)
+    raw = labelled[["x", "y", "z", "intensity"]]
+    with Ros2McapWriter(path) as w:
+        w.write_transforms([("map", "velodyne", 0, np.eye(4))], 0, static=True)
+        w.write_cloud("/velodyne_points", np.ascontiguousarray(raw), "velodyne", 5, 5)
+        w.write_cloud("/segmented_points", labelled, "velodyne", 5, 6)
+    with caplog.at_level("INFO"):
+        reader = McapScanReader(path)
+    assert reader.topic == "/segmented_points"
+    assert "mapping /segmented_points, the one whose clouds carry the fields" in caplog.text
+    (scan,) = list(reader)
+    assert np.array_equal(scan.labels, raw_to_train(labelled["label"])[0])
+    with pytest.raises(DatasetError, match="several point-cloud topics"):
+        McapScanReader(path, McapOptions(label_field="intensity"))
 
 
 def test_no_cloud_topic(tmp_path):

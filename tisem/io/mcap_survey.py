@@ -8,6 +8,7 @@ comes from here (with the damage that may be why), and the scans are then read w
 
 from __future__ import annotations
 
+import logging
 from collections import Counter
 
 from mcap.records import Channel, Schema
@@ -27,6 +28,8 @@ from tisem.io.mcap_options import McapOptions
 from tisem.io.mcap_records import Loss, LostMessages, McapRecords, ReadReport
 from tisem.io.mcap_report import error_text, unnamed_channel_id
 from tisem.io.tf import TfBuffer, TfError
+
+log = logging.getLogger(__name__)
 
 
 def _may_hold_poses(lost_topics, pose_topics: set[str], channels: dict) -> bool:
@@ -151,7 +154,7 @@ class Survey:
         self.kinds = kinds
         self.schemas, self.channels = schemas, channels
         try:
-            self.topic = self._pick_topic(kinds, {*first_cloud, *misfits})
+            self.topic = self._pick_topic(kinds, {*first_cloud, *misfits}, set(first_cloud))
             if self.topic not in first_cloud:  # no cloud has what the options need
                 raise DatasetError(self._cloud_problem(misfits[self.topic], self.topic))
             self.frame_id = first_cloud[self.topic][1]
@@ -167,7 +170,10 @@ class Survey:
         last = n - 1 if opts.last is None else min(opts.last, n - 1)
         self.total = max(0, last - opts.first + 1)
 
-    def _pick_topic(self, kinds: dict, decoded: set) -> str:
+    def _pick_topic(self, kinds: dict, decoded: set, usable: set) -> str:
+        """The cloud topic: the one asked for, the only one, or the only one whose clouds
+        carry the fields the options need (`usable`: a raw sensor topic beside the labelled
+        one a segmentation node publishes); DatasetError otherwise."""
         counts = Counter({t: self.report.messages[t] for t in kinds})
         clouds = {t for t, k in kinds.items() if k in CLOUD_SCHEMAS and counts[t] > 0}
         where = f"{self.path}"
@@ -199,9 +205,21 @@ class Survey:
                 f"{where}: no point-cloud messages found{hint}; topics: "
                 f"{_describe_topics(counts, kinds) or 'none'}"
             )
+        if len(clouds) > 1 and len(clouds & usable) == 1:
+            (topic,) = clouds & usable
+            log.info(
+                "%s: several point-cloud topics; mapping %s, the one whose clouds carry the "
+                "fields asked for (--topic to choose): %s",
+                where,
+                topic,
+                listing(clouds),
+            )
+            return topic
         if len(clouds) > 1:
+            carry = f"; {listing(clouds & usable)} carry the fields asked for" if usable else ""
             raise DatasetError(
-                f"{where}: several point-cloud topics, choose one with --topic: {listing(clouds)}"
+                f"{where}: several point-cloud topics, choose one with --topic: "
+                f"{listing(clouds)}{carry}"
             )
         topic = clouds.pop()
         if topic not in decoded:
