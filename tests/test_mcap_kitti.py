@@ -111,6 +111,31 @@ def test_argmax_label_files_convert_as_the_raw_ones(tmp_path):
     reference = write_tiny_sequence(tmp_path / "raw")
     for a, b in zip(SemanticKittiSequence(reference), SemanticKittiSequence(seq)):
         assert np.array_equal(a.labels, b.labels)
+    # the label field holds raw ids, as documented: read as raw ids, the same scans
+    as_raw = McapScanReader(tmp_path / "out.mcap", McapOptions(label_space="raw"))
+    for a, b in zip(SemanticKittiSequence(reference), as_raw):
+        assert np.array_equal(a.labels, b.labels)
+
+
+def test_stamps_come_from_each_scan_s_entry_of_times_txt(tmp_path):
+    """The stamps are times.txt's decimals, entry by entry: past a blank line, and in a
+    sequence's extract (scans 1000-1002 with their own three entries)."""
+    seq = write_tiny_sequence(tmp_path / "seq")
+    # epoch seconds: a float64 holds them to ~0.2 us, the text to the nanosecond
+    (seq / "times.txt").write_text(
+        "1600000000.000000001\n\n1600000000.100000002\n1600000000.200000003\n"
+    )
+    for sub in ("velodyne", "labels", "predictions"):
+        for k in (2, 1, 0):
+            path = seq / sub / f"{k:06d}.{'bin' if sub == 'velodyne' else 'label'}"
+            path.rename(path.with_name(f"{1000 + k:06d}{path.suffix}"))
+    convert(seq, tmp_path / "out.mcap")
+    stamps = [s.source.stamp_ns for s in McapScanReader(tmp_path / "out.mcap")]
+    assert stamps == [
+        1_600_000_000_000_000_001,
+        1_600_000_000_100_000_002,
+        1_600_000_000_200_000_003,
+    ]
 
 
 def test_predictions_kept_apart_convert_as_the_folder_s_own(tmp_path):

@@ -187,8 +187,8 @@ def test_predictions_from_another_folder_or_a_prediction_root(street, tmp_path):
 
 
 def test_map_kitti_predictions_option(street, tmp_path, caplog):
-    """--predictions feeds the map from another folder, which run.json keeps for render (and
-    --resume); with --input labels or without --data it is refused in one line."""
+    """--predictions feeds the map from another folder, which run.json keeps for render;
+    with --input labels or without --data it is refused in one line."""
     seq_dir = _without_predictions(street, tmp_path / "17")
     out = tmp_path / "out"
     preds = street / "predictions"

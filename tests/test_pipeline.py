@@ -198,10 +198,13 @@ def test_relabelled_points_are_counted_from_the_files(damaged):
     assert f"changed the input's label at {changed:,} of {points:,} points" in results_table(
         metrics
     )
-    # scan 4's 40 predictions of raw id 999, which the label space has no class for
+    # scan 4's 40 predictions of raw id 999, which the label space has no class for, among
+    # every point of the mapped scans (scan 3's 5 non-finite ones too)
     assert metrics["dropped"]["unknown_raw_ids"] == 40
+    assert metrics["dropped"]["dropped_nonfinite"] == 5
+    share = 100 * 40 / (points + 5)
     assert (
-        f"input labels with no class: 40 ({100 * 40 / points:.2f} % of the points), no evidence"
+        f"input labels with no class: 40 ({share:.2f} % of the points), no evidence"
         in results_table(metrics)
     )
 

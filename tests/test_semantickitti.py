@@ -333,6 +333,21 @@ def test_train_id_label_files_read_as_train_ids(tmp_path, caplog):
         SemanticKittiSequence(d, label_space="ids")
 
 
+def test_a_scan_that_fits_both_spaces_follows_its_folder(tmp_path):
+    """Train ids of a scan without any class only train ids name (car 1, sidewalk 11,
+    building 13: raw ids too) are read as train ids once a file of the folder read before was;
+    where none was, as raw ids."""
+    d = make_sequence(tmp_path / "seq")
+    for k, values in enumerate(([9, 1, 11], [1, 11, 13], [1, 11, 13])):
+        np.resize(np.array(values, "<u4"), 50).tofile(d / "predictions" / f"{k:06d}.label")
+    seq = SemanticKittiSequence(d)
+    scans = list(seq)
+    assert scans[1].labels.tolist()[:3] == [1, 11, 13]
+    assert seq.train_ids.sources == {"predictions": 3}
+    alone = SemanticKittiSequence(d, first=1)  # no file of train ids before it
+    assert alone[0].labels.tolist()[:3] == raw_to_train(np.array([1, 11, 13]))[0].tolist()
+
+
 def _renumber(folder: Path, ids: list[int]) -> None:
     """Give the folder's scans (000000, 000001, ...) the numbers `ids`, in order, as a
     sequence's extract keeps them."""
@@ -362,6 +377,10 @@ def test_an_extract_pairs_its_own_poses_and_times_in_order(tmp_path, caplog):
         np.testing.assert_array_equal(seq[k].T_world_sensor, whole[k].T_world_sensor)
         np.testing.assert_array_equal(seq[k].points_sensor, whole[k].points_sensor)
     assert [seq[k].stamp_s for k in range(3)] == [100.0, 100.1, 100.5]
+    # a time out of order is named by its line of the extract's file
+    (d / "times.txt").write_text("100.0\n105.0\n100.5\n")
+    with pytest.raises(ScanError, match=r"times\.txt:2: time 105 s is out of order"):
+        SemanticKittiSequence(d)[1]
     # a selected range keeps each scan's entry: its place in the folder, not in the range
     tail = SemanticKittiSequence(d, first=1001)
     np.testing.assert_array_equal(tail[1].T_world_sensor, whole[2].T_world_sensor)

@@ -146,9 +146,10 @@ def raw_to_train(raw_label: np.ndarray) -> tuple[np.ndarray, int]:
 LABEL_SPACES = ("auto", "raw", "train")
 
 
-def holds_train_ids(values: np.ndarray) -> bool:
-    """Whether label values are train ids, not raw ids: every value lies below num_classes()
-    (no instance bits either), and one at least is no raw id of the label space.
+def label_space_of(values: np.ndarray) -> str:
+    """Which ids label values are: "train" (every value below num_classes(), no instance bits
+    either, and one at least no raw id of the label space), "either" (every value below
+    num_classes() and a raw id: a scan without a class that only train ids name), or "raw".
 
     A scan in raw SemanticKITTI ids holds ground, whose ids are all past 19 (road 40, sidewalk
     48, terrain 72), and the raw ids below 20 (unlabeled, outlier and the vehicles) are known
@@ -156,24 +157,33 @@ def holds_train_ids(values: np.ndarray) -> bool:
     ids that name no raw class (9, road, is the most common)."""
     values = np.asarray(values)
     if values.size == 0 or values.min() < 0 or values.max() >= num_classes():
-        return False
+        return "raw"
     known = _RAW_KNOWN if _active is None else _active.lookup[1]
-    return not known[values.astype(np.int64)].all()
+    return "either" if known[values.astype(np.int64)].all() else "train"
+
+
+def holds_train_ids(values: np.ndarray) -> bool:
+    """Whether label values can only be train ids (`label_space_of`)."""
+    return label_space_of(values) == "train"
 
 
 def to_train_ids(
-    values: np.ndarray, label_space: str = "auto", classes: int | None = None
+    values: np.ndarray,
+    label_space: str = "auto",
+    classes: int | None = None,
+    either: str = "raw",
 ) -> tuple[np.ndarray, int, str]:
     """(train ids int32, how many values are no label of the space (they become 0: no
     evidence), the space they were read in: "raw" or "train").
 
     `label_space`: "raw" (SemanticKITTI ids, instance bits allowed: `raw_to_train`), "train"
-    (0..classes - 1, num_classes() by default), or "auto": train ids where `holds_train_ids`
-    says so, raw ids otherwise."""
+    (0..classes - 1, num_classes() by default), or "auto": by `label_space_of`, values that
+    can be either read as `either` (the space the source's other scans were read in)."""
     if label_space not in LABEL_SPACES:
         raise ValueError(f"label_space must be one of {LABEL_SPACES}, got {label_space!r}")
     if label_space == "auto":
-        label_space = "train" if holds_train_ids(values) else "raw"
+        found = label_space_of(values)
+        label_space = either if found == "either" else found
     if label_space == "raw":
         return (*raw_to_train(values), "raw")
     values = np.asarray(values).astype(np.int64)
@@ -182,13 +192,18 @@ def to_train_ids(
 
 
 class TrainIdNotes:
-    """A reader's warning, once per label source (the predictions, the ground truth), that
-    `to_train_ids` read its values as train ids: a run on labels in the other space is
-    otherwise silently wrong everywhere."""
+    """Per label source of a reader (the predictions, the ground truth): whether `to_train_ids`
+    read it as train ids, said once in a warning (a run on labels in the other space is
+    otherwise silently wrong everywhere), and the space its scans that fit either are read in
+    from then on (`either`)."""
 
     def __init__(self, log: logging.Logger) -> None:
         self.log = log
         self.sources: dict[str, int] = {}  # label source -> scans read as train ids
+
+    def either(self, source: str) -> str:
+        """The space to read `source`'s values in where they fit both."""
+        return "train" if source in self.sources else "raw"
 
     def read(self, source: str, where: str, space: str) -> None:
         if space != "train":
@@ -196,8 +211,8 @@ class TrainIdNotes:
         if source not in self.sources:
             self.log.warning(
                 "%s: the %s are train ids, not raw SemanticKITTI ids (every value below %d, "
-                "some naming no raw class): read as train ids, here and in every other scan "
-                "that holds them",
+                "some naming no raw class): read as train ids, here and in every later scan "
+                "of them whose values are train ids",
                 where,
                 source,
                 num_classes(),

@@ -124,11 +124,13 @@ def results_table(metrics: dict, per_class: bool = False, input_name: str = "net
     relabelled = metrics.get("relabelled")  # (metrics of older runs lack it)
     unknown = dropped.get("unknown_raw_ids", 0)
     if unknown and relabelled and relabelled["points"]:
-        # labels the label space has no class for: a wrong --classes or label space, which a
-        # run must not pass over in the per-scan lines only
+        # labels the label space has no class for (a wrong --classes or label space) or no
+        # label at all: a run must not pass over them in the per-scan lines only
+        points = relabelled["points"] + dropped.get("dropped_nonfinite", 0)
         text += (
-            f"\ninput labels with no class: {unknown:,} ({100 * unknown / relabelled['points']:.2f}"
-            f" % of the points), no evidence; their ids are not in the label space (--classes)"
+            f"\ninput labels with no class: {unknown:,} ({100 * unknown / points:.2f} % of the "
+            f"points), no evidence: ids the label space (--classes) does not name, or values "
+            f"that are no label"
         )
     if relabelled and relabelled["points"]:
         text += (

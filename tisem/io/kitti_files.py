@@ -30,6 +30,7 @@ __all__ = [
     "read_trajectory",
     "out_of_order",
     "entry_of_scan",
+    "entry_texts",
     "camera_poses_to_lidar",
     "MAX_TIME_S",
 ]
@@ -64,15 +65,16 @@ def _parse_pose_row(text: str, where: str, line: str, subject: str) -> np.ndarra
     return _row_to_4x4(values)
 
 
-def _entry_lines(path: Path, what: str) -> list[tuple[int, str]]:
+def _entry_lines(path: Path, what: str, quiet: bool = False) -> list[tuple[int, str]]:
     """The non-blank lines of a one-entry-per-line file as (line number, text). A blank line
     is an editor's stray newline, not an entry: skipping it keeps every later entry with its
-    own scan (the lines still name their place in the file); it is logged once."""
+    own scan (the lines still name their place in the file); it is logged once (`quiet`: a
+    file read again is not)."""
     numbered = list(enumerate(_read_text(path, what).splitlines(), start=1))
     blank = [n for n, line in numbered if not line.strip()]
     last = max((n for n, line in numbered if line.strip()), default=0)
     inner = [n for n in blank if n < last]
-    if inner:
+    if inner and not quiet:
         log.warning(
             "%s: blank line%s %s ignored (one entry per line)",
             path,
@@ -292,13 +294,23 @@ def read_times(path: str | os.PathLike) -> np.ndarray:
     return times
 
 
-def out_of_order(times: np.ndarray, scan_ids: list[int], path: Path) -> dict[int, str]:
+def entry_texts(path: str | os.PathLike) -> list[str]:
+    """The entries of a one-entry-per-line file (times.txt) as text, blank lines skipped as
+    the readers skip them: entry i is `read_time_lines`' i-th."""
+    return [line for _, line in _entry_lines(Path(path), "times file", quiet=True)]
+
+
+def out_of_order(
+    times: np.ndarray, scan_ids: list[int], path: Path, entries: np.ndarray | None = None
+) -> dict[int, str]:
     """{position: why} for the scans whose time would run the map's clock backwards.
 
-    `times` (NaN: no time) belong to the scans `scan_ids`, in order. The longest run of
-    non-decreasing times is kept (the first such run found), so one wild time costs its own
-    scan only; every other scan with a time is out of order and named with its line.
+    `times` (NaN: no time) belong to the scans `scan_ids`, in order, each the entry of `path`
+    given by `entries` (default: its scan number). The longest run of non-decreasing times is
+    kept (the first such run found), so one wild time costs its own scan only; every other
+    scan with a time is out of order and named with its line.
     """
+    entries = np.asarray(scan_ids) if entries is None else entries
     known = [k for k in range(len(times)) if np.isfinite(times[k])]
     # patience sorting: tails[j] = the smallest last time of a non-decreasing run of j + 1
     tails: list[float] = []
@@ -328,7 +340,7 @@ def out_of_order(times: np.ndarray, scan_ids: list[int], path: Path) -> dict[int
             f"scan {scan_ids[j]} at {times[j]:g} s" for j in (prev, nxt) if j is not None
         )
         problems[k] = (
-            f"{path}:{scan_ids[k] + 1}: time {times[k]:g} s is out of order "
+            f"{path}:{entries[k] + 1}: time {times[k]:g} s is out of order "
             f"({around}): the map's clock cannot run backwards"
         )
     return problems

@@ -29,6 +29,7 @@ import numpy as np
 from tqdm import tqdm
 
 from tisem.errors import SkippedScan
+from tisem.io.kitti_files import entry_texts
 from tisem.io.mcap_writer import Ros2McapWriter
 from tisem.io.rosbag_writer import Rosbag2Writer
 from tisem.io.semantickitti import SemanticKittiSequence
@@ -66,15 +67,18 @@ class KittiMcapResult:
 
 
 def scan_stamps_ns(seq: SemanticKittiSequence) -> list[int]:
-    """Integer-nanosecond stamp of each selected scan, from the text of times.txt (None where
-    a line is no time: the reader skips that scan anyway), or 10 Hz by scan id."""
-    if not seq.times_file.is_file():
+    """Integer-nanosecond stamp of each selected scan, from the text of its times.txt entry
+    (None where it is no time, or with a TUM trajectory's stamps: the float the reader has),
+    or 10 Hz by scan id."""
+    if seq.time_entries is None:
         return [sid * SCAN_PERIOD_NS for sid in seq.scan_ids]
-    lines = seq.times_file.read_text().rstrip().splitlines()
+    if seq.times_file.name != "times.txt":
+        return [None] * len(seq.scan_ids)
+    entries = entry_texts(seq.times_file)
     stamps = []
-    for sid in seq.scan_ids:
+    for e in seq.time_entries:
         try:
-            stamps.append(decimal_seconds_to_ns(lines[sid]))
+            stamps.append(decimal_seconds_to_ns(entries[e]))
         except (IndexError, ValueError):
             stamps.append(None)
     return stamps

@@ -147,14 +147,15 @@ def pose_edges(
 
 
 def cloud_labels(
-    arr: np.ndarray, field_name: str, label_space: str, num_classes: int
+    arr: np.ndarray, field_name: str, label_space: str, num_classes: int, either: str = "raw"
 ) -> tuple[np.ndarray, int, str]:
     """Train ids of a cloud's label field, how many points had an unknown or invalid label
     (those become 0, no evidence), and the space the values were read in ("raw" or "train").
-    `label_space`: raw SemanticKITTI ids, train ids, or "auto" (`tisem.labels.to_train_ids`)."""
+    `label_space`: raw SemanticKITTI ids, train ids, or "auto" (`tisem.labels.to_train_ids`,
+    with `either`)."""
     values, invalid = pc2.integer_labels(pc2.column(arr, field_name), field_name)
     # an invalid value is 0 in `values`: unlabeled in either space, and counted once here
-    train, unknown, space = to_train_ids(values, label_space, num_classes)
+    train, unknown, space = to_train_ids(values, label_space, num_classes, either)
     return train, unknown + int(np.count_nonzero(invalid)), space
 
 

@@ -212,12 +212,20 @@ class McapScanReader:
                 probs, unknown = cloud_probabilities(arr, opts.prob_field, opts.num_classes)
             else:
                 labels, unknown, space = cloud_labels(
-                    arr, opts.label_field, opts.label_space, opts.num_classes
+                    arr,
+                    opts.label_field,
+                    opts.label_space,
+                    opts.num_classes,
+                    self.train_ids.either("labels"),
                 )
                 self.train_ids.read("labels", f"{name} field {opts.label_field!r}", space)
             if opts.gt_field:
                 gt, unknown_gt, space = cloud_labels(
-                    arr, opts.gt_field, opts.label_space, opts.num_classes
+                    arr,
+                    opts.gt_field,
+                    opts.label_space,
+                    opts.num_classes,
+                    self.train_ids.either("ground truth"),
                 )
                 self.train_ids.read("ground truth", f"{name} field {opts.gt_field!r}", space)
             self._count_unknown(index, unknown, unknown_gt)

@@ -68,7 +68,7 @@ from tisem.io.kitti_predictions import (
     write_dynamic_flags,
     write_predictions,
 )
-from tisem.labels import LABEL_SPACES, TrainIdNotes, moving_raw, to_train_ids
+from tisem.labels import LABEL_SPACES, TrainIdNotes, moving_raw, to_train_ids, train_to_raw
 from tisem.scan import KittiSource, Scan, finite_rows
 
 __all__ = [
@@ -125,7 +125,8 @@ class SemanticKittiSequence:
     with `scan_ids`; NaN where times.txt is too short), has_ground_truth (a `labels/` folder),
     input_dir (the folder the input labels come from), num_poses (poses in poses.txt),
     entry_notes (a line each for poses.txt and times.txt when their entries are paired with
-    the scans in order, as for a sequence's extract: `kitti_files.entry_of_scan`; logged).
+    the scans in order, as for a sequence's extract: `kitti_files.entry_of_scan`; logged),
+    time_entries (the entry of times.txt, or of a TUM trajectory, of each scan; None without).
 
     ``seq[k]`` is the k-th scan of the selected range (not the scan id) and raises `ScanError`
     for a bad scan; iteration yields `Scan` or `SkippedScan` and never stops on a bad scan.
@@ -212,18 +213,23 @@ class SemanticKittiSequence:
             for sid, e in zip(self.scan_ids, time_of):
                 if int(e) in time_problems:
                     self.problems.setdefault(sid, time_problems[int(e)])
-            for k, why in out_of_order(self.times, self.scan_ids, self.times_file).items():
+            self.time_entries = time_of
+            found = out_of_order(self.times, self.scan_ids, self.times_file, time_of)
+            for k, why in found.items():
                 self.problems.setdefault(self.scan_ids[k], why)
         elif stamps is not None:  # a TUM trajectory's stamps
             self.times_file = self.poses_file
             self.times = np.full(len(ids), np.nan)
             self.times[self.has_pose] = stamps[pose_of[self.has_pose]]
             self._num_times = int(stamps.size)
-            for k, why in out_of_order(self.times, self.scan_ids, self.poses_file).items():
+            self.time_entries = pose_of
+            found = out_of_order(self.times, self.scan_ids, self.poses_file, pose_of)
+            for k, why in found.items():
                 self.problems.setdefault(self.scan_ids[k], why)
         else:
             self.times = ids.astype(np.float64) * DEFAULT_SCAN_PERIOD_S
             self._num_times = None
+            self.time_entries = None
         for note in self.entry_notes:
             log.warning(note)
 
@@ -294,14 +300,25 @@ class SemanticKittiSequence:
                 )
 
     def label_values(self, k: int, what: str, n: int) -> np.ndarray:
-        """The values of the k-th scan's label file as uint32, as the files hold them (raw ids
-        or train ids), for a scan of n points: `what` "predictions" or "labels"; ScanError
-        when there is no such file or it does not hold n labels."""
+        """The k-th scan's labels (a scan of n points) as raw ids, uint32: the file's values,
+        or the raw ids of the train ids it holds. `what`: "predictions" or "labels";
+        ScanError when there is no such file or it does not hold n labels."""
         sid = self.scan_ids[k]
         folder = self.predictions_dir if what == "predictions" else self.labels_dir
         kind = "predictions" if what == "predictions" else "ground-truth"
         path = self._label_path(folder, sid)
-        return self._read_labels(path, sid, kind, n, self.scan_path(k).name)
+        values = self._read_labels(path, sid, kind, n, self.scan_path(k).name)
+        train, _, space = self._to_train_ids(values, what, path, noted=False)
+        return values if space == "raw" else train_to_raw(train).astype(np.uint32)
+
+    def _to_train_ids(self, values: np.ndarray, source: str, path: Path, noted: bool = True):
+        """`to_train_ids` of a label file of `source` ("predictions" or "labels"): values that
+        fit both spaces are read in the one its earlier files were read in; `noted`: counted
+        in `train_ids` (a file read a second time is not)."""
+        got = to_train_ids(values, self.label_space, either=self.train_ids.either(source))
+        if noted:
+            self.train_ids.read(source, str(path), got[2])
+        return got
 
     def _read_labels(self, path: Path, sid: int, what: str, n: int, bin_name: str) -> np.ndarray:
         """The n labels of a scan's label file, as uint32: SemanticKITTI's width, or int64 (a
@@ -384,16 +401,14 @@ class SemanticKittiSequence:
             # rule) and the predictions file keeps one label per point of the .bin
             if not finite_rows(data[:, :3]).any():
                 raise ScanError(f"{bin_path}: all {n} points are non-finite (NaN/inf)", sid, name)
-            labels, unknown, space = to_train_ids(raw_in, self.label_space)
-            self.train_ids.read(self.input, str(in_path), space)
+            labels, unknown, space = self._to_train_ids(raw_in, self.input, in_path)
             gt = None
             unknown_gt = 0
             if raw_gt is not None:
                 if self.input == "labels":
                     gt, unknown_gt = labels, unknown
                 else:
-                    gt, unknown_gt, space = to_train_ids(raw_gt, self.label_space)
-                    self.train_ids.read("labels", str(gt_path), space)
+                    gt, unknown_gt, _ = self._to_train_ids(raw_gt, "labels", gt_path)
             return Scan(
                 points_sensor=data[:, :3],
                 T_world_sensor=self.poses_lidar[k],

@@ -26,7 +26,6 @@ from __future__ import annotations
 from collections import deque
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import numpy as np
 from scipy.sparse import coo_matrix
@@ -75,8 +74,8 @@ def read_folder(path, first: int = 0, last: int | None = None) -> Iterator[Label
         raise ValueError(f"{seq.sequence_dir}: no labels/ folder (ground truth) to compare with")
     for k in range(len(seq)):
         scan = seq[k]
-        label_file = seq.labels_dir / (Path(seq.scan_path(k)).stem + ".label")
-        gt_raw = np.fromfile(label_file, dtype="<u4") & np.uint32(0xFFFF)
+        # (the reader's: int64 files and train ids as its scans have them)
+        gt_raw = seq.label_values(k, "labels", scan.num_points) & np.uint32(0xFFFF)
         keep = np.isfinite(scan.points_sensor).all(axis=1)
         yield LabelledScan(
             scan.points_sensor[keep].astype(np.float64),
