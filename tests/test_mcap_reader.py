@@ -155,6 +155,29 @@ def test_missing_label_field_lists_the_fields_the_cloud_has(tmp_path):
         McapScanReader(tmp_path / "log.mcap", McapOptions(gt_field="gt"))
 
 
+def test_a_missing_label_field_names_the_likely_one(tmp_path):
+    """Clouds whose labels are in a field 'class': the refusal of the default 'label' says
+    which option would read it (it does not guess: another field could be meant)."""
+    path = tmp_path / "class.mcap"
+    rng = np.random.default_rng(0)
+    arr = synthetic_points(10, rng)
+    renamed = arr.astype(
+        np.dtype(
+            {
+                "names": ["x", "y", "z", "intensity", "class"],
+                "formats": [arr.dtype[i] for i in range(5)],
+            }
+        )
+    )
+    with Ros2McapWriter(path) as w:
+        w.write_transforms([("map", "velodyne", 0, np.eye(4))], 0, static=True)
+        w.write_cloud("/points", renamed, "velodyne", 5, 5)
+    with pytest.raises(DatasetError, match=r"have no 'label' label field .*class:uint16 \(the labels\? --label-field class\)$"):
+        McapScanReader(path)
+    (scan,) = list(McapScanReader(path, McapOptions(label_field="class")))
+    assert np.array_equal(scan.labels, raw_to_train(arr["label"])[0])
+
+
 def test_topic_choice(tmp_path):
     path = tmp_path / "two.mcap"
     rng = np.random.default_rng(0)

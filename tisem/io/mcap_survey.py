@@ -31,6 +31,10 @@ from tisem.io.tf import TfBuffer, TfError
 
 log = logging.getLogger(__name__)
 
+# what segmentation nodes call a per-point class field, named in the refusal of a recording
+# whose clouds lack the --label-field asked for (a guess would map the wrong field silently)
+_LABEL_NAMES = ("label", "labels", "class", "class_id", "semantic", "semantic_label", "sem_label")
+
 
 def _may_hold_poses(lost_topics, pose_topics: set[str], channels: dict) -> bool:
     """Whether a loss may have held pose messages. One counted before its channel's Channel
@@ -253,10 +257,14 @@ class Survey:
                 opts.prob_field: "probability field (--prob-field)",
                 opts.gt_field: "ground-truth field (--gt-field)",
             }
+            hint = ""
+            if opts.label_field in missing and not opts.prob_field:
+                named = [f for f in _LABEL_NAMES if pc2.has_field(arr, f)]
+                hint = f" (the labels? --label-field {named[0]})" if named else ""
             return (
                 f"{self.path}: the clouds on {topic} have no "
                 f"{' and no '.join(repr(f) + ' ' + what.get(f, 'field') for f in missing)}; "
-                f"their fields are: {pc2.describe_fields(arr)}"
+                f"their fields are: {pc2.describe_fields(arr)}{hint}"
             )
         if not frame_id:
             return f"{self.path}: the clouds on {topic} have an empty frame_id"
