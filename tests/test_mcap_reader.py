@@ -172,7 +172,10 @@ def test_a_missing_label_field_names_the_likely_one(tmp_path):
     with Ros2McapWriter(path) as w:
         w.write_transforms([("map", "velodyne", 0, np.eye(4))], 0, static=True)
         w.write_cloud("/points", renamed, "velodyne", 5, 5)
-    with pytest.raises(DatasetError, match=r"have no 'label' label field .*class:uint16 \(the labels\? --label-field class\)$"):
+    with pytest.raises(
+        DatasetError,
+        match=r"have no 'label' label field .*class:uint16 \(the labels\? --label-field class\)$",
+    ):
         McapScanReader(path)
     (scan,) = list(McapScanReader(path, McapOptions(label_field="class")))
     assert np.array_equal(scan.labels, raw_to_train(arr["label"])[0])

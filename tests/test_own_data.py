@@ -186,6 +186,23 @@ def test_predictions_from_another_folder_or_a_prediction_root(street, tmp_path):
         SemanticKittiSequence(seq_dir, predictions=tmp_path / "nowhere")
 
 
+def test_a_run_records_how_it_read_the_labels(street, tmp_path):
+    """Predictions saved as a network's argmax (int64 train ids): the run maps them as the
+    raw files, and metrics.json says how they were read (the warning lines)."""
+    seq_dir = _without_predictions(street, tmp_path / "17")
+    (seq_dir / "predictions").mkdir()
+    for path in (street / "predictions").iterdir():
+        train = raw_to_train(np.fromfile(path, "<u4"))[0]
+        train.astype(np.int64).tofile(seq_dir / "predictions" / path.name)
+    runs = {}
+    for name, data in (("raw", street), ("argmax", seq_dir)):
+        assert run_map_kitti(["--data", data, "--no-progress", "--out", tmp_path / name]) == 0
+        runs[name] = json.loads((tmp_path / name / "metrics.json").read_text())
+    assert runs["argmax"]["final"] == runs["raw"]["final"] and "input_read" not in runs["raw"]
+    read = runs["argmax"]["input_read"]
+    assert len(read) == 2 and "holds 64-bit integers" in read[0] and "are train ids" in read[1]
+
+
 def test_map_kitti_predictions_option(street, tmp_path, caplog):
     """--predictions feeds the map from another folder, which run.json keeps for render;
     with --input labels or without --data it is refused in one line."""

@@ -371,6 +371,7 @@ def test_an_extract_pairs_its_own_poses_and_times_in_order(tmp_path, caplog):
         seq = SemanticKittiSequence(d)
     assert seq.scan_ids == [1000, 1001, 1005] and list(seq.has_pose) == [True] * 3
     assert len(seq.entry_notes) == 2 and "scan 1000 takes the first entry" in caplog.text
+    assert seq.reading_notes == seq.entry_notes
     assert "poses.txt: 3 entries for the 3 scans 1000..1005" in seq.entry_notes[0]
     assert "times.txt: 3 entries" in seq.entry_notes[1]
     for k in range(3):

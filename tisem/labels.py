@@ -200,6 +200,7 @@ class TrainIdNotes:
     def __init__(self, log: logging.Logger) -> None:
         self.log = log
         self.sources: dict[str, int] = {}  # label source -> scans read as train ids
+        self.lines: list[str] = []  # what was said
 
     def either(self, source: str) -> str:
         """The space to read `source`'s values in where they fit both."""
@@ -209,14 +210,12 @@ class TrainIdNotes:
         if space != "train":
             return
         if source not in self.sources:
-            self.log.warning(
-                "%s: the %s are train ids, not raw SemanticKITTI ids (every value below %d, "
-                "some naming no raw class): read as train ids, here and in every later scan "
-                "of them whose values are train ids",
-                where,
-                source,
-                num_classes(),
+            self.lines.append(
+                f"{where}: the {source} are train ids, not raw SemanticKITTI ids (every value "
+                f"below {num_classes()}, some naming no raw class): read as train ids, here "
+                f"and in every later scan of them whose values are train ids"
             )
+            self.log.warning("%s", self.lines[-1])
         self.sources[source] = self.sources.get(source, 0) + 1
 
 

@@ -221,6 +221,10 @@ class MappingRun:
             final = self.final_pass(final_scans, show_progress)
         metrics = run_metrics(self.progress, final, self.mapper, self.cfg)
         metrics["relabelled"] = self.relabelled.to_dict()
+        # how a reader read what it had to decide (tisem.io.semantickitti, mcap_reader)
+        notes = getattr(self.scans, "reading_notes", None)
+        if notes:
+            metrics["input_read"] = list(notes)
         if self.stopped:
             metrics["stopped"] = self.stopped
         self.files.write_metrics(metrics)

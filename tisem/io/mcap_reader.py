@@ -80,6 +80,12 @@ class McapScanReader:
         self._poses_lost = survey.poses_lost
 
     @property
+    def reading_notes(self) -> list[str]:
+        """How the labels were read where the options left it open (label fields found to hold
+        train ids), for the run's record."""
+        return list(self.train_ids.lines)
+
+    @property
     def records(self):
         """The record source the scans are read from (the file's, or the bag's)."""
         return self._records

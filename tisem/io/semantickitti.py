@@ -149,7 +149,7 @@ class SemanticKittiSequence:
             raise ValueError(f"label_space must be one of {LABEL_SPACES}, got {label_space!r}")
         self.input, self.label_space = input, label_space
         self.train_ids = TrainIdNotes(log)
-        self.label_widths: dict[str, str] = {}  # label source -> "int64" where its files are
+        self.label_widths: dict[str, str] = {}  # label source -> the line said: files of int64
         self.sequence_dir, self.sequence_name = find_sequence(path, sequence)
 
         d = self.sequence_dir
@@ -259,6 +259,13 @@ class SemanticKittiSequence:
         poses_cam, problems = read_pose_lines(self.poses_file)
         return camera_poses_to_lidar(poses_cam, self.Tr), problems, None
 
+    @property
+    def reading_notes(self) -> list[str]:
+        """How the files were read where they differ from SemanticKITTI's layout (the warning
+        lines: extracts' entries paired in order, int64 label files, train ids), for the
+        run's record."""
+        return [*self.entry_notes, *self.label_widths.values(), *self.train_ids.lines]
+
     # ------------------------------------------------------------------ paths
     def scan_path(self, k: int) -> Path:
         sid = self.scan_ids[k]
@@ -330,16 +337,12 @@ class SemanticKittiSequence:
             values = np.fromfile(path, dtype="<i8")
             if values.min() >= 0 and values.max() < 1 << 32:
                 if what not in self.label_widths:
-                    log.warning(
-                        "%s: this %s file holds 64-bit integers, not SemanticKITTI's uint32 "
-                        "(%d bytes for %d points): read as such, here and in every other file "
-                        "so saved",
-                        path,
-                        what,
-                        size,
-                        n,
+                    self.label_widths[what] = (
+                        f"{path}: this {what} file holds 64-bit integers, not SemanticKITTI's "
+                        f"uint32 ({size} bytes for {n} points): read as such, here and in every "
+                        f"other file so saved"
                     )
-                self.label_widths[what] = "int64"
+                    log.warning("%s", self.label_widths[what])
                 return values.astype(np.uint32)
         if size % 4:
             raise ScanError(
