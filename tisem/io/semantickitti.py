@@ -165,7 +165,10 @@ class SemanticKittiSequence:
         if not self.input_dir.is_dir():
             hint = ""
             if input == "predictions" and predictions is None:
-                hint = "; give the network's label files with --predictions DIR (predictions=)"
+                hint = (
+                    "; the network's label files kept elsewhere: --predictions DIR (map-kitti, "
+                    "kitti-to-mcap; predictions= in Python)"
+                )
                 if self.has_ground_truth:
                     hint += ", or map the ground truth with --input labels (input='labels')"
             raise DatasetError(
