@@ -188,19 +188,28 @@ def test_predictions_from_another_folder_or_a_prediction_root(street, tmp_path):
 
 def test_a_run_records_how_it_read_the_labels(street, tmp_path):
     """Predictions saved as a network's argmax (int64 train ids): the run maps them as the
-    raw files, and metrics.json says how they were read (the warning lines)."""
+    raw files, and metrics.json says how they were read (the warning lines); --label-space
+    raw reads them as raw ids (most unknown), and run.json keeps it."""
     seq_dir = _without_predictions(street, tmp_path / "17")
     (seq_dir / "predictions").mkdir()
     for path in (street / "predictions").iterdir():
         train = raw_to_train(np.fromfile(path, "<u4"))[0]
         train.astype(np.int64).tofile(seq_dir / "predictions" / path.name)
     runs = {}
-    for name, data in (("raw", street), ("argmax", seq_dir)):
-        assert run_map_kitti(["--data", data, "--no-progress", "--out", tmp_path / name]) == 0
+    for name, data, extra in (
+        ("raw", street, []),
+        ("argmax", seq_dir, []),
+        ("as_raw", seq_dir, ["--label-space", "raw"]),
+    ):
+        argv = ["--data", data, "--no-progress", "--out", tmp_path / name, *extra]
+        assert run_map_kitti(argv) == 0
         runs[name] = json.loads((tmp_path / name / "metrics.json").read_text())
     assert runs["argmax"]["final"] == runs["raw"]["final"] and "input_read" not in runs["raw"]
     read = runs["argmax"]["input_read"]
     assert len(read) == 2 and "holds 64-bit integers" in read[0] and "are train ids" in read[1]
+    assert len(runs["as_raw"]["input_read"]) == 1 and runs["as_raw"]["dropped"]["unknown_raw_ids"]
+    assert runs["as_raw"]["final"]["accuracy"] < runs["raw"]["final"]["accuracy"]
+    assert json.loads((tmp_path / "as_raw" / "run.json").read_text())["label_space"] == "raw"
 
 
 def test_map_kitti_predictions_option(street, tmp_path, caplog):

@@ -259,6 +259,8 @@ def test_whole_sequence_problems_exit_2_with_one_line(tmp_path, damage, fname, p
     "app,argv,flag",
     [
         ("map_kitti", ["--resume", "r", "--input", "labels"], "--input"),
+        ("map_kitti", ["--resume", "r", "--label-space", "raw"], "--label-space"),
+        ("map_kitti", ["--resume", "r", "--predictions", "p"], "--predictions"),
         ("map_kitti", ["--resume", "r", "--set", "tau_s=1"], "--set"),
         ("map_mcap", ["--resume", "r", "--topic", "/points"], "--topic"),
         ("map_mcap", ["--resume", "r", "--mode", "csm", "--label-space", "train"], "--label-space"),

@@ -27,7 +27,12 @@ if TYPE_CHECKING:  # (imported when needed: the help stays fast)
     from tisem.io.semantickitti import SemanticKittiSequence
 
 log = logging.getLogger("tisem.map_kitti")
-KEPT_ON_RESUME = {"input": "--input", "poses": "--poses", "predictions": "--predictions"}
+KEPT_ON_RESUME = {
+    "input": "--input",
+    "poses": "--poses",
+    "predictions": "--predictions",
+    "label_space": "--label-space",
+}
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -63,6 +68,13 @@ def build_parser() -> argparse.ArgumentParser:
         "(DIR/sequences/NN/predictions/)",
     )
     p.add_argument(
+        "--label-space",
+        choices=("auto", "raw", "train"),
+        default=None,
+        help="the label files hold raw SemanticKITTI ids, train ids 0..19, or either (auto, "
+        "the default: told apart per file, each said once in a warning)",
+    )
+    p.add_argument(
         "--synthetic-scans",
         type=int,
         default=20,
@@ -83,6 +95,7 @@ def open_sequence(
     cfg: RunConfig,
     poses: Path | None = None,
     predictions: Path | None = None,
+    label_space: str = "auto",
 ) -> SemanticKittiSequence:
     from tisem.io.semantickitti import SemanticKittiSequence
 
@@ -95,6 +108,7 @@ def open_sequence(
             last=cfg.last,
             poses=poses,
             predictions=predictions,
+            label_space=label_space,
         )
 
 
@@ -159,13 +173,18 @@ def map_sequence(args: argparse.Namespace) -> int:
                 else "give the sequence they belong to with --data"
             )
         )
+    label_space = args.label_space or plan.source.get("label_space") or "auto"
     # the input is opened before anything is made: a bad one leaves no results folder
-    seq = open_sequence(data, sequence, cfg, poses, predictions) if data is not None else None
+    seq = (
+        open_sequence(data, sequence, cfg, poses, predictions, label_space)
+        if data is not None
+        else None
+    )
     plan.start(args)
     if seq is None:
         with cli.bad_input("synthetic street: "):
             data = synthetic_street(args.synthetic_scans, args.seed, not args.no_progress)
-        seq = open_sequence(data, sequence, cfg)
+        seq = open_sequence(data, sequence, cfg, label_space=label_space)
     log.info(
         "%s: sequence %s, %d scans, mode %s, %s",
         seq.sequence_dir,
@@ -184,6 +203,7 @@ def map_sequence(args: argparse.Namespace) -> int:
         "threads": plan.threads,
         "poses": str(poses.resolve()) if poses else None,
         "predictions": str(seq.predictions_dir.resolve()) if predictions else None,
+        "label_space": label_space,
         "classes": str(plan.classes) if plan.classes else None,
     }
     run = plan.mapping_run(

@@ -54,6 +54,7 @@ def _kitti_scans(data: Path, run: dict, config: dict) -> RunScans:
         last=run.get("last", config.get("last")),
         poses=run.get("poses"),
         predictions=run.get("predictions"),
+        label_space=run.get("label_space", "auto"),
     )
     try:  # the network's labels as input when the folder has them
         seq, title = SemanticKittiSequence(data, input="predictions", **kwargs), "network labels"
