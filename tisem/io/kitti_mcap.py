@@ -68,12 +68,9 @@ class KittiMcapResult:
 
 def scan_stamps_ns(seq: SemanticKittiSequence) -> list[int]:
     """Integer-nanosecond stamp of each selected scan, from the text of its times.txt entry
-    (None where it is no time, or with a TUM trajectory's stamps: the float the reader has),
-    or 10 Hz by scan id."""
+    (None where it is no time: the reader skips that scan anyway), or 10 Hz by scan id."""
     if seq.time_entries is None:
         return [sid * SCAN_PERIOD_NS for sid in seq.scan_ids]
-    if seq.times_file.name != "times.txt":
-        return [None] * len(seq.scan_ids)
     entries = entry_texts(seq.times_file)
     stamps = []
     for e in seq.time_entries:

@@ -217,23 +217,9 @@ class McapScanReader:
             if opts.prob_field:
                 probs, unknown = cloud_probabilities(arr, opts.prob_field, opts.num_classes)
             else:
-                labels, unknown, space = cloud_labels(
-                    arr,
-                    opts.label_field,
-                    opts.label_space,
-                    opts.num_classes,
-                    self.train_ids.either("labels"),
-                )
-                self.train_ids.read("labels", f"{name} field {opts.label_field!r}", space)
+                labels, unknown = self._labels(arr, opts.label_field, "labels", name)
             if opts.gt_field:
-                gt, unknown_gt, space = cloud_labels(
-                    arr,
-                    opts.gt_field,
-                    opts.label_space,
-                    opts.num_classes,
-                    self.train_ids.either("ground truth"),
-                )
-                self.train_ids.read("ground truth", f"{name} field {opts.gt_field!r}", space)
+                gt, unknown_gt = self._labels(arr, opts.gt_field, "ground truth", name)
             self._count_unknown(index, unknown, unknown_gt)
             return Scan(
                 points_sensor=points,
@@ -257,6 +243,17 @@ class McapScanReader:
             return SkippedScan(index, name, str(e))
         except Exception as e:  # noqa: BLE001 - undecodable bytes raise anything
             return SkippedScan(index, name, f"cannot decode the message ({error_text(e)})")
+
+    def _labels(self, arr, field: str, source: str, name: str) -> tuple:
+        """(train ids, unknown count) of a cloud's label field of `source` ("labels" or
+        "ground truth"), values that fit both spaces read as the source's earlier clouds."""
+        opts = self.options
+        either = self.train_ids.either(source)
+        labels, unknown, space = cloud_labels(
+            arr, field, opts.label_space, opts.num_classes, either
+        )
+        self.train_ids.read(source, f"{name} field {field!r}", space)
+        return labels, unknown
 
     def _count_unknown(self, index: int, unknown: int, unknown_gt: int) -> None:
         """Per scan, so that reading the log twice (the final pass) does not count twice."""
