@@ -333,19 +333,31 @@ def test_train_id_label_files_read_as_train_ids(tmp_path, caplog):
         SemanticKittiSequence(d, label_space="ids")
 
 
+def _write_predictions(folder: Path, files: list[list[int]]) -> None:
+    for k, values in enumerate(files):
+        np.resize(np.array(values, "<u4"), 50).tofile(folder / "predictions" / f"{k:06d}.label")
+
+
 def test_a_scan_that_fits_both_spaces_follows_its_folder(tmp_path):
     """Train ids of a scan without any class only train ids name (car 1, sidewalk 11,
-    building 13: raw ids too) are read as train ids once a file of the folder read before was;
-    where none was, as raw ids."""
+    building 13: raw ids too) are read in the space of the folder's first file that fits only
+    one, whatever was read before them and whatever range is mapped; as raw ids where no file
+    fits only one."""
     d = make_sequence(tmp_path / "seq")
-    for k, values in enumerate(([9, 1, 11], [1, 11, 13], [1, 11, 13])):
-        np.resize(np.array(values, "<u4"), 50).tofile(d / "predictions" / f"{k:06d}.label")
+    as_train, as_raw = [1, 11, 13], raw_to_train(np.array([1, 11, 13]))[0].tolist()
+    _write_predictions(d, [[1, 11, 13], [9, 1, 11], [1, 11, 13]])  # scan 0 before the road
     seq = SemanticKittiSequence(d)
     scans = list(seq)
-    assert scans[1].labels.tolist()[:3] == [1, 11, 13]
+    assert scans[0].labels.tolist()[:3] == as_train
+    assert scans[2].labels.tolist()[:3] == as_train
     assert seq.train_ids.sources == {"predictions": 3}
-    alone = SemanticKittiSequence(d, first=1)  # no file of train ids before it
-    assert alone[0].labels.tolist()[:3] == raw_to_train(np.array([1, 11, 13]))[0].tolist()
+    assert SemanticKittiSequence(d)[2].labels.tolist()[:3] == as_train  # read first
+    assert SemanticKittiSequence(d, first=2)[0].labels.tolist()[:3] == as_train  # out of range
+    _write_predictions(d, [[1, 11, 13], [1, 11, 13], [40, 10, 48]])  # road as raw id 40
+    assert SemanticKittiSequence(d)[0].labels.tolist()[:3] == as_raw
+    _write_predictions(d, [[1, 11, 13], [1, 11, 13], [0, 1]])  # none fits one space only
+    assert SemanticKittiSequence(d)[1].labels.tolist()[:3] == as_raw
+    assert SemanticKittiSequence(d, label_space="train")[0].labels.tolist()[:3] == as_train
 
 
 def _renumber(folder: Path, ids: list[int]) -> None:

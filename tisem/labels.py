@@ -194,8 +194,9 @@ def to_train_ids(
 class TrainIdNotes:
     """Per label source of a reader (the predictions, the ground truth): whether `to_train_ids`
     read it as train ids, said once in a warning (a run on labels in the other space is
-    otherwise silently wrong everywhere), and the space its scans that fit either are read in
-    from then on (`either`)."""
+    otherwise silently wrong everywhere), and, for a stream, the space its scans that fit
+    either are read in from then on (`either`; a SemanticKITTI folder reads its first file that
+    fits one instead)."""
 
     def __init__(self, log: logging.Logger) -> None:
         self.log = log

@@ -246,7 +246,7 @@ class McapScanReader:
 
     def _labels(self, arr, field: str, source: str, name: str) -> tuple:
         """(train ids, unknown count) of a cloud's label field of `source` ("labels" or
-        "ground truth"), values that fit both spaces read as the source's earlier clouds."""
+        "ground truth"), values that fit both spaces read as the source's earlier clouds (a stream: the clouds to come are not read yet)."""
         opts = self.options
         either = self.train_ids.either(source)
         labels, unknown, space = cloud_labels(

@@ -68,7 +68,14 @@ from tisem.io.kitti_predictions import (
     write_dynamic_flags,
     write_predictions,
 )
-from tisem.labels import LABEL_SPACES, TrainIdNotes, moving_raw, to_train_ids, train_to_raw
+from tisem.labels import (
+    LABEL_SPACES,
+    TrainIdNotes,
+    label_space_of,
+    moving_raw,
+    to_train_ids,
+    train_to_raw,
+)
 from tisem.scan import KittiSource, Scan, finite_rows
 
 __all__ = [
@@ -186,7 +193,8 @@ class SemanticKittiSequence:
                 f"{self.velodyne_dir}: empty frame range first={first} last={last}; "
                 f"scans present: {all_ids[0]}..{all_ids[-1]} ({len(all_ids)} files)"
             )
-        self._bin_names = {i: bin_names[i] for i in self.scan_ids}
+        self._bin_names = bin_names  # every scan of the folder, in range or not
+        self._either: dict[str, str] = {}  # label source -> the space of its files that fit both
 
         lidar_all, pose_problems, stamps = self._read_poses(poses)
         self.num_poses = int(lidar_all.shape[0])
@@ -322,24 +330,55 @@ class SemanticKittiSequence:
         return values if space == "raw" else train_to_raw(train).astype(np.uint32)
 
     def _to_train_ids(self, values: np.ndarray, source: str, path: Path, noted: bool = True):
-        """`to_train_ids` of a label file of `source` ("predictions" or "labels"): values that
-        fit both spaces are read in the one its earlier files were read in; `noted`: counted
-        in `train_ids` (a file read a second time is not)."""
-        got = to_train_ids(values, self.label_space, either=self.train_ids.either(source))
+        """`to_train_ids` of a label file of `source` ("predictions" or "labels"), values that
+        fit both spaces read in `_either_space`'s; `noted`: counted in `train_ids` (a file read
+        a second time is not)."""
+        space = self.label_space
+        if space == "auto":
+            space = label_space_of(values)
+            if space == "either":
+                space = self._either_space(source)
+        got = to_train_ids(values, space)
         if noted:
             self.train_ids.read(source, str(path), got[2])
         return got
 
-    def _read_labels(self, path: Path, sid: int, what: str, n: int, bin_name: str) -> np.ndarray:
+    def _either_space(self, source: str) -> str:
+        """The space a file of `source` whose values fit both is read in: that of the folder's
+        first file of `source`, in scan order, whose values fit only one (raw where none does).
+        A folder holds one network's output, and a file then reads the same whatever was read
+        before it: `seq[k]` in any order, any range of the folder."""
+        if source not in self._either:
+            self._either[source] = self._first_decided_space(source)
+        return self._either[source]
+
+    def _first_decided_space(self, source: str) -> str:
+        folder = self.predictions_dir if source == "predictions" else self.labels_dir
+        for sid, bin_name in sorted(self._bin_names.items()):
+            path = self._label_path(folder, sid)
+            try:
+                n = (self.velodyne_dir / bin_name).stat().st_size // 16
+                values = self._read_labels(path, sid, source, n, bin_name, noted=False)
+            except (ScanError, OSError):  # a file a scan will skip for, or report, itself
+                continue
+            space = label_space_of(values)
+            if space != "either":
+                return space
+        return "raw"
+
+    def _read_labels(
+        self, path: Path, sid: int, what: str, n: int, bin_name: str, noted: bool = True
+    ) -> np.ndarray:
         """The n labels of a scan's label file, as uint32: SemanticKITTI's width, or int64 (a
-        network's argmax saved as it is) where the size says so and the values fit."""
+        network's argmax saved as it is) where the size says so and the values fit (said once
+        per `what` in `label_widths` where `noted`)."""
         if not path.is_file():
             raise ScanError(f"{path}: {what} label file missing for scan {sid}", sid, str(path))
         size = path.stat().st_size
         if size == INT64_BYTES * n and n:
             values = np.fromfile(path, dtype="<i8")
             if values.min() >= 0 and values.max() < 1 << 32:
-                if what not in self.label_widths:
+                if noted and what not in self.label_widths:
                     self.label_widths[what] = (
                         f"{path}: this {what} file holds 64-bit integers, not SemanticKITTI's "
                         f"uint32 ({size} bytes for {n} points): read as such, here and in every "
