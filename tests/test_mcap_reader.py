@@ -136,6 +136,34 @@ def test_train_ids_in_the_label_field_are_found_by_default(tmp_path, caplog):
     assert raw.report.unknown_labels > 0 and raw.train_ids.sources == {}
 
 
+def _labelled_log(path, labels: list[list[int]]) -> list:
+    """A recording of one cloud per entry of `labels`, its label field those values repeated."""
+    arrays = write_fields_log(path, (), label_dtype="u1", frames=len(labels))
+    for arr, values in zip(arrays, labels):
+        arr["label"] = np.resize(values, len(arr))
+    with Ros2McapWriter(path) as w:
+        w.write_transforms([("map", "velodyne", 0, np.eye(4))], 0, static=True)
+        for i, arr in enumerate(arrays):
+            w.write_cloud("/points", arr, "velodyne", (i + 1) * 10**8, (i + 1) * 10**8)
+    return arrays
+
+
+def test_clouds_that_fit_both_spaces_follow_the_first_that_fits_one(tmp_path):
+    """Clouds without a class only train ids name (car 1, sidewalk 11, building 13: raw ids
+    too), before the first that names road (9), are read as train ids too, in a run of the
+    whole recording or of a part of it; where no cloud fits one space only, as raw ids."""
+    path = tmp_path / "f.mcap"
+    as_train, as_raw = [1, 11, 13], raw_to_train(np.array([1, 11, 13]))[0].tolist()
+    _labelled_log(path, [[1, 11, 13], [1, 11, 13], [9, 1, 11], [1, 11, 13]])
+    reader = McapScanReader(path)
+    assert [s.labels.tolist()[:3] for s in reader] == [as_train, as_train, [9, 1, 11], as_train]
+    assert reader.train_ids.sources == {"labels": 4}
+    (first,) = scans_of(path, first=0, last=0)  # the chunk before the deciding cloud
+    assert first.labels.tolist()[:3] == as_train
+    _labelled_log(path, [[1, 11, 13], [1, 11, 13]])
+    assert [s.labels.tolist()[:3] for s in scans_of(path)] == [as_raw, as_raw]
+
+
 def test_a_probability_field_of_the_wrong_width_skips_with_a_reason(tmp_path):
     write_fields_log(tmp_path / "f.mcap", (("probs", "<f4", (3,)),), frames=1)
     (item,) = scans_of(tmp_path / "f.mcap", prob_field="probs")

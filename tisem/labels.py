@@ -194,27 +194,22 @@ def to_train_ids(
 class TrainIdNotes:
     """Per label source of a reader (the predictions, the ground truth): whether `to_train_ids`
     read it as train ids, said once in a warning (a run on labels in the other space is
-    otherwise silently wrong everywhere), and, for a stream, the space its scans that fit
-    either are read in from then on (`either`; a SemanticKITTI folder reads its first file that
-    fits one instead)."""
+    otherwise silently wrong everywhere). Which space values that fit both are read in is the
+    reader's to say: that of the source's first file or cloud that fits one."""
 
     def __init__(self, log: logging.Logger) -> None:
         self.log = log
         self.sources: dict[str, int] = {}  # label source -> scans read as train ids
         self.lines: list[str] = []  # what was said
 
-    def either(self, source: str) -> str:
-        """The space to read `source`'s values in where they fit both."""
-        return "train" if source in self.sources else "raw"
-
     def read(self, source: str, where: str, space: str) -> None:
         if space != "train":
             return
         if source not in self.sources:
             self.lines.append(
-                f"{where}: the {source} are train ids, not raw SemanticKITTI ids (every value "
-                f"below {num_classes()}, some naming no raw class): read as train ids, here "
-                f"and in every later scan of them whose values are train ids"
+                f"{where}: the {source} are train ids, not raw SemanticKITTI ids (all their "
+                f"values below {num_classes()}, some naming no raw class): read as train ids, "
+                f"here and in every scan of them whose values can be"
             )
             self.log.warning("%s", self.lines[-1])
         self.sources[source] = self.sources.get(source, 0) + 1

@@ -78,6 +78,7 @@ class McapScanReader:
         self.tf, self.total = survey.tf, survey.total
         self._schemas, self._channels, self._kinds = survey.schemas, survey.channels, survey.kinds
         self._poses_lost = survey.poses_lost
+        self._label_spaces = survey.label_spaces
 
     @property
     def reading_notes(self) -> list[str]:
@@ -246,9 +247,11 @@ class McapScanReader:
 
     def _labels(self, arr, field: str, source: str, name: str) -> tuple:
         """(train ids, unknown count) of a cloud's label field of `source` ("labels" or
-        "ground truth"), values that fit both spaces read as the source's earlier clouds (a stream: the clouds to come are not read yet)."""
+        "ground truth"), values that fit both spaces read in the space of the recording's first
+        cloud whose field fits one (raw where none does: the survey found it), whatever part
+        of the recording is read."""
         opts = self.options
-        either = self.train_ids.either(source)
+        either = self._label_spaces.get((self.topic, field), "raw")
         labels, unknown, space = cloud_labels(
             arr, field, opts.label_space, opts.num_classes, either
         )

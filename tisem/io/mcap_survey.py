@@ -28,6 +28,7 @@ from tisem.io.mcap_options import McapOptions
 from tisem.io.mcap_records import Loss, LostMessages, McapRecords, ReadReport
 from tisem.io.mcap_report import error_text, unnamed_channel_id
 from tisem.io.tf import TfBuffer, TfError
+from tisem.labels import label_space_of
 
 log = logging.getLogger(__name__)
 
@@ -72,6 +73,12 @@ class Survey:
         report: ReadReport,
     ) -> None:
         self.path, self.options, self.report = path, options, report
+        # (--label-space auto) per (cloud topic, label field): the space of the topic's first
+        # cloud whose field fits only one, which its clouds that fit both are read in
+        self.label_spaces: dict[tuple[str, str], str] = {}
+        fields = [] if options.prob_field else [options.label_field]
+        fields += [options.gt_field] if options.gt_field else []
+        self._label_fields = fields if options.label_space == "auto" else []
         self._survey(records, decoders)
 
     def _survey(self, records: McapRecords, decoders: MessageDecoders) -> None:
@@ -110,21 +117,24 @@ class Survey:
                 and (opts.pose_topic is None or static)
                 or ch.topic == opts.pose_topic
             )
-            wants_cloud = (
-                name in CLOUD_SCHEMAS
-                and ch.topic not in first_cloud
-                and (opts.topic is None or ch.topic == opts.topic)
-            )
-            if not (is_pose or wants_cloud):
+            on_topic = name in CLOUD_SCHEMAS and (opts.topic is None or ch.topic == opts.topic)
+            wants_cloud = on_topic and ch.topic not in first_cloud
+            # after a topic's first usable cloud, its clouds are decoded only while the space of
+            # a label field is open (in a recording of labels, the first cloud nearly always
+            # decides it: road, terrain and fence are ids raw SemanticKITTI does not use)
+            wants_space = on_topic and not wants_cloud and self._space_open(ch.topic)
+            if not (is_pose or wants_cloud or wants_space):
                 continue
             try:
                 msg = decoders.decode(ch, schemas.get(ch.schema_id), rec.data)
-                if wants_cloud:
+                if wants_cloud or wants_space:
                     parts = cloud_parts(name, msg)
-                    if self._cloud_problem(parts, ch.topic) is None:
+                    if wants_cloud and self._cloud_problem(parts, ch.topic) is None:
                         first_cloud[ch.topic] = parts
-                    else:  # one odd cloud must not refuse the file
+                    elif wants_cloud:  # one odd cloud must not refuse the file
                         misfits.setdefault(ch.topic, parts)
+                        continue
+                    self._note_label_spaces(ch.topic, parts[0])
                     continue
                 edges = pose_edges(name, msg, default_parent=opts.map_frame, default_child=None)
             # a damaged message (in a chunk without CRC) or a schema we cannot parse; a bad
@@ -134,7 +144,7 @@ class Survey:
                 why = error_text(e)
                 if wants_cloud:
                     self._cloud_errors.setdefault(ch.topic, why)
-                else:
+                elif not wants_space:  # (such a cloud's scan is skipped, saying why, when read)
                     undecodable[ch.topic] += 1
                     pose_errors.setdefault(ch.topic, why)
                 continue
@@ -173,6 +183,23 @@ class Survey:
         )
         last = n - 1 if opts.last is None else min(opts.last, n - 1)
         self.total = max(0, last - opts.first + 1)
+
+    def _space_open(self, topic: str) -> bool:
+        return any((topic, f) not in self.label_spaces for f in self._label_fields)
+
+    def _note_label_spaces(self, topic: str, arr) -> None:
+        """The space of each label field of `topic` not decided yet, where this cloud's values
+        fit only one (`tisem.labels.label_space_of`). A cloud the scans skip is no evidence."""
+        for field in self._label_fields:
+            if (topic, field) in self.label_spaces:
+                continue
+            try:
+                values = pc2.integer_labels(pc2.column(arr, field), field)[0]
+            except Exception:  # noqa: BLE001 - a field missing or of another type: skipped later
+                continue
+            space = label_space_of(values)
+            if space != "either":
+                self.label_spaces[(topic, field)] = space
 
     def _pick_topic(self, kinds: dict, decoded: set, usable: set) -> str:
         """The cloud topic: the one asked for, the only one, or the only one whose clouds
