@@ -440,6 +440,32 @@ def test_a_flipped_bit_in_an_unchunked_file_marks_its_scans_suspect(tmp_path):
     assert McapScanReader(path).report.lines() == ["no chunk index: the file was read linearly"]
 
 
+def test_a_bad_chunk_whose_records_are_no_longer_messages_is_not_counted(tmp_path):
+    """A damaged chunk whose records still parse whole, but one of them is no record a chunk
+    holds (what a flipped bit in compressed data does to every copy of an opcode), is counted
+    as unknown, not by the messages that are left: the scans after it are marked, as their
+    numbers may differ from the intact file's."""
+    path = tmp_path / "log.mcap"
+    truth = write_synthetic_log(
+        path, n_scans=N_SCANS, n_points=200, chunk_size=3_000, indexed=False, compression="none"
+    )
+    chunk = regions_of(path, "chunk")[2]
+    data = bytearray(path.read_bytes())
+    at, size = chunk.fields["compression"]
+    pos = at + size + 8  # the chunk's records
+    while data[pos] != 0x05 or struct.unpack_from("<H", data, pos + 9)[0] != 3:  # its cloud
+        pos += 9 + struct.unpack_from("<Q", data, pos + 1)[0]
+    data[pos] = 0x88  # an opcode no chunk holds
+    path.write_bytes(bytes(data))
+    reader = McapScanReader(path)
+    items = list(reader)
+    (loss,) = [x for x in reader.report.losses if "chunk skipped" in x.what]
+    assert loss.uncounted and "damaged records" not in loss.what
+    scans = [i for i in items if not isinstance(i, SkippedScan)]
+    assert sorted(reader.report.suspect) == [s.index for s in scans if s.index >= 2]
+    assert check_scans_against_truth([s for s in scans if s.index < 2], truth) == [0, 1]
+
+
 @pytest.mark.parametrize("compression,counted", [("none", True), ("zstd", False)])
 def test_a_bad_chunk_in_a_file_without_index_is_counted_or_said_unknown(
     tmp_path, compression, counted

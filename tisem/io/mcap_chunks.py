@@ -18,7 +18,7 @@ import lz4.frame
 import zstandard
 from mcap.opcode import Opcode
 
-from tisem.io.mcap_summary import RECORD_HEADER, Fields, Malformed
+from tisem.io.mcap_summary import RECORD_HEADER, Fields, Malformed, parse_channel, parse_schema
 
 COMPRESSIONS = ("", "zstd", "lz4")
 MAX_CHUNK_BYTES = 1 << 31  # a chunk declaring more is taken as damaged
@@ -157,7 +157,12 @@ def checked_records(head: ChunkHeader) -> tuple[list[tuple[int, memoryview]], bo
 
 def messages_in_damaged(head: ChunkHeader) -> Counter | None:
     """Messages per channel a chunk that failed its checks still shows, when its records still
-    parse whole (the damage is inside message contents); None when they cannot be counted."""
+    parse whole (the damage is inside message contents); None when they cannot be counted.
+
+    A chunk holds schema, channel and message records. In one that failed its checks, a
+    record of another opcode, or a schema or channel record that does not parse, is a record
+    the damage hit (a flipped bit in compressed data can rewrite several records' opcodes),
+    so a count of its message records would miss what it was: None."""
     try:
         data = inflate(head)
         records = inner_records(data)
@@ -169,4 +174,14 @@ def messages_in_damaged(head: ChunkHeader) -> Counter | None:
             if len(content) < 22:
                 return None
             counts[struct.unpack_from("<H", content)[0]] += 1
+            continue
+        try:
+            if opcode == Opcode.SCHEMA:
+                parse_schema(content)
+            elif opcode == Opcode.CHANNEL:
+                parse_channel(content)
+            else:
+                return None
+        except Malformed:
+            return None
     return counts
