@@ -440,10 +440,12 @@ def test_a_flipped_bit_in_an_unchunked_file_marks_its_scans_suspect(tmp_path):
     assert McapScanReader(path).report.lines() == ["no chunk index: the file was read linearly"]
 
 
-def test_a_bad_chunk_whose_records_are_no_longer_messages_is_not_counted(tmp_path):
-    """A damaged chunk whose records still parse whole, but one of them is no record a chunk
-    holds (what a flipped bit in compressed data does to every copy of an opcode), is counted
-    as unknown, not by the messages that are left: the scans after it are marked, as their
+@pytest.mark.parametrize("edit", ["opcode", "channel id"])
+def test_a_bad_chunk_whose_cloud_is_no_longer_one_marks_the_scans_after_it(tmp_path, edit):
+    """A damaged chunk whose records still parse whole, but whose cloud's record is no record
+    a chunk holds (what a flipped bit in compressed data does to every copy of an opcode), or
+    is a message on the /tf channel (a flipped bit in its channel id): its count is unknown,
+    or counted from the damaged bytes, and either way the scans after it are marked, as their
     numbers may differ from the intact file's."""
     path = tmp_path / "log.mcap"
     truth = write_synthetic_log(
@@ -455,24 +457,30 @@ def test_a_bad_chunk_whose_records_are_no_longer_messages_is_not_counted(tmp_pat
     pos = at + size + 8  # the chunk's records
     while data[pos] != 0x05 or struct.unpack_from("<H", data, pos + 9)[0] != 3:  # its cloud
         pos += 9 + struct.unpack_from("<Q", data, pos + 1)[0]
-    data[pos] = 0x88  # an opcode no chunk holds
+    if edit == "opcode":
+        data[pos] = 0x88  # an opcode no chunk holds
+    else:
+        struct.pack_into("<H", data, pos + 9, 2)  # /tf's channel
     path.write_bytes(bytes(data))
     reader = McapScanReader(path)
     items = list(reader)
     (loss,) = [x for x in reader.report.losses if "chunk skipped" in x.what]
-    assert loss.uncounted and "damaged records" not in loss.what
+    assert loss.uncounted == (edit == "opcode")
     scans = [i for i in items if not isinstance(i, SkippedScan)]
-    assert sorted(reader.report.suspect) == [s.index for s in scans if s.index >= 2]
-    assert check_scans_against_truth([s for s in scans if s.index < 2], truth) == [0, 1]
+    assert [s.index for s in scans] == [0, 1, 2, 3, 4]  # the cloud after it took number 2
+    assert sorted(reader.report.suspect) == [2, 3, 4]
+    assert check_scans_against_truth(scans[:2], truth) == [0, 1]
 
 
 @pytest.mark.parametrize("compression,counted", [("none", True), ("zstd", False)])
 def test_a_bad_chunk_in_a_file_without_index_is_counted_or_said_unknown(
     tmp_path, compression, counted
 ):
-    """Without message index records, an uncompressed damaged chunk still shows its records;
-    a compressed one cannot be counted: the loss says so and the scans after it are marked
-    (their numbers may differ from those in the intact file)."""
+    """Without message index records, an uncompressed damaged chunk still shows its records,
+    which number the scans after it as in the intact file (marked all the same: a flipped
+    channel id would have put a cloud on another topic); a compressed one cannot be counted:
+    the loss says so. Either way the scans after it are marked (their numbers may differ from
+    those in the intact file)."""
     path = tmp_path / "log.mcap"
     truth = write_synthetic_log(
         path,
@@ -489,9 +497,15 @@ def test_a_bad_chunk_in_a_file_without_index_is_counted_or_said_unknown(
     (loss,) = [x for x in reader.report.losses if "chunk skipped" in x.what]
     if counted:
         assert "(counted from its damaged records)" in loss.what and loss.messages > 0
-        assert [i.index for i in items] == list(range(N_SCANS)) and not reader.report.suspect
+        assert [i.index for i in items] == list(range(N_SCANS))
         skipped = [i.index for i in items if isinstance(i, SkippedScan)]
         assert check_scans_against_truth(items, truth) == sorted(set(range(N_SCANS)) - set(skipped))
+        first_after = max(skipped) + 1
+        assert sorted(reader.report.suspect) == list(range(first_after, N_SCANS))
+        assert (
+            "whose messages were counted from its damaged bytes, came before it"
+            in (reader.report.suspect[first_after])
+        )
     else:
         assert loss.uncounted and loss.line().endswith(": an unknown number of messages lost")
         scans = [i for i in items if not isinstance(i, SkippedScan)]

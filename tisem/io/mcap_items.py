@@ -32,11 +32,14 @@ class McapMessage:
 @dataclass
 class LostMessages:
     """Yielded where damaged data held `count` messages of a channel, so that readers keep
-    numbering messages as in the intact file. None: unknown (which channel, how many)."""
+    numbering messages as in the intact file. None: unknown (which channel, how many).
+    `guessed`: counted from the damaged bytes themselves, which may put a message on another
+    channel than its own (a flipped bit in a channel id), so the numbers after it may differ."""
 
     channel_id: int | None
     count: int | None
     where: str
+    guessed: bool = False
 
 
 def _message(content, crc_checked: bool) -> McapMessage:

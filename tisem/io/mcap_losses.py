@@ -67,14 +67,17 @@ class Ledger:
         if lost is None:
             return
         counts = lost.from_index if not lost.index_damaged else None
-        if counts is None and lost.from_records is not None:
-            counts = lost.from_records
+        guessed = False
+        if counts is None and lost.from_records:  # (a chunk showing no message: unknown)
+            counts, guessed = lost.from_records, True
             lost.loss.what += " (counted from its damaged records)"
-        yield from self.account(lost.loss, counts)
+        yield from self.account(lost.loss, counts, guessed)
 
-    def account(self, loss: Loss, counts: Counter | None) -> Iterator[LostMessages]:
-        """`loss` held `counts` messages per channel id (None: unknown): on the loss, and
-        yielded for the readers' numbering."""
+    def account(
+        self, loss: Loss, counts: Counter | None, guessed: bool = False
+    ) -> Iterator[LostMessages]:
+        """`loss` held `counts` messages per channel id (None: unknown; `guessed`: counted
+        from damaged bytes): on the loss, and yielded for the readers' numbering."""
         if counts is None:
             loss.uncounted = True
             yield LostMessages(None, None, loss.where)
@@ -83,7 +86,7 @@ class Ledger:
         for channel_id, n in sorted(counts.items()):
             loss.topics[lost_on(self.channels.get(channel_id), channel_id)] += n
             if n:
-                yield LostMessages(channel_id, n, loss.where)
+                yield LostMessages(channel_id, n, loss.where, guessed)
 
     def data_crc_mismatch(self) -> str:
         """What a data-section CRC that does not match means for this file's messages."""

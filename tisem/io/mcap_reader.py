@@ -106,6 +106,10 @@ class McapScanReader:
                     targets.add(rec.id)
                 continue
             if isinstance(rec, LostMessages):
+                if rec.guessed:  # a flipped channel id may have put a cloud on another topic
+                    renumbered = renumbered or (
+                        f"{rec.where}, whose messages were counted from its damaged bytes,"
+                    )
                 if rec.channel_id is None:
                     renumbered = (
                         renumbered or f"{rec.where}, holding an unknown number of messages,"
