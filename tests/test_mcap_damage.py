@@ -440,6 +440,28 @@ def test_a_flipped_bit_in_an_unchunked_file_marks_its_scans_suspect(tmp_path):
     assert McapScanReader(path).report.lines() == ["no chunk index: the file was read linearly"]
 
 
+@pytest.mark.parametrize("opcode", [0x07, 0x02, 0x0E, 0x86])
+@pytest.mark.parametrize("crcs", [True, False])
+def test_a_chunk_whose_opcode_is_damaged_is_read_as_the_chunk_it_is(tmp_path, opcode, crcs):
+    """In a file without index, a chunk whose opcode was flipped into a message index, a
+    footer, a summary offset or a private record (each of them a record the walk passes over
+    or stops at) is still read, as its data is an intact chunk; the report says so."""
+    path = tmp_path / "log.mcap"
+    truth = write_synthetic_log(
+        path, n_scans=N_SCANS, n_points=200, chunk_size=3_000, indexed=False, crcs=crcs
+    )
+    chunk = regions_of(path, "chunk")[2]
+    data = bytearray(path.read_bytes())
+    data[chunk.start] = opcode
+    path.write_bytes(bytes(data))
+    reader = McapScanReader(path)
+    items = list(reader)
+    assert check_scans_against_truth(items, truth) == list(range(N_SCANS))
+    assert f"byte {chunk.start}: the record there has opcode {opcode:#x}, but holds an intact " in (
+        "\n".join(reader.report.lines())
+    )
+
+
 @pytest.mark.parametrize("edit", ["opcode", "channel id"])
 def test_a_bad_chunk_whose_cloud_is_no_longer_one_marks_the_scans_after_it(tmp_path, edit):
     """A damaged chunk whose records still parse whole, but whose cloud's record is no record

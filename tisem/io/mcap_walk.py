@@ -45,6 +45,12 @@ if TYPE_CHECKING:
     from tisem.io.mcap_records import McapRecords
 
 
+# a chunk record's fields before its compression's name and after it (times, size, CRC, the
+# name's length; the data's length): 40 bytes and the name, "zstd" or "lz4" at most
+_CHUNK_FIXED = 40
+_LONGEST_COMPRESSION = 16
+
+
 def _time_range(start: int, end: int) -> str:
     return f"log time {start / 1e9:.3f}-{end / 1e9:.3f} s"
 
@@ -111,7 +117,17 @@ class Walk:
             length = struct.unpack_from("<Q", head, 1)[0]
             end = pos + RECORD_HEADER + length
             expected = self.finder.expected_at(pos)
-            if expected is not None and opcode != expected:
+            if opcode != Opcode.CHUNK and end <= limit and self._holds_a_chunk(pos, length):
+                self.report.losses.append(
+                    Loss(
+                        f"byte {pos}",
+                        f"the record there has opcode {opcode:#x}, but holds an intact chunk: "
+                        f"its opcode is damaged; read as the chunk it is",
+                    )
+                )
+                start, pos = pos, (yield from self._chunk(pos, length))
+                self._after(start, self.chunk_ok)
+            elif expected is not None and opcode != expected:
                 # the index puts a chunk or a message index record here: its opcode is damaged
                 # (a message index turned message would be taken for a cloud)
                 pos = yield from self._wrong_opcode(pos, opcode, expected, end)
@@ -147,6 +163,33 @@ class Walk:
                 yield from self._top_level(pos, opcode, length)
                 self._after(pos, opcode == Opcode.MESSAGE)
                 pos = end
+
+    def _holds_a_chunk(self, pos: int, length: int) -> bool:
+        """Whether the record at `pos` (of another opcode) holds an intact chunk (its data
+        fills the record, inflates to the size it declares, its records fill that, and its CRC,
+        where it has one, matches): a flipped bit turns a chunk into a message index, a footer,
+        a private record ..., all of which the walk would pass over, and its messages with it.
+        Its first bytes decide for every other record: a chunk's compression is a short name,
+        and its data fills the record exactly."""
+        if length < _CHUNK_FIXED:
+            return False
+        self.f.seek(pos + RECORD_HEADER)
+        try:
+            first = self.f.read(_CHUNK_FIXED)
+            name_length = struct.unpack_from("<I", first, 28)[0]
+            if name_length > _LONGEST_COMPRESSION or _CHUNK_FIXED + name_length > length:
+                return False
+            self.f.seek(pos + RECORD_HEADER + 32 + name_length)
+            (declared,) = struct.unpack("<Q", self.f.read(8))
+            if _CHUNK_FIXED + name_length + declared != length:
+                return False
+            self.f.seek(pos + RECORD_HEADER)
+            checked_records(chunk_header(self.f.read(length)))  # (BadChunk where it is not one)
+            return True
+        except (*UNTRUSTED, struct.error):
+            return False
+        finally:
+            self.f.seek(pos + RECORD_HEADER)
 
     def _wrong_opcode(self, pos: int, opcode: int, expected: int, end: int) -> Iterator:
         why = (
