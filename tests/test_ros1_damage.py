@@ -13,11 +13,14 @@ import pytest
 pytest.importorskip("rosbags", reason="the rosbags package (tisem[mcap]) is not installed")
 
 import test_rosbag_read  # noqa: E402
+from mcap.records import Channel, Schema  # noqa: E402
 from rosbags.rosbag1 import Writer as Ros1Writer  # noqa: E402
 from test_rosbag_read import ros1_bag  # noqa: E402
 
 from tisem.io.bag_open import open_scan_reader  # noqa: E402
+from tisem.io.bag_records import RosbagRecords  # noqa: E402
 from tisem.io.mcap_reader import McapOptions  # noqa: E402
+from tisem.io.mcap_records import LostMessages, ReadReport  # noqa: E402
 from tisem.io.ros1_linear import MAGIC, OP_CHUNK, OP_CONNECTION, _inflate, _records  # noqa: E402
 from tisem.io.semantickitti import SemanticKittiSequence  # noqa: E402
 from tisem.scan import Scan  # noqa: E402
@@ -81,6 +84,33 @@ def test_an_overwritten_chunk_header_costs_that_chunk_alone(recording):
     assert loss.where == f"record at byte {at}" and "read on from byte" in loss.what
     resumed = int(loss.what.rsplit(" ", 1)[1])
     assert at + size < resumed < len(data)  # (after the chunk's data: nothing read twice)
+
+
+def test_a_chunk_rosbags_passes_over_is_found_by_the_index_counts(recording):
+    """Zeros over a chunk's size and data length (and its stream's start) leave a chunk that
+    rosbags reads as empty, without a word, though the index lists its cloud: the bag is then
+    read record by record, which says where the damage was and marks the scans after it."""
+    seq_dir, messages, tmp = recording
+    data = bytearray(ros1_bag(tmp / "emptied.bag", messages, BZ2, chunk_bytes=4096).read_bytes())
+    at = chunks(bytes(data))[2][0]  # the third cloud's
+    size_at = data.index(b"size=", at) + len(b"size=")
+    data[size_at + 1 : size_at + 177] = bytes(176)  # "size" 122 bytes, its data none
+    bag = tmp / "emptied_damaged.bag"
+    bag.write_bytes(bytes(data))
+    scans, report = read(bag)
+    assert same_clouds(scans, list(SemanticKittiSequence(seq_dir)), (0, 1, 3))
+    assert report.losses and report.losses[0].where == f"chunk at byte {at}"
+    assert sorted(report.suspect) == [2]  # the fourth cloud, numbered 2
+    # read through rosbags alone: the shortfall is a loss, and from the second pass on (the
+    # scans' pass, after the survey's) every scan follows it, as where it was is unknown
+    records, first = RosbagRecords(bag, "ROS 1 bag", "ros1"), ReadReport()
+    assert isinstance(list(records.records(first))[-1], LostMessages)
+    assert (
+        "rosbags yielded fewer messages than the bag's index lists (1 on /tf, 1 on "
+        "/velodyne_points)" in (first.lines()[0])
+    )
+    second = [r for r in records.records(ReadReport()) if not isinstance(r, (Schema, Channel))]
+    assert isinstance(second[0], LostMessages) and second[0].count is None
 
 
 def test_a_lost_connection_record_is_taken_from_the_index(recording):

@@ -184,11 +184,19 @@ class RosbagRecords:
         self.excess: Counter = Counter()
         self.data_crc: str | None = None
         self.stopped = False  # whether a pass met damage it could not read past
+        # (ROS 1) what the bag's index lists per topic, and where a pass yielded fewer: rosbags
+        # can pass over a chunk whose header is damaged without a word
+        self._indexed: Counter | None = None
+        self.short: str | None = None
         with self._open() as reader:
             self._ros1 = not reader.is2
             self.typestore = reader.typestore  # kept: closing the reader only drops its name
             self.topics = {c.topic: c.msgtype for c in reader.connections}
         self.decoders = RosbagDecoders(self.typestore, self._ros1, self.path)
+        if self._ros1:
+            from tisem.io.ros1_linear import indexed_topic_counts
+
+            self._indexed = indexed_topic_counts(self.path)
 
     def _open(self) -> Any:
         from rosbags.highlevel import AnyReader
@@ -230,9 +238,13 @@ class RosbagRecords:
                     message_encoding="ros1" if self._ros1 else "cdr",
                     metadata={},
                 )
+            if self.short is not None:  # (known from an earlier pass: where is unknown)
+                yield LostMessages(None, None, self.short)
+            read: Counter = Counter()
             try:
                 for conn, stamp_ns, data in reader.messages():
                     report.messages[conn.topic] += 1
+                    read[conn.topic] += 1
                     yield McapMessage(
                         channel_id=conn.id, log_time=int(stamp_ns), data=data, crc_checked=True
                     )
@@ -249,6 +261,28 @@ class RosbagRecords:
                     )
                 )
                 yield LostMessages(None, None, where)
+                return
+            yield from self._shortfall(read, report)
+
+    def _shortfall(self, read: Counter, report: ReadReport) -> Iterator[LostMessages]:
+        """A loss where a pass read fewer messages of a topic than the bag's index lists."""
+        if self._indexed is None or self.short is not None:
+            return
+        short = {t: n - read[t] for t, n in sorted(self._indexed.items()) if read[t] < n}
+        if not short:
+            return
+        self.stopped = True  # (so that the bag is also read record by record)
+        self.short = f"{self.path.name}, read through its index,"
+        report.losses.append(
+            Loss(
+                self.short.rstrip(","),
+                "rosbags yielded fewer messages than the bag's index lists ("
+                + ", ".join(f"{n} on {t}" for t, n in short.items())
+                + "): a damaged chunk it passed over? where they were is unknown",
+                uncounted=True,
+            )
+        )
+        yield LostMessages(None, None, self.short)
 
 
 class _Closing:

@@ -44,6 +44,7 @@ MAX_CHUNK_BYTES = 1 << 31  # a chunk declaring more is damage
 OP_FIELD = b"\x04\x00\x00\x00op="
 FIELDS_BEFORE_OP = 256
 MAX_HEADER_BYTES = 1 << 16  # the headers rosbag writes are tens of bytes
+_BAG_HEADER_BYTES = 1 << 13  # the bag header record, padded to 4096 bytes
 
 
 class Malformed(ValueError):
@@ -177,6 +178,42 @@ def _index_position(buf, size: int) -> int:
         return struct.unpack("<Q", fields.get("index_pos", b""))[0]
     except (Malformed, struct.error):
         return 0
+
+
+def indexed_topic_counts(path: str | Path) -> Counter | None:
+    """Messages per topic that a closed ROS 1 bag's index section lists (its chunk info
+    records' counts, by the topics of its connection records), or None where the bag has no
+    index or it does not parse whole: what a reader of the index should have yielded."""
+    try:
+        with open(path, "rb") as f:
+            size = f.seek(0, 2)
+            f.seek(0)
+            head = f.read(_BAG_HEADER_BYTES)
+            at = _index_position(head, len(head))
+            if not len(MAGIC) < at < size:
+                return None
+            f.seek(at)
+            index = f.read()  # connection and chunk info records: tens of bytes per chunk
+        topics: dict[int, str] = {}
+        per_conn: Counter = Counter()
+        for op, fields, data, _ in _records(index, 0, len(index)):
+            if op == OP_CONNECTION:
+                topics[_u32(fields, "conn")] = fields.get("topic", b"").decode("utf-8")
+            elif op == OP_CHUNK_INFO:
+                pairs = _u32(fields, "count")
+                if len(data) != 8 * pairs:
+                    return None
+                for k in range(pairs):
+                    conn, n = struct.unpack_from("<II", data, 8 * k)
+                    per_conn[conn] += n
+    except (OSError, ValueError, struct.error, UnicodeDecodeError):  # (Malformed is one)
+        return None
+    if set(per_conn) - set(topics):
+        return None
+    counts = Counter()
+    for conn, n in per_conn.items():
+        counts[topics[conn]] += n
+    return counts
 
 
 def _connection_records(buf, size: int) -> dict[int, list[tuple[dict[str, bytes], bytes]]]:
