@@ -462,6 +462,24 @@ def test_a_chunk_whose_opcode_is_damaged_is_read_as_the_chunk_it_is(tmp_path, op
     )
 
 
+def test_a_chunk_whose_opcode_is_damaged_after_a_bad_chunk_keeps_the_numbers(tmp_path):
+    """A bad chunk, then a chunk whose opcode was flipped into a message index: the bad
+    chunk's loss is counted by its own message index records, not by the next chunk's too, so
+    every scan keeps its number."""
+    path = tmp_path / "log.mcap"
+    truth = write_synthetic_log(path, n_scans=N_SCANS, n_points=200, chunk_size=3_000)
+    bad, disguised = regions_of(path, "chunk")[1:3]
+    data = bytearray(path.read_bytes())
+    data[bad.end - 30] ^= 0xFF
+    data[disguised.start] = 0x07
+    path.write_bytes(bytes(data))
+    items = list(McapScanReader(path))
+    assert [(i.index, type(i).__name__) for i in items] == [(0, "Scan"), (1, "SkippedScan")] + [
+        (k, "Scan") for k in range(2, N_SCANS)
+    ]
+    assert check_scans_against_truth(items, truth) == [0, 2, 3, 4, 5]
+
+
 @pytest.mark.parametrize("edit", ["opcode", "channel id"])
 def test_a_bad_chunk_whose_cloud_is_no_longer_one_marks_the_scans_after_it(tmp_path, edit):
     """A damaged chunk whose records still parse whole, but whose cloud's record is no record

@@ -137,10 +137,12 @@ def test_train_ids_in_the_label_field_are_found_by_default(tmp_path, caplog):
 
 
 def _labelled_log(path, labels: list[list[int]]) -> list:
-    """A recording of one cloud per entry of `labels`, its label field those values repeated."""
+    """A recording of one cloud per entry of `labels`, its label field those values repeated
+    (no values: a cloud of no points)."""
     arrays = write_fields_log(path, (), label_dtype="u1", frames=len(labels))
-    for arr, values in zip(arrays, labels):
-        arr["label"] = np.resize(values, len(arr))
+    for k, values in enumerate(labels):
+        arrays[k] = arrays[k][: len(arrays[k]) if values else 0]
+        arrays[k]["label"] = np.resize(values, len(arrays[k]))
     with Ros2McapWriter(path) as w:
         w.write_transforms([("map", "velodyne", 0, np.eye(4))], 0, static=True)
         for i, arr in enumerate(arrays):
@@ -162,6 +164,28 @@ def test_clouds_that_fit_both_spaces_follow_the_first_that_fits_one(tmp_path):
     assert first.labels.tolist()[:3] == as_train
     _labelled_log(path, [[1, 11, 13], [1, 11, 13]])
     assert [s.labels.tolist()[:3] for s in scans_of(path)] == [as_raw, as_raw]
+    _labelled_log(path, [[], [9, 1, 11], [1, 11, 13]])  # a cloud of no points decides nothing
+    assert scans_of(path)[2].labels.tolist()[:3] == as_train
+
+
+def test_the_survey_decodes_no_more_clouds_once_the_label_space_is_decided(tmp_path, monkeypatch):
+    """Where the first cloud decides the label field's space (a recording of labels nearly
+    always), the survey decodes one cloud, as without the search; where none does, it looks
+    at SPACE_SEARCH_LIMIT clouds at most."""
+    import tisem.io.mcap_survey as survey
+
+    decoded = []
+    real = survey.cloud_parts
+    monkeypatch.setattr(survey, "cloud_parts", lambda *a: decoded.append(1) or real(*a))
+    path = tmp_path / "f.mcap"
+    _labelled_log(path, [[9, 1, 11]] + [[1, 11, 13]] * 5)
+    McapScanReader(path)
+    assert len(decoded) == 1
+    decoded.clear()
+    monkeypatch.setattr(survey, "SPACE_SEARCH_LIMIT", 4)
+    _labelled_log(path, [[1, 11, 13]] * 6)
+    McapScanReader(path)
+    assert len(decoded) == 4
 
 
 def test_a_probability_field_of_the_wrong_width_skips_with_a_reason(tmp_path):

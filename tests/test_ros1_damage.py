@@ -113,6 +113,23 @@ def test_a_chunk_rosbags_passes_over_is_found_by_the_index_counts(recording):
     assert isinstance(second[0], LostMessages) and second[0].count is None
 
 
+def test_an_intact_bag_is_not_short_of_its_index_whatever_its_topic_names(tmp_path):
+    """rosbags names a topic `/a//b/` `/a/b`: the index's counts are compared under its names,
+    so an intact bag with such a topic reports nothing lost."""
+    from rosbags.typesys import Stores, get_typestore
+
+    store = get_typestore(Stores.ROS1_NOETIC)
+    text = store.types["std_msgs/msg/String"]
+    bag = tmp_path / "odd.bag"
+    with Ros1Writer(bag) as writer:
+        conn = writer.add_connection("/a//b/", text.__msgtype__, typestore=store)
+        for k in range(3):
+            writer.write(conn, k * 1000, store.serialize_ros1(text(data="x"), text.__msgtype__))
+    records, report = RosbagRecords(bag, "ROS 1 bag", "ros1"), ReadReport()
+    assert sum(isinstance(r, LostMessages) for r in records.records(report)) == 0
+    assert report.messages == {"/a/b": 3} and report.lines() == [] and records.short is None
+
+
 def test_a_lost_connection_record_is_taken_from_the_index(recording):
     """A chunk per message: the first cloud's chunk also holds the clouds' connection record.
     Damaged, it costs that cloud; the other clouds name the connection from its copy in the

@@ -335,7 +335,8 @@ def test_train_id_label_files_read_as_train_ids(tmp_path, caplog):
 
 def _write_predictions(folder: Path, files: list[list[int]]) -> None:
     for k, values in enumerate(files):
-        np.resize(np.array(values, "<u4"), 50).tofile(folder / "predictions" / f"{k:06d}.label")
+        path = folder / "predictions" / f"{k:06d}.label"
+        np.resize(np.array(values, "<u4"), 50 if values else 0).tofile(path)
 
 
 def test_a_scan_that_fits_both_spaces_follows_its_folder(tmp_path):
@@ -358,6 +359,10 @@ def test_a_scan_that_fits_both_spaces_follows_its_folder(tmp_path):
     _write_predictions(d, [[1, 11, 13], [1, 11, 13], [0, 1]])  # none fits one space only
     assert SemanticKittiSequence(d)[1].labels.tolist()[:3] == as_raw
     assert SemanticKittiSequence(d, label_space="train")[0].labels.tolist()[:3] == as_train
+    # an empty scan (skipped) decides nothing: the next file does
+    _write_predictions(d, [[], [9, 1, 11], [1, 11, 13]])
+    (d / "velodyne" / "000000.bin").write_bytes(b"")
+    assert SemanticKittiSequence(d)[2].labels.tolist()[:3] == as_train
 
 
 def _renumber(folder: Path, ids: list[int]) -> None:

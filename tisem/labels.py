@@ -162,6 +162,29 @@ def label_space_of(values: np.ndarray) -> str:
     return "either" if known[values.astype(np.int64)].all() else "train"
 
 
+# files or clouds a reader looks through for the first that decides the space of its values
+# that fit both: a bound on the search where none decides (a field of zeros, say)
+SPACE_SEARCH_LIMIT = 200
+
+
+def deciding_space(values: np.ndarray) -> str | None:
+    """The space label values decide, "raw" or "train" (`label_space_of`), or None where they
+    decide none: no values, or values that fit both."""
+    values = np.asarray(values)
+    if values.size == 0:
+        return None
+    space = label_space_of(values)
+    return None if space == "either" else space
+
+
+def read_alike(values: np.ndarray) -> bool:
+    """Whether values that fit both spaces give the same train ids read either way (unlabeled
+    0 only, say, or a label space whose raw ids below its class count are its train ids): then
+    no space needs deciding."""
+    values = np.asarray(values).astype(np.int64)
+    return bool(np.array_equal(raw_to_train(values)[0], values))
+
+
 def holds_train_ids(values: np.ndarray) -> bool:
     """Whether label values can only be train ids (`label_space_of`)."""
     return label_space_of(values) == "train"
@@ -208,8 +231,9 @@ class TrainIdNotes:
         if source not in self.sources:
             self.lines.append(
                 f"{where}: the {source} are train ids, not raw SemanticKITTI ids (all their "
-                f"values below {num_classes()}, some naming no raw class): read as train ids, "
-                f"here and in every scan of them whose values can be"
+                f"values below {num_classes()}, and some, here or in another scan of them, "
+                f"naming no raw class): read as train ids, here and in every scan of them "
+                f"whose values can be"
             )
             self.log.warning("%s", self.lines[-1])
         self.sources[source] = self.sources.get(source, 0) + 1

@@ -78,9 +78,10 @@ def open_scan_reader(path: str | Path, options: McapOptions | None = None) -> Mc
 
 
 def _past_the_damage(found: BagInput, reader: McapScanReader, options) -> McapScanReader:
-    """rosbags stops at the first damaged chunk of a ROS 1 bag, or page of a .db3; read
-    record by record or row by row, what lies after it is read too. The reader that
-    recovered more messages is kept."""
+    """rosbags stops at the first damaged chunk of a ROS 1 bag, or page of a .db3 (or, in a
+    ROS 1 bag, passes over one and yields fewer messages than the index lists); read record by
+    record or row by row, what lies after it is read too. The reader that recovered more
+    messages is kept, and on a tie the one that says where the damage was."""
     around = _read_around(found) if found.kind == "rosbags" else None
     if around is None or not reader.records.stopped:
         return reader

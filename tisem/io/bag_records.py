@@ -268,14 +268,19 @@ class RosbagRecords:
         """A loss where a pass read fewer messages of a topic than the bag's index lists."""
         if self._indexed is None or self.short is not None:
             return
-        short = {t: n - read[t] for t, n in sorted(self._indexed.items()) if read[t] < n}
+        from rosbags.rosbag1.reader import normalize  # (how rosbags names a bag's topics)
+
+        indexed = Counter()
+        for topic, n in self._indexed.items():
+            indexed[normalize(topic)] += n
+        short = {t: n - read[t] for t, n in sorted(indexed.items()) if read[t] < n}
         if not short:
             return
         self.stopped = True  # (so that the bag is also read record by record)
-        self.short = f"{self.path.name}, read through its index,"
+        self.short = f"{self.path.name} (somewhere: its index lists messages rosbags did not give)"
         report.losses.append(
             Loss(
-                self.short.rstrip(","),
+                self.path.name,
                 "rosbags yielded fewer messages than the bag's index lists ("
                 + ", ".join(f"{n} on {t}" for t, n in short.items())
                 + "): a damaged chunk it passed over? where they were is unknown",

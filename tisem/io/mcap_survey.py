@@ -28,7 +28,7 @@ from tisem.io.mcap_options import McapOptions
 from tisem.io.mcap_records import Loss, LostMessages, McapRecords, ReadReport
 from tisem.io.mcap_report import error_text, unnamed_channel_id
 from tisem.io.tf import TfBuffer, TfError
-from tisem.labels import label_space_of
+from tisem.labels import SPACE_SEARCH_LIMIT, deciding_space
 
 log = logging.getLogger(__name__)
 
@@ -79,6 +79,7 @@ class Survey:
         fields = [] if options.prob_field else [options.label_field]
         fields += [options.gt_field] if options.gt_field else []
         self._label_fields = fields if options.label_space == "auto" else []
+        self._searched: Counter = Counter()  # topic -> clouds looked at for it
         self._survey(records, decoders)
 
     def _survey(self, records: McapRecords, decoders: MessageDecoders) -> None:
@@ -129,12 +130,13 @@ class Survey:
                 msg = decoders.decode(ch, schemas.get(ch.schema_id), rec.data)
                 if wants_cloud or wants_space:
                     parts = cloud_parts(name, msg)
-                    if wants_cloud and self._cloud_problem(parts, ch.topic) is None:
+                    usable = self._cloud_problem(parts, ch.topic) is None
+                    if wants_cloud and usable:
                         first_cloud[ch.topic] = parts
                     elif wants_cloud:  # one odd cloud must not refuse the file
                         misfits.setdefault(ch.topic, parts)
-                        continue
-                    self._note_label_spaces(ch.topic, parts[0])
+                    if usable:  # (a cloud the scans skip is no evidence)
+                        self._note_label_spaces(ch.topic, parts[0])
                     continue
                 edges = pose_edges(name, msg, default_parent=opts.map_frame, default_child=None)
             # a damaged message (in a chunk without CRC) or a schema we cannot parse; a bad
@@ -185,20 +187,25 @@ class Survey:
         self.total = max(0, last - opts.first + 1)
 
     def _space_open(self, topic: str) -> bool:
-        return any((topic, f) not in self.label_spaces for f in self._label_fields)
+        """Whether a label field of `topic` still waits for a cloud that decides its space
+        (within the first SPACE_SEARCH_LIMIT clouds: a field of zeros never decides)."""
+        return self._searched[topic] < SPACE_SEARCH_LIMIT and any(
+            (topic, f) not in self.label_spaces for f in self._label_fields
+        )
 
     def _note_label_spaces(self, topic: str, arr) -> None:
-        """The space of each label field of `topic` not decided yet, where this cloud's values
-        fit only one (`tisem.labels.label_space_of`). A cloud the scans skip is no evidence."""
+        """The space of each label field of `topic` not decided yet, where this usable cloud's
+        values fit only one (`tisem.labels.deciding_space`)."""
+        self._searched[topic] += 1
         for field in self._label_fields:
             if (topic, field) in self.label_spaces:
                 continue
             try:
                 values = pc2.integer_labels(pc2.column(arr, field), field)[0]
-            except Exception:  # noqa: BLE001 - a field missing or of another type: skipped later
+            except Exception:  # noqa: BLE001 - a field of another type: its scans say so
                 continue
-            space = label_space_of(values)
-            if space != "either":
+            space = deciding_space(values)
+            if space is not None:
                 self.label_spaces[(topic, field)] = space
 
     def _pick_topic(self, kinds: dict, decoded: set, usable: set) -> str:

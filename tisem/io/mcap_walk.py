@@ -118,6 +118,7 @@ class Walk:
             end = pos + RECORD_HEADER + length
             expected = self.finder.expected_at(pos)
             if opcode != Opcode.CHUNK and end <= limit and self._holds_a_chunk(pos, length):
+                yield from self.ledger.settle()  # (a message index does not settle, a chunk does)
                 self.report.losses.append(
                     Loss(
                         f"byte {pos}",

@@ -70,9 +70,12 @@ from tisem.io.kitti_predictions import (
 )
 from tisem.labels import (
     LABEL_SPACES,
+    SPACE_SEARCH_LIMIT,
     TrainIdNotes,
+    deciding_space,
     label_space_of,
     moving_raw,
+    read_alike,
     to_train_ids,
     train_to_raw,
 )
@@ -322,9 +325,8 @@ class SemanticKittiSequence:
         or the raw ids of the train ids it holds. `what`: "predictions" or "labels";
         ScanError when there is no such file or it does not hold n labels."""
         sid = self.scan_ids[k]
-        folder = self.predictions_dir if what == "predictions" else self.labels_dir
         kind = "predictions" if what == "predictions" else "ground-truth"
-        path = self._label_path(folder, sid)
+        path = self._label_path(self._label_folder(what), sid)
         values = self._read_labels(path, sid, kind, n, self.scan_path(k).name)
         train, _, space = self._to_train_ids(values, what, path, noted=False)
         return values if space == "raw" else train_to_raw(train).astype(np.uint32)
@@ -337,7 +339,7 @@ class SemanticKittiSequence:
         if space == "auto":
             space = label_space_of(values)
             if space == "either":
-                space = self._either_space(source)
+                space = "raw" if read_alike(values) else self._either_space(source)
         got = to_train_ids(values, space)
         if noted:
             self.train_ids.read(source, str(path), got[2])
@@ -345,26 +347,30 @@ class SemanticKittiSequence:
 
     def _either_space(self, source: str) -> str:
         """The space a file of `source` whose values fit both is read in: that of the folder's
-        first file of `source`, in scan order, whose values fit only one (raw where none does).
-        A folder holds one network's output, and a file then reads the same whatever was read
-        before it: `seq[k]` in any order, any range of the folder."""
+        first file of `source`, in scan order, whose values fit only one (raw where none of
+        the first SPACE_SEARCH_LIMIT does). A folder holds one network's output, and a file
+        then reads the same whatever was read before it: `seq[k]` in any order, any range of
+        the folder."""
         if source not in self._either:
             self._either[source] = self._first_decided_space(source)
         return self._either[source]
 
     def _first_decided_space(self, source: str) -> str:
-        folder = self.predictions_dir if source == "predictions" else self.labels_dir
-        for sid, bin_name in sorted(self._bin_names.items()):
-            path = self._label_path(folder, sid)
+        for sid, bin_name in sorted(self._bin_names.items())[:SPACE_SEARCH_LIMIT]:
+            path = self._label_path(self._label_folder(source), sid)
             try:
                 n = (self.velodyne_dir / bin_name).stat().st_size // 16
                 values = self._read_labels(path, sid, source, n, bin_name, noted=False)
             except (ScanError, OSError):  # a file a scan will skip for, or report, itself
                 continue
-            space = label_space_of(values)
-            if space != "either":
+            space = deciding_space(values)  # (an empty scan decides nothing: it is skipped)
+            if space is not None:
                 return space
         return "raw"
+
+    def _label_folder(self, source: str) -> Path:
+        """The folder of the label files of `source` ("predictions" or "labels")."""
+        return self.predictions_dir if source == "predictions" else self.labels_dir
 
     def _read_labels(
         self, path: Path, sid: int, what: str, n: int, bin_name: str, noted: bool = True
