@@ -201,7 +201,8 @@ def to_train_ids(
 
     `label_space`: "raw" (SemanticKITTI ids, instance bits allowed: `raw_to_train`), "train"
     (0..classes - 1, num_classes() by default), or "auto": by `label_space_of`, values that
-    can be either read as `either` (the space the source's other scans were read in)."""
+    can be either read as `either` (the space the reader decided for its source: that of the
+    source's first file or cloud that fits one)."""
     if label_space not in LABEL_SPACES:
         raise ValueError(f"label_space must be one of {LABEL_SPACES}, got {label_space!r}")
     if label_space == "auto":
