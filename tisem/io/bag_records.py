@@ -27,6 +27,7 @@ import zstandard
 from mcap.records import Channel, Schema
 
 from tisem.errors import DatasetError
+from tisem.io.mcap_items import unknown_loss
 from tisem.io.mcap_records import LostMessages, McapMessage, McapRecords, ReadReport
 from tisem.io.mcap_report import Loss
 
@@ -251,16 +252,12 @@ class RosbagRecords:
             except Exception as exc:  # noqa: BLE001 - a damaged storage file, mid-way
                 # what was read is kept; how much the rest held is unknown
                 self.stopped = True
-                where = f"{self.path.name} after {sum(report.messages.values())} message(s)"
-                report.losses.append(
-                    Loss(
-                        where,
-                        f"the rest of the {self.what} is unreadable ({_reason(exc)}); "
-                        f"{repair_hint(self.storage)}",
-                        uncounted=True,
-                    )
+                yield unknown_loss(
+                    report,
+                    f"{self.path.name} after {sum(report.messages.values())} message(s)",
+                    f"the rest of the {self.what} is unreadable ({_reason(exc)}); "
+                    f"{repair_hint(self.storage)}",
                 )
-                yield LostMessages(None, None, where)
                 return
             yield from self._shortfall(read, report)
 

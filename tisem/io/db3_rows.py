@@ -21,6 +21,7 @@ from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
 from tisem.errors import DatasetError
 from tisem.io.bag_records import RosbagDecoders
+from tisem.io.mcap_items import unknown_loss
 from tisem.io.mcap_records import LostMessages, McapMessage, ReadReport
 from tisem.io.mcap_report import Loss, id_ranges, one_line
 
@@ -227,8 +228,7 @@ def short_page_loss(path: Path, report: ReadReport, named: bool) -> Iterator[Los
             f"the file ends {size % page} bytes into a page of {page} (cut short, or bytes "
             f"inserted): rows on that page may read as zeros"
         )
-        report.losses.append(Loss(where, what, uncounted=True))
-        yield LostMessages(None, None, where)
+        yield unknown_loss(report, where, what)
     elif size // page < (declared := _pages_in_header(head)):
         what = f"the file holds {size // page} of the {declared} pages its header gives (cut short)"
         report.losses.append(Loss(where, what, uncounted=True))

@@ -42,6 +42,13 @@ class LostMessages:
     guessed: bool = False
 
 
+def unknown_loss(report: ReadReport, where: str, what: str) -> LostMessages:
+    """Damage that held an unknown number of messages: reported, and the mark readers number
+    the messages after it by (the scans after it are then suspect)."""
+    report.losses.append(Loss(where, what, uncounted=True))
+    return LostMessages(None, None, where)
+
+
 def _message(content, crc_checked: bool) -> McapMessage:
     if len(content) < 22:
         raise Malformed(f"a message record of {len(content)} bytes (a message has at least 22)")

@@ -31,6 +31,7 @@ from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 from rosbags.typesys.msg import normalize_msgtype
 
 from tisem.errors import DatasetError
+from tisem.io.mcap_items import unknown_loss
 from tisem.io.mcap_records import LostMessages, McapMessage, ReadReport
 from tisem.io.mcap_report import Loss
 
@@ -329,10 +330,12 @@ class Ros1LinearRecords:
                     yield from self._record(op, fields, data, report)
             except (Malformed, OSError, EOFError, RuntimeError, ValueError) as exc:
                 if end <= size:  # a damaged record whose length holds: the walk goes on after it
-                    yield _lost(report, f"{kind} at byte {at}", str(exc))
+                    yield unknown_loss(report, f"{kind} at byte {at}", str(exc))
                 elif op == OP_CHUNK and fields.get("compression") == b"none":
                     # its records, the format of the bag's own, were read to the file's end
-                    yield _lost(report, f"{kind} at byte {at}", f"{exc}; anything after it is lost")
+                    yield unknown_loss(
+                        report, f"{kind} at byte {at}", f"{exc}; anything after it is lost"
+                    )
                     cut = True
                 else:  # cut short, or its length is damaged: records may follow its header
                     lost, end = _lost_up_to_next(
@@ -343,7 +346,7 @@ class Ros1LinearRecords:
             at = end
         index_at = _index_position(buf, size)
         if not cut and index_at >= size:  # a closed bag cut between two records
-            yield _lost(
+            yield unknown_loss(
                 report,
                 f"the file's end (byte {size})",
                 f"the bag's index was written at byte {index_at}: the file was cut short",
@@ -366,7 +369,7 @@ class Ros1LinearRecords:
         if out_of_line and not broken:
             broken = "the record after it is out of line (bytes inserted in it?)"
         if whole and (short or broken):
-            yield _lost(report, where, short or broken)
+            yield unknown_loss(report, where, short or broken)
             held = held[:-1]
         for op, inner, body in held:
             if op in (OP_CONNECTION, OP_MESSAGE):
@@ -483,14 +486,8 @@ def _lost_up_to_next(
     record after byte `after` (`_next_record`), or the file's end."""
     resume = _next_record(buf, after, size)
     if resume is None:
-        return _lost(report, where, f"{exc}; anything after it is lost"), size
-    return _lost(report, where, f"{exc}; read on from byte {resume}"), resume
-
-
-def _lost(report: ReadReport, where: str, what: str) -> LostMessages:
-    """Damage that held an unknown number of messages: reported, and marked in the stream."""
-    report.losses.append(Loss(where, what, uncounted=True))
-    return LostMessages(None, None, where)
+        return unknown_loss(report, where, f"{exc}; anything after it is lost"), size
+    return unknown_loss(report, where, f"{exc}; read on from byte {resume}"), resume
 
 
 class Ros1Decoders:
