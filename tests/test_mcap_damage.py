@@ -614,6 +614,29 @@ def test_scans_posed_across_lost_tf_messages_are_marked(tmp_path):
     assert all(signature(s) == intact[s.index] for s in items if s.index not in suspect)
 
 
+def test_scans_stamped_as_their_tf_samples_are_not_marked_for_a_lost_one(tmp_path):
+    """`kitti-to-mcap` stamps /tf with the clouds' stamps: a scan's pose is then a sample, not
+    an interpolation, and a /tf message lost beside it changes nothing. Only the lost scan
+    goes; the scans on either side of it, the last included, are read as intact."""
+    from test_mcap_kitti import write_tiny_sequence
+
+    from tisem.io.kitti_mcap import write_kitti_mcap
+    from tisem.testing.oracle import signature
+
+    folder = write_tiny_sequence(tmp_path / "seq", n_scans=4, n_points=45_000)
+    path = tmp_path / "log.mcap"
+    write_kitti_mcap(folder, path)  # (clouds over 1 MiB: a chunk per scan and its /tf)
+    intact = {s.index: signature(s) for s in McapScanReader(path)}
+    chunks = regions_of(path, "chunk")
+    assert len(chunks) == 4
+    flip(path, (chunks[2].start + chunks[2].end) // 2)  # scan 2's chunk, the /tf at its stamp
+    reader = McapScanReader(path)
+    items = [s for s in reader if not isinstance(s, SkippedScan)]
+    assert [s.index for s in items] == [0, 1, 3]
+    assert reader.report.suspect == {}
+    assert all(signature(s) == intact[s.index] for s in items)
+
+
 def chunk_records(data: bytes, chunk) -> list[tuple[int, int, bytes]]:
     """(opcode, offset in the file, content) of the records of an uncompressed chunk."""
     at, size = chunk.fields["data length"]

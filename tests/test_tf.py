@@ -218,3 +218,13 @@ def test_an_interpolation_across_missing_samples_is_found(chain):
         "stamp (its median spacing is 50.0 ms)"
     )
     assert tf.interpolation_gap("base_link", "map", int(0.61 * NS)) == gap  # either direction
+    # a stamp that is a sample's own is that sample, the gap beside it notwithstanding
+    assert tf.interpolation_gap("map", "base_link", stamps[9]) is None  # 0.45 s
+    assert tf.interpolation_gap("map", "base_link", stamps[-1]) is None
+    assert tf.interpolation_gap("map", "base_link", stamps[-1] + 1) == (
+        "edge map -> odom has no samples after 1.950000 s, its last (its median spacing is 50.0 ms)"
+    )
+    assert tf.interpolation_gap("map", "base_link", -1) == (
+        "edge map -> odom has no samples before 0.000000 s, its first (its median spacing "
+        "is 50.0 ms)"
+    )

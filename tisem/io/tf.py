@@ -341,7 +341,9 @@ class TfBuffer:
     ) -> str | None:
         """Where a lookup at `stamp_ns` interpolates over a gap in a dynamic edge's samples
         (two samples more than `factor` times the edge's median spacing apart, or the stamp
-        outside the samples): what a lost /tf message looks like from here. None otherwise."""
+        outside the samples): what a lost /tf message looks like from here. None otherwise,
+        and for a stamp that is a sample's own (the pose is that sample, whatever was lost
+        beside it: a recording whose /tf is stamped with its clouds' stamps)."""
         target, source = _frame(target), _frame(source)
         from_source, from_target = self._path(target, source)
         for child in from_source + from_target:
@@ -349,15 +351,23 @@ class TfBuffer:
             edge.finalize()
             if edge.static or len(edge.stamps) < 2:
                 continue
-            spacing = float(np.median(np.diff(edge.stamps)))
-            i = int(np.searchsorted(edge.stamps, stamp_ns, side="right"))
-            lo = edge.stamps[max(i - 1, 0)]
-            hi = edge.stamps[min(i, len(edge.stamps) - 1)]
-            if i in (0, len(edge.stamps)) or hi - lo > factor * spacing:
+            stamps = edge.stamps
+            spacing = float(np.median(np.diff(stamps)))
+            i = int(np.searchsorted(stamps, stamp_ns, side="right"))
+            if i > 0 and stamps[i - 1] == stamp_ns:
+                continue
+            name, spaced = (
+                f"edge {edge.parent} -> {child}",
+                f"its median spacing is {spacing / 1e6:.1f} ms",
+            )
+            if i == 0:
+                return f"{name} has no samples before {stamps[0] / 1e9:.6f} s, its first ({spaced})"
+            if i == len(stamps):
+                return f"{name} has no samples after {stamps[-1] / 1e9:.6f} s, its last ({spaced})"
+            if stamps[i] - stamps[i - 1] > factor * spacing:
                 return (
-                    f"edge {edge.parent} -> {child} has no samples from {lo / 1e9:.6f} s to "
-                    f"{hi / 1e9:.6f} s around the stamp (its median spacing is "
-                    f"{spacing / 1e6:.1f} ms)"
+                    f"{name} has no samples from {stamps[i - 1] / 1e9:.6f} s to "
+                    f"{stamps[i] / 1e9:.6f} s around the stamp ({spaced})"
                 )
         return None
 
