@@ -21,6 +21,7 @@ from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
 from tisem.errors import DatasetError
 from tisem.io.bag_records import RosbagDecoders
+from tisem.io.db3_pages import Columns, LeafRows
 from tisem.io.mcap_items import unknown_loss
 from tisem.io.mcap_records import LostMessages, McapMessage, ReadReport
 from tisem.io.mcap_report import Loss, id_ranges, one_line
@@ -94,6 +95,7 @@ class _Db3File:
                 if isinstance(i, int) and isinstance(name, str) and isinstance(typ, str)
             }
             self.definitions = self._definitions(db)
+            self.columns = self._columns(db)
 
     def _connect(self) -> sqlite3.Connection:
         try:  # immutable: no journal or lock files next to a damaged recording
@@ -122,11 +124,27 @@ class _Db3File:
             return []
         return [(str(t), str(d)) for t, d in rows if t and d]
 
+    @staticmethod
+    def _columns(db: sqlite3.Connection) -> Columns | None:
+        """Where the messages table's records keep the id's alias, topic_id, timestamp and
+        data (for rows read from their pages), None where its declaration does not say."""
+        try:
+            info = db.execute("PRAGMA table_info(messages)").fetchall()
+        except DAMAGE:
+            return None
+        names = [str(row[1]) for row in info]
+        keys = [str(row[1]) for row in info if row[5] == 1 and str(row[2]).upper() == "INTEGER"]
+        wanted = ("topic_id", "timestamp", "data")
+        if len(keys) != 1 or not all(names.count(n) == 1 for n in wanted):
+            return None
+        return Columns(len(names), names.index(keys[0]), *(names.index(n) for n in wanted))
+
     def messages(self, report: ReadReport, ids: dict[int, int], named: bool) -> Iterator:
         """Its messages on the channels `ids` gives its topics; `named`: losses name the file."""
         unreadable: list[int] = []
+        from_pages: list[int] = []
         yield from short_page_loss(self.path, report, named)
-        with closing(self._connect()) as db:
+        with closing(self._connect()) as db, _PagesWhenNeeded(self) as pages:
             last = self._last_id(db)
             k, found = 0, 0
             # to the largest id, or while rows turn up when the table cannot say it; a run of
@@ -141,11 +159,16 @@ class _Db3File:
                     ).fetchone()
                 except DAMAGE:
                     row = ()
-                if row is None and last < 0:
-                    continue  # (probing past the end, or a gap in the ids)
                 if row is None or not _whole(row, self.topics):
                     # (rosbag2 numbers its rows 1, 2, ...: below the largest id, in a file that
-                    # rosbags could not read, a row that is not there was on a damaged page)
+                    # rosbags could not read, a row that is not there was on a damaged page;
+                    # its own page may be whole, with the tree above it lost: db3_pages)
+                    probed, row = row is None and last < 0, pages.get(k)
+                    if row is not None and _whole(row, self.topics):
+                        from_pages.append(k)
+                    elif probed:
+                        continue  # (probing past the end, or a gap in the ids)
+                if row is None or not _whole(row, self.topics):
                     unreadable.append(k)
                     yield LostMessages(None, None, f"{self.path.name}: messages table row {k}")
                     continue
@@ -155,6 +178,11 @@ class _Db3File:
                     channel_id=ids[row[0]], log_time=row[1], data=bytes(row[2]), crc_checked=False
                 )
         where = f"{self.path.name}: messages table" if named else "messages table"
+        if from_pages:
+            report.notes.append(
+                f"{where} rows {id_ranges(from_pages)} read from their own pages: the table's "
+                f"tree above them is on damaged or missing pages"
+            )
         self._report(report, where, unreadable, found if last < 0 else None)
 
     @staticmethod
@@ -191,6 +219,28 @@ class _Db3File:
         if last is None:
             return 0  # (no messages)
         return last if isinstance(last, int) and 0 <= last < 2**62 else -1
+
+
+class _PagesWhenNeeded:
+    """`LeafRows` of a file, opened at the first row SQLite cannot give (it passes over every
+    page), and only for a file whose messages table says where its values are."""
+
+    def __init__(self, part: _Db3File) -> None:
+        self.part, self.rows = part, None
+
+    def get(self, rowid: int) -> tuple | None:
+        if self.part.columns is None:
+            return None
+        if self.rows is None:
+            self.rows = LeafRows(self.part.path, self.part.columns)
+        return self.rows.get(rowid)
+
+    def __enter__(self) -> _PagesWhenNeeded:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        if self.rows is not None:
+            self.rows.close()
 
 
 def _whole(row: tuple, topics: dict) -> bool:

@@ -1,0 +1,158 @@
+"""Rows of a `.db3` read from its leaf pages (tisem.io.db3_pages), for rows whose path
+through the table's tree is lost: checked against SQLite's own reading of intact files, and on
+a recording cut short before the interior pages rosbag2's inserts leave at its end."""
+
+from __future__ import annotations
+
+import sqlite3
+import struct
+from collections import Counter
+
+import numpy as np
+import pytest
+
+pytest.importorskip("rosbags", reason="the rosbags package (tisem[mcap]) is not installed")
+
+from tisem.io.db3_pages import Columns, LeafRows, _varint  # noqa: E402
+from tisem.io.db3_rows import Db3RowRecords  # noqa: E402
+from tisem.io.mcap_records import LostMessages, McapMessage, ReadReport  # noqa: E402
+from tisem.testing.bag_damage import write_db3  # noqa: E402
+
+PAGE = 4096
+CLOUD = ("/velodyne_points", "sensor_msgs/msg/PointCloud2")
+TF = ("/tf", "tf2_msgs/msg/TFMessage")
+
+
+def messages(n: int, sizes, seed: int = 0) -> list[tuple[str, str, int, bytes]]:
+    """n (topic, type, stamp, data) rows, clouds and /tf alternating, of random bytes (the rows
+    are read here, never decoded) and the sizes `sizes(rng)` draws."""
+    rng = np.random.default_rng(seed)
+    out = []
+    for k in range(n):
+        topic, typ = CLOUD if k % 2 else TF
+        out.append((topic, typ, 1_000_000 * k, rng.bytes(int(sizes(rng)))))
+    return out
+
+
+def columns_of(db3) -> Columns:
+    with sqlite3.connect(db3) as db:
+        names = [row[1] for row in db.execute("PRAGMA table_info(messages)")]
+    db.close()
+    return Columns(
+        len(names), names.index("id"), *map(names.index, ("topic_id", "timestamp", "data"))
+    )
+
+
+def test_varints_read_as_sqlite_writes_them():
+    for value, encoded in [
+        (0, b"\x00"),
+        (127, b"\x7f"),
+        (128, b"\x81\x00"),
+        (16383, b"\xff\x7f"),
+        (2**57, b"\x81\x80\x80\x80\x80\x80\x80\x80\x00"),  # 9 bytes: the last holds 8 bits
+        (2**64 - 1, b"\xff" * 9),
+    ]:
+        assert _varint(encoded + b"\x55", 0, len(encoded) + 1) == (value, len(encoded))
+    with pytest.raises(ValueError, match="runs past its page"):
+        _varint(b"\x81\x82", 0, 2)
+
+
+def test_every_row_of_an_intact_file_reads_as_sqlite_reads_it(tmp_path):
+    """Payloads from empty to five pages long: on the page alone, split at every local size
+    the format's rule gives, and over overflow chains; SQLite is the reference."""
+    rows = messages(
+        400, lambda rng: rng.choice([rng.integers(0, 600), rng.integers(3_000, 21_000)])
+    )
+    db3 = write_db3(tmp_path / "bag", rows)
+    with sqlite3.connect(db3) as db:
+        expected = {
+            i: (t, s, bytes(d))
+            for i, t, s, d in db.execute("SELECT id, topic_id, timestamp, data FROM messages")
+        }
+    db.close()
+    assert len(expected) == 400
+    with LeafRows(db3, columns_of(db3)) as pages:
+        assert {i: pages.get(i) for i in expected} == expected
+        assert pages.get(401) is None  # (topics' and metadata's rows share ids: not messages)
+
+
+def _tree_pages(data: bytes, root: int) -> tuple[list[int], list[int]]:
+    """(interior pages, leaf pages) of the table b-tree rooted at page `root`."""
+    interior, leaves, todo = [], [], [root]
+    while todo:
+        number = todo.pop()
+        page = data[(number - 1) * PAGE : number * PAGE]
+        if page[0] == 0x0D:
+            leaves.append(number)
+            continue
+        assert page[0] == 0x05
+        interior.append(number)
+        cells = struct.unpack_from(">H", page, 3)[0]
+        for i in range(cells):
+            (at,) = struct.unpack_from(">H", page, 12 + 2 * i)
+            todo.append(struct.unpack_from(">I", page, at)[0])
+        todo.append(struct.unpack_from(">I", page, 8)[0])
+    return interior, leaves
+
+
+def read_records(db3) -> tuple[list, ReadReport]:
+    report = ReadReport()
+    out = [
+        r for r in Db3RowRecords([db3]).records(report) if isinstance(r, McapMessage | LostMessages)
+    ]
+    return out, report
+
+
+def test_rows_below_interior_pages_a_cut_took_are_read_from_their_own_pages(tmp_path):
+    """rosbag2 inserts leave a table's interior pages late in the file: cut before the one
+    above the first leaves, the file still holds those leaves and their rows' data, and SQLite
+    calls every one of them malformed. Each row whose cell and overflow pages lie before the
+    cut is read, byte for byte the intact file's, in id order; the rest are reported."""
+    rows = messages(1_400, lambda rng: rng.integers(1_200, 2_600))  # (two or three a leaf)
+    db3 = write_db3(tmp_path / "bag", rows)
+    data = db3.read_bytes()
+    with sqlite3.connect(db3) as db:
+        (root,) = db.execute(
+            "SELECT rootpage FROM sqlite_master WHERE name = 'messages'"
+        ).fetchone()
+        intact = [
+            (s, bytes(d)) for s, d in db.execute("SELECT timestamp, data FROM messages ORDER BY id")
+        ]
+    db.close()
+    interior, leaves = _tree_pages(data, root)
+    assert len(interior) > 2  # a tree of three levels, as a long recording's
+    first_parent = min(p for p in interior if p != root)
+    assert min(leaves) < first_parent  # leaves the cut keeps, their parent lost
+    db3.write_bytes(data[: (first_parent - 1) * PAGE])
+
+    read, report = read_records(db3)
+    got = [(m.log_time, m.data) for m in read if isinstance(m, McapMessage)]
+    assert len(got) > 500
+    assert got == intact[: len(got)]  # the rows before the cut, identical, none skipped
+    assert read[: len(got)] == [m for m in read if isinstance(m, McapMessage)]
+    assert isinstance(read[len(got)], LostMessages)
+    (note,) = [n for n in report.notes if "read from their own pages" in n]
+    assert note.startswith(f"messages table rows 1-{len(got)} ")
+    assert Counter(report.messages) == Counter(topic for topic, _, _, _ in rows[: len(got)])
+
+
+def test_a_stale_page_that_disagrees_with_the_live_one_gives_no_row(tmp_path):
+    """Two leaf pages that hold different rows of one id (a freed page's old copy beside the
+    page that replaced it): neither is taken."""
+    rows = messages(6, lambda rng: 100)
+    db3 = write_db3(tmp_path / "bag", rows)
+    data = bytearray(db3.read_bytes())
+    with sqlite3.connect(db3) as db:
+        (root,) = db.execute(
+            "SELECT rootpage FROM sqlite_master WHERE name = 'messages'"
+        ).fetchone()
+    db.close()
+    leaf = data[(root - 1) * PAGE : root * PAGE]
+    assert leaf[0] == 0x0D
+    stale = bytearray(leaf)
+    cell = struct.unpack_from(">H", stale, 8)[0]  # the first cell: row 1's
+    stale[cell + 20] ^= 0xFF  # inside its data
+    db3.write_bytes(bytes(data) + bytes(stale))  # one page more at the end
+    with LeafRows(db3, columns_of(db3)) as pages:
+        assert pages.get(1) is None
+        assert pages.get(2) is not None and pages.get(2)[2] == rows[1][3]
