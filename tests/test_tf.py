@@ -228,3 +228,23 @@ def test_an_interpolation_across_missing_samples_is_found(chain):
         "edge map -> odom has no samples before 0.000000 s, its first (its median spacing "
         "is 50.0 ms)"
     )
+
+
+def test_a_stamp_that_is_a_sample_s_own_gets_that_sample_bit_for_bit():
+    """A scan stamped at a /tf sample has that sample's pose whatever samples lie beside it
+    (a cut file or a lost chunk takes them): the pose of the whole edge at the stamp equals,
+    bit for bit, that of an edge holding only the sample."""
+    rng = np.random.default_rng(3)
+    stamps = [int(k * NS / 10) for k in range(6)]
+    samples = [(rng.normal(size=3) * 10, rng.normal(size=4)) for _ in stamps]
+    whole = TfBuffer()
+    for t, (trans, quat) in zip(stamps, samples):
+        whole.add("map", "base_link", t, trans, quat)
+    for t, (trans, quat) in zip(stamps, samples):
+        alone = TfBuffer()
+        alone.add("map", "base_link", t, trans, quat)
+        assert np.array_equal(
+            whole.lookup("map", "base_link", t), alone.lookup("map", "base_link", t)
+        )
+    between = whole.lookup("map", "base_link", stamps[2] + 1)  # (and between them, slerp)
+    assert not np.array_equal(between, whole.lookup("map", "base_link", stamps[2]))

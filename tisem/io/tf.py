@@ -187,6 +187,13 @@ class _Edge:
         T[:, :3, :3] = quat_to_matrix(slerp(self.quats[i0], self.quats[i1], w))
         T[:, :3, 3] = self.trans[i0] + w[:, None] * (self.trans[i1] - self.trans[i0])
         T[:, 3, 3] = 1.0
+        # a stamp that is a sample's own gets that sample bit for bit, as an edge of that one
+        # sample gives it (slerp at w = 0 or 1 rounds otherwise): a scan's pose must not
+        # depend on whether the samples beside it were read (a cut file, a lost chunk)
+        for own, i in ((t == s0, i0), (t == s1, i1)):
+            if np.any(own):
+                T[own, :3, :3] = quat_to_matrix(self.quats[i[own]])
+                T[own, :3, 3] = self.trans[i[own]]
         return T
 
 
