@@ -173,6 +173,50 @@ def test_a_chunk_with_a_bad_crc_is_skipped_and_reported(tmp_path, compression, s
     assert "1 on /velodyne_points" in loss.line()
 
 
+@pytest.mark.parametrize("compression", ["zstd", "lz4", "none"])
+@pytest.mark.parametrize("mount", ["from the damaged chunk", "given with --static-tf"])
+def test_a_damaged_first_chunk_s_sensor_mount_is_read_and_every_scan_marked(
+    tmp_path, compression, mount
+):
+    """The first chunk holds /tf_static, the sensor's mount, and nothing else does: a byte
+    damaged in its first cloud would refuse the whole recording. The mount is read from the
+    records before the damage; the first scan is lost, the others are mapped as in the intact
+    file and marked (nothing vouches for the mount). A mount the user gives is used instead,
+    and nothing is marked."""
+    from tisem.io.tf import matrix_to_quat
+    from tisem.synth.mcap_log import T_BASE_LIDAR
+
+    path = tmp_path / "log.mcap"
+    # (clouds of several compressed blocks, as real ones are: the blocks before the damaged
+    # one still inflate)
+    truth = write_synthetic_log(
+        path, n_scans=N_SCANS, n_points=12_000, compression=compression, chunk_size=8_000
+    )
+    chunk = chunk_of_scan(path, truth, 0)
+    chunks = [start for op, start, _ in top_level_records(path.read_bytes()) if op == 0x06]
+    assert chunk.chunk_start_offset == chunks[0]  # the first: /tf_static's
+    flip(path, chunk.chunk_start_offset + chunk.chunk_length - 100)  # inside cloud 0's data
+    given = ()
+    if mount == "given with --static-tf":
+        q = matrix_to_quat(T_BASE_LIDAR[:3, :3])
+        given = (("base_link", "velodyne", *T_BASE_LIDAR[:3, 3], *q),)
+    reader = McapScanReader(path, McapOptions(static_tf=given))
+    items = list(reader)
+    assert isinstance(items[0], SkippedScan)
+    assert check_scans_against_truth(items, truth) == list(range(1, N_SCANS))
+    if given:
+        assert reader.report.suspect == {}
+        return
+    assert sorted(reader.report.suspect) == list(range(1, N_SCANS))
+    (why,) = set(reader.report.suspect.values())
+    assert why == (
+        "its pose uses a static transform read from a damaged chunk, whose bytes nothing "
+        f"vouches for (base_link -> velodyne from the chunk at byte {chunk.chunk_start_offset}"
+        f" (log time {chunk.message_start_time / 1e9:.3f}-{chunk.message_end_time / 1e9:.3f}"
+        " s)); --static-tf gives it instead"
+    )
+
+
 @pytest.mark.parametrize("summary", ["intact", "cut off"])
 def test_a_damaged_chunk_length_field_loses_at_most_that_chunk(tmp_path, summary):
     path = tmp_path / "log.mcap"

@@ -603,13 +603,15 @@ def test_a_missing_map_frame_names_the_transforms_that_were_ignored(tmp_path):
 
 
 def test_an_error_caused_by_damage_says_what_was_lost(tmp_path):
-    """The mount (/tf_static) was in the first chunk; that chunk is lost: the error names
-    the loss, not only the missing frame."""
+    """The mount (/tf_static) was in the first chunk; that chunk is lost, none of it
+    inflates (its zstd frame's magic number is damaged): the error names the loss, not only
+    the missing frame."""
     path = tmp_path / "log.mcap"
     write_synthetic_log(path, n_scans=4, n_points=200, chunk_size=3_000)
     data = bytearray(path.read_bytes())
     first = 8 + 9 + struct.unpack_from("<Q", data, 9)[0]  # after the header record
-    data[first + 200] ^= 0x40
+    # the chunk's fields: 3 x u64, u32 CRC, "zstd" with its u32 length, the u64 data length
+    data[first + 9 + 44 + 1] ^= 0x40
     path.write_bytes(bytes(data))
     with pytest.raises(
         DatasetError,

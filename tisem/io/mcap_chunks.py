@@ -129,6 +129,39 @@ def inflate(head: ChunkHeader, complete: bool = True) -> bytes | memoryview:
     return _bounded(_lz4_pieces(data), size)
 
 
+def _prefix(head: ChunkHeader) -> bytes | memoryview:
+    """What a chunk that failed its checks inflates to before its damage stops the
+    decompressor, at most its declared size: the records written before the damage."""
+    if head.compression == "":
+        return head.data[: head.size]
+    out = bytearray()
+    try:
+        if head.compression == "zstd":
+            dobj = zstandard.ZstdDecompressor().decompressobj()
+            for at in range(0, len(head.data), _CUT_STEP):
+                out += dobj.decompress(bytes(head.data[at : at + _CUT_STEP]))
+                if len(out) >= head.size:
+                    break
+        elif head.compression == "lz4":
+            for piece in _lz4_pieces(head.data):
+                out += piece
+                if len(out) >= head.size:
+                    break
+    except UNTRUSTED:
+        pass  # (the damage: what came before it is kept)
+    return bytes(out[: head.size])
+
+
+def salvaged_records(head: ChunkHeader) -> list[tuple[int, memoryview]]:
+    """(opcode, content) of the whole records at the start of a chunk that failed its checks
+    (`_prefix`). Nothing vouches for their bytes: a flipped bit can also decompress into
+    wrong bytes without an error, before the decompressor notices. See
+    `tisem.io.mcap_items.Unvouched` for the one use made of them."""
+    if head.compression not in COMPRESSIONS or head.size > MAX_CHUNK_BYTES:
+        return []
+    return inner_records(_prefix(head), complete=False)
+
+
 def inner_records(data, complete: bool = True) -> list[tuple[int, memoryview]]:
     """(opcode, content) of the records inside a chunk. In a complete chunk a record that
     overruns it means corruption; in a cut one it is where the cut was."""

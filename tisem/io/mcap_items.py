@@ -42,6 +42,39 @@ class LostMessages:
     guessed: bool = False
 
 
+@dataclass
+class Unvouched:
+    """A /tf_static message from the decodable start of a chunk that failed its checks,
+    yielded after the chunk's loss, with its channel and schema (the chunk's own records, or
+    those known before it). Nothing vouches for its bytes; `tisem.io.mcap_survey` uses it only
+    where the recording holds the sensor's mount nowhere else, and then marks every scan."""
+
+    where: str
+    channel: Channel
+    schema: Schema | None
+    message: McapMessage
+
+
+def unvouched_statics(
+    records: Iterable[tuple[int, bytes]], where: str, channels: dict[int, Channel]
+) -> Iterator[Unvouched]:
+    """The /tf_static messages among a damaged chunk's salvaged records (`channels`: those
+    known before it, by id; the chunk's own Schema and Channel records are used, not kept)."""
+    schemas: dict[int, Schema] = {}
+    own: dict[int, Channel] = {}
+    for opcode, content in records:
+        try:
+            rec = record_item(opcode, content, False, own)
+        except Malformed:
+            continue
+        if isinstance(rec, Schema):
+            schemas[rec.id] = rec
+        elif isinstance(rec, McapMessage):
+            ch = own.get(rec.channel_id) or channels.get(rec.channel_id)
+            if ch is not None and ch.topic.rstrip("/").endswith("tf_static"):
+                yield Unvouched(where, ch, schemas.get(ch.schema_id), rec)
+
+
 def unknown_loss(report: ReadReport, where: str, what: str) -> LostMessages:
     """Damage that held an unknown number of messages: reported, and the mark readers number
     the messages after it by (the scans after it are then suspect)."""

@@ -78,6 +78,7 @@ class McapScanReader:
         self.tf, self.total = survey.tf, survey.total
         self._schemas, self._channels, self._kinds = survey.schemas, survey.channels, survey.kinds
         self._poses_lost = survey.poses_lost
+        self._unvouched_mount = survey.unvouched_mount
         self._label_spaces = survey.label_spaces
 
     @property
@@ -169,6 +170,8 @@ class McapScanReader:
             self.report.suspect[index] = (
                 f"{renumbered} came before it, so its number may differ from the intact file's"
             )
+        elif self._unvouched_mount is not None:
+            self.report.suspect[index] = self._unvouched_mount
         elif not rec.crc_checked and self._records.data_crc == "mismatch":
             self.report.suspect[index] = (
                 "the data section's CRC does not match and no CRC of its own covers this cloud"

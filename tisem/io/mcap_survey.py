@@ -15,6 +15,7 @@ from mcap.records import Channel, Schema
 
 from tisem.errors import DatasetError
 from tisem.io import pointcloud2 as pc2
+from tisem.io.mcap_items import Unvouched
 from tisem.io.mcap_messages import (
     CLOUD_SCHEMAS,
     POSE_SCHEMAS,
@@ -58,7 +59,9 @@ def _describe_topics(counts: Counter, kinds: dict) -> str:
 class Survey:
     """What the first pass found: `schemas`, `channels` (by id), `kinds` (topic -> schema
     name), the cloud `topic` and its `frame_id`, the transform buffer `tf`, `total` (scans
-    the options select) and `poses_lost` (pose messages were lost or undecodable).
+    the options select), `poses_lost` (pose messages were lost or undecodable) and
+    `unvouched_mount` (why every scan is suspect when the sensor's mount came from a chunk
+    that failed its checks, `_mount_from_damage`; None otherwise).
 
     Raises `DatasetError` when nothing can be mapped: no cloud topic, an ambiguous one, a
     missing field, no transform path. Damage found is appended to `report`.
@@ -94,7 +97,12 @@ class Survey:
         undecodable = Counter()
         pose_errors: dict[str, str] = {}
         lost_clouds = Counter()  # channel id -> messages in lost chunks
+        unvouched: list[Unvouched] = []
+        self.unvouched_mount: str | None = None
         for rec in records.records(report):
+            if isinstance(rec, Unvouched):
+                unvouched.append(rec)
+                continue
             if isinstance(rec, Schema):
                 schemas[rec.id] = rec
                 continue
@@ -175,7 +183,11 @@ class Survey:
                 raise DatasetError(self._cloud_problem(misfits[self.topic], self.topic))
             self.frame_id = first_cloud[self.topic][1]
             self._build_tf(samples)
-            self._check_tf()
+            try:
+                self._check_tf()
+            except DatasetError:
+                if not self._mount_from_damage(samples, unvouched, schemas, decoders):
+                    raise
         except DatasetError as e:  # what was lost may be why
             raise DatasetError(f"{e}{self._damage()}") from None
         n = report.messages[self.topic] + sum(
@@ -346,6 +358,47 @@ class Survey:
             for child, n in replaced.items()
         ]
         self.report.notes += [f"tf: {w}" for w in self.tf.warnings]
+
+    def _mount_from_damage(
+        self, samples: list, unvouched: list[Unvouched], schemas: dict, decoders
+    ) -> bool:
+        """Where the map frame does not reach the cloud's, the /tf_static messages read from
+        the start of chunks that failed their checks (`Unvouched`), for frames no intact
+        message gives: whether the transforms then connect (`unvouched_mount` says why every
+        scan is suspect). A recording holds its sensor's mount once, in its first chunk, so
+        one damaged byte there would otherwise refuse every scan of an intact rest."""
+        given = {child.lstrip("/") for static, _f, _p, child, *_ in samples if static}
+        extra, used = [], {}
+        for u in unvouched:
+            schema = u.schema or schemas.get(u.channel.schema_id)
+            if schema is None or schema.name not in TF_SCHEMAS:
+                continue
+            try:
+                msg = decoders.decode(u.channel, schema, u.message.data)
+                edges = pose_edges(
+                    schema.name, msg, default_parent=self.options.map_frame, default_child=None
+                )
+            except Exception:  # noqa: BLE001 - decoders raise anything on bad bytes
+                continue
+            for parent, child, t, xyz, q in edges:
+                if child.lstrip("/") not in given:
+                    extra.append((True, False, parent, child, t, xyz, q))
+                    used.setdefault(f"{parent.lstrip('/')} -> {child.lstrip('/')}", u.where)
+        if not extra:
+            return False
+        self._build_tf(samples + extra)
+        try:
+            self._check_tf()
+        except DatasetError:
+            self._build_tf(samples)
+            return False
+        self.unvouched_mount = (
+            "its pose uses a static transform read from a damaged chunk, whose bytes nothing "
+            "vouches for ("
+            + "; ".join(f"{edge} from the {where}" for edge, where in used.items())
+            + "); --static-tf gives it instead"
+        )
+        return True
 
     def _check_tf(self) -> None:
         opts = self.options

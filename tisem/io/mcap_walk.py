@@ -26,8 +26,9 @@ from tisem.io.mcap_chunks import (
     inflate,
     inner_records,
     messages_in_damaged,
+    salvaged_records,
 )
-from tisem.io.mcap_items import LostMessages, chunk_items, record_item
+from tisem.io.mcap_items import LostMessages, chunk_items, record_item, unvouched_statics
 from tisem.io.mcap_losses import Ledger
 from tisem.io.mcap_report import Loss, ReadReport, error_text, one_line
 from tisem.io.mcap_resync import RecordFinder, index_disagreements
@@ -262,6 +263,8 @@ class Walk:
             loss = Loss(where, f"chunk skipped ({_why(e)})")
             self.report.losses.append(loss)
             self.ledger.count_from_index(loss, messages_in_damaged(head) if head else None)
+            if head is not None:  # (the sensor's mount, in case it is nowhere else)
+                yield from unvouched_statics(salvaged_records(head), where, self.channels)
             return pos + RECORD_HEADER + length
         self.ledger.no_crc += not checked
         self.chunk_ok = True
