@@ -5,6 +5,7 @@ the bag's index section."""
 
 from __future__ import annotations
 
+import bz2
 import struct
 
 import numpy as np
@@ -21,7 +22,14 @@ from tisem.io.bag_open import open_scan_reader  # noqa: E402
 from tisem.io.bag_records import RosbagRecords  # noqa: E402
 from tisem.io.mcap_reader import McapOptions  # noqa: E402
 from tisem.io.mcap_records import LostMessages, ReadReport  # noqa: E402
-from tisem.io.ros1_linear import MAGIC, OP_CHUNK, OP_CONNECTION, _inflate, _records  # noqa: E402
+from tisem.io.ros1_linear import (  # noqa: E402
+    MAGIC,
+    OP_CHUNK,
+    OP_CONNECTION,
+    OP_MESSAGE,
+    _inflate,
+    _records,
+)
 from tisem.io.semantickitti import SemanticKittiSequence  # noqa: E402
 from tisem.scan import Scan  # noqa: E402
 
@@ -197,3 +205,63 @@ def test_a_closed_bag_cut_between_two_records_says_so(recording):
     assert same_clouds(scans, list(SemanticKittiSequence(seq_dir)), (0, 1))
     (loss,) = report.losses
     assert loss.where == f"the file's end (byte {at})" and "cut short" in loss.what
+
+
+def lz4_block_sizes(frame: bytes) -> list[int]:
+    """Where each block-size field of an lz4 frame (python-lz4's: no checksums) starts."""
+    flags = frame[4]
+    at = 4 + 2 + (8 if flags & 0x08 else 0) + 1  # magic, FLG and BD, content size, HC
+    places = []
+    while True:
+        (size,) = struct.unpack_from("<I", frame, at)
+        if size == 0:  # the end mark
+            return places
+        places.append(at)
+        at += 4 + (size & 0x7FFFFFFF)
+
+
+def test_a_damaged_first_chunk_s_sensor_mount_is_read_and_every_scan_marked(tmp_path):
+    """The first chunk holds /tf_static, the sensor's mount, and nothing else does: its lz4
+    stream broken in its third block (of 64 kB), the mount is read from the records the
+    blocks before give; the clouds of the other chunks are mapped, and all marked."""
+    from test_mcap_kitti import write_tiny_sequence
+    from test_rosbag_read import recorded_messages
+
+    seq = write_tiny_sequence(tmp_path / "seq", n_scans=4, n_points=8_000)
+    messages = recorded_messages(seq, tmp_path)
+    lz4 = Ros1Writer.CompressionFormat.LZ4
+    data = bytearray(
+        ros1_bag(tmp_path / "big.bag", messages, lz4, chunk_bytes=100_000).read_bytes()
+    )
+    at, size, held = chunks(bytes(data))[0]
+    assert held == [  # (a connection record gives a topic, a message its connection's)
+        (OP_CONNECTION, b"/tf_static"),
+        (OP_MESSAGE, None),
+        (OP_CONNECTION, b"/tf"),
+        (OP_MESSAGE, None),
+        (OP_CONNECTION, b"/velodyne_points"),
+        (OP_MESSAGE, None),
+    ]
+    body = at + bytes(data[at:]).index(b"\x04\x22\x4d\x18", 0)  # the chunk's lz4 frame
+    third = body + lz4_block_sizes(bytes(data[body : body + size]))[2]
+    data[third : third + 4] = struct.pack("<I", 0x7FFFFFF0)  # a block no frame has
+    bag = tmp_path / "damaged.bag"
+    bag.write_bytes(bytes(data))
+    scans, report = read(bag)
+    assert same_clouds(scans, list(SemanticKittiSequence(seq)), [1, 2, 3])
+    assert sorted(report.suspect) == [0, 1, 2]  # (renumbered too: the chunk's count is lost)
+    assert report.losses[0].where == f"chunk at byte {at}"
+
+
+def test_a_bz2_stream_damaged_in_a_block_gives_the_blocks_before_it():
+    """bz2 checks each block as it ends: the blocks before the damaged one are what the
+    stream held, byte for byte, and nothing of the damaged one is given."""
+    from tisem.io.ros1_linear import _inflated_before_damage
+
+    data = np.random.default_rng(0).bytes(350_000)
+    stream = bytearray(bz2.compress(data, compresslevel=1))  # (blocks of 100 kB)
+    stream[-2_000] ^= 0x10  # in the last block
+    prefix = _inflated_before_damage(b"bz2", stream, len(data))
+    assert len(prefix) >= 290_000 and data.startswith(prefix) and len(prefix) < len(data)
+    assert _inflated_before_damage(b"bz2", stream[:10], len(data)) == b""
+    assert _inflated_before_damage(b"none", data, 100) == data[:100]

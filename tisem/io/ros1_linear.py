@@ -31,7 +31,7 @@ from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 from rosbags.typesys.msg import normalize_msgtype
 
 from tisem.errors import DatasetError
-from tisem.io.mcap_items import unknown_loss
+from tisem.io.mcap_items import Unvouched, unknown_loss
 from tisem.io.mcap_records import LostMessages, McapMessage, ReadReport
 from tisem.io.mcap_report import Loss
 
@@ -46,6 +46,7 @@ OP_FIELD = b"\x04\x00\x00\x00op="
 FIELDS_BEFORE_OP = 256
 MAX_HEADER_BYTES = 1 << 16  # the headers rosbag writes are tens of bytes
 _BAG_HEADER_BYTES = 1 << 13  # the bag header record, padded to 4096 bytes
+_SALVAGE_STEP = 1 << 14  # compressed bytes per step when inflating a damaged chunk
 
 
 class Malformed(ValueError):
@@ -106,6 +107,18 @@ def _records(buf, at: int, end: int) -> Iterator[tuple[int, dict[str, bytes], An
             raise Malformed(f"a record's {stop - start} data bytes past the end")
         yield _op(fields), fields, memoryview(buf)[start:stop], at
         at = stop
+
+
+def _whole_records(buf) -> list[tuple[int, dict[str, bytes], Any]]:
+    """(op, header fields, data) of the whole records at the start of buf, up to the first
+    that is not (the damage, in what a damaged chunk inflated to)."""
+    out = []
+    try:
+        for op, fields, data, _ in _records(buf, 0, len(buf)):
+            out.append((op, fields, data))
+    except Malformed:
+        pass
+    return out
 
 
 def _op(fields: dict[str, bytes]) -> int:
@@ -272,6 +285,27 @@ def _inflate(compression: bytes, data, size: int) -> tuple[bytes, str]:
     return out, "" if dec.eof else "its compressed stream does not end in it"
 
 
+def _inflated_before_damage(compression: bytes, data, size: int) -> bytes:
+    """What a chunk whose stream fails inflates to before the failure, at most `size` bytes
+    (bz2 checks each block as it ends: the blocks before a damaged one are whole)."""
+    if compression == b"none":
+        return bytes(data[:size])
+    if compression not in (b"bz2", b"lz4"):
+        return b""
+    dec = bz2.BZ2Decompressor() if compression == b"bz2" else lz4.frame.LZ4FrameDecompressor()
+    out = bytearray()
+    try:
+        for at in range(0, len(data), _SALVAGE_STEP):
+            out += dec.decompress(bytes(data[at : at + _SALVAGE_STEP]), max_length=size + 1)
+            while len(out) <= size and not dec.eof and not dec.needs_input:
+                out += dec.decompress(b"", max_length=size + 1 - len(out))
+            if len(out) > size or dec.eof:
+                break
+    except (OSError, EOFError, RuntimeError, ValueError):
+        pass  # (the damage: what came before it is kept)
+    return bytes(out[:size])
+
+
 class Ros1LinearRecords:
     """The Schema, Channel and message records of a ROS 1 bag, in file order (see the module
     docstring); `decoders` decodes its messages with the types its connections define."""
@@ -331,6 +365,8 @@ class Ros1LinearRecords:
             except (Malformed, OSError, EOFError, RuntimeError, ValueError) as exc:
                 if end <= size:  # a damaged record whose length holds: the walk goes on after it
                     yield unknown_loss(report, f"{kind} at byte {at}", str(exc))
+                    if op == OP_CHUNK:  # (the sensor's mount, in case it is nowhere else)
+                        yield from self._unvouched_statics(fields, data, f"{kind} at byte {at}")
                 elif op == OP_CHUNK and fields.get("compression") == b"none":
                     # its records, the format of the bag's own, were read to the file's end
                     yield unknown_loss(
@@ -376,6 +412,41 @@ class Ros1LinearRecords:
                 yield from self._record(op, inner, body, report)
         if not whole:
             raise Malformed("the file ends inside it (cut short)")
+
+    def _unvouched_statics(self, fields, data, where: str) -> Iterator[Unvouched]:
+        """The /tf_static messages among the whole records a chunk that does not inflate
+        still gives before its damage (`Unvouched`: read only where nothing else gives the
+        sensor's mount). Their connections are the chunk's own records, or the index's
+        copies; none of them is taken into the walk's."""
+        try:
+            size = _u32(fields, "size")
+        except Malformed:
+            return
+        if size > MAX_CHUNK_BYTES:
+            return
+        prefix = _inflated_before_damage(fields.get("compression", b""), data, size)
+        own: dict[int, tuple[str, str, bytes]] = {}
+        for op, inner, body in _whole_records(prefix):
+            try:
+                conn = _u32(inner, "conn")
+                if op == OP_CONNECTION:
+                    own[conn] = _described(inner, body)
+                    continue
+            except Malformed:
+                continue  # (a damaged record: the index's copy of a connection may serve)
+            described = own.get(conn) or next(self._maps._whole_copies(conn), None)
+            if op != OP_MESSAGE or described is None:
+                continue
+            topic, msgtype, definition = described
+            if not topic.rstrip("/").endswith("tf_static"):
+                continue
+            sec, nsec = struct.unpack("<II", inner.get("time", b"\0" * 8)[:8].ljust(8, b"\0"))
+            yield Unvouched(
+                where,
+                Channel(id=conn, topic=topic, schema_id=0, message_encoding="ros1", metadata={}),
+                Schema(id=0, name=msgtype, encoding="ros1msg", data=definition),
+                McapMessage(conn, sec * 10**9 + nsec, bytes(body), crc_checked=False),
+            )
 
     def _record(self, op: int, fields, data, report) -> Iterator:
         conn = _u32(fields, "conn")
