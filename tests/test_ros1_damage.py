@@ -153,8 +153,12 @@ def test_a_lost_connection_record_is_taken_from_the_index(recording):
     bag.write_bytes(bytes(data))
     scans, report = read(bag)
     assert same_clouds(scans, list(SemanticKittiSequence(seq_dir)), (1, 2, 3))
+    assert [s.index for s in scans] == [1, 2, 3]  # the index counts the chunk: numbers kept
     (loss,) = report.losses
-    assert loss.where == f"chunk at byte {at}" and loss.uncounted
+    assert loss.where == f"chunk at byte {at}" and loss.line().endswith(
+        ": 1 message(s) lost (1 on /velodyne_points)"
+    )
+    assert report.suspect == {}
 
 
 def test_a_damaged_message_definition_is_taken_from_the_index(recording):
@@ -249,7 +253,13 @@ def test_a_damaged_first_chunk_s_sensor_mount_is_read_and_every_scan_marked(tmp_
     bag.write_bytes(bytes(data))
     scans, report = read(bag)
     assert same_clouds(scans, list(SemanticKittiSequence(seq)), [1, 2, 3])
-    assert sorted(report.suspect) == [0, 1, 2]  # (renumbered too: the chunk's count is lost)
+    assert [s.index for s in scans] == [1, 2, 3]  # (the index counts the chunk's messages)
+    assert sorted(report.suspect) == [1, 2, 3]
+    assert set(report.suspect.values()) == {
+        "its pose uses a static transform read from a damaged chunk, whose bytes nothing "
+        f"vouches for (base_link -> velodyne from the chunk at byte {at}); --static-tf gives "
+        "it instead"
+    }
     assert report.losses[0].where == f"chunk at byte {at}"
 
 

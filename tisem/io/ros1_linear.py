@@ -194,6 +194,35 @@ def _index_position(buf, size: int) -> int:
         return 0
 
 
+def _index_section(buf, size: int) -> tuple[dict[int, str], dict[int, Counter]] | None:
+    """(conn -> topic, chunk position -> messages per conn) from a closed bag's index section
+    (its connection and chunk info records), or None where the bag has no index or it does
+    not parse whole."""
+    at = _index_position(buf, size)
+    if not len(MAGIC) < at < size:
+        return None
+    topics: dict[int, str] = {}
+    chunks: dict[int, Counter] = {}
+    try:
+        for op, fields, data, _ in _records(buf, at, size):
+            if op == OP_CONNECTION:
+                topics[_u32(fields, "conn")] = bytes(fields.get("topic", b"")).decode("utf-8")
+            elif op == OP_CHUNK_INFO:
+                pairs = _u32(fields, "count")
+                if len(data) != 8 * pairs:
+                    return None
+                (pos,) = struct.unpack("<Q", fields.get("chunk_pos", b""))
+                counts = chunks.setdefault(pos, Counter())
+                for k in range(pairs):
+                    conn, n = struct.unpack_from("<II", data, 8 * k)
+                    counts[conn] += n
+    except (ValueError, struct.error, UnicodeDecodeError):  # (Malformed is one)
+        return None
+    if any(set(counts) - set(topics) for counts in chunks.values()):
+        return None
+    return topics, chunks
+
+
 def indexed_topic_counts(path: str | Path) -> Counter | None:
     """Messages per topic that a closed ROS 1 bag's index section lists (its chunk info
     records' counts, by the topics of its connection records), or None where the bag has no
@@ -201,32 +230,19 @@ def indexed_topic_counts(path: str | Path) -> Counter | None:
     try:
         with open(path, "rb") as f:
             size = f.seek(0, 2)
-            f.seek(0)
-            head = f.read(_BAG_HEADER_BYTES)
-            at = _index_position(head, len(head))
-            if not len(MAGIC) < at < size:
+            if size <= len(MAGIC):
                 return None
-            f.seek(at)
-            index = f.read()  # connection and chunk info records: tens of bytes per chunk
-        topics: dict[int, str] = {}
-        per_conn: Counter = Counter()
-        for op, fields, data, _ in _records(index, 0, len(index)):
-            if op == OP_CONNECTION:
-                topics[_u32(fields, "conn")] = fields.get("topic", b"").decode("utf-8")
-            elif op == OP_CHUNK_INFO:
-                pairs = _u32(fields, "count")
-                if len(data) != 8 * pairs:
-                    return None
-                for k in range(pairs):
-                    conn, n = struct.unpack_from("<II", data, 8 * k)
-                    per_conn[conn] += n
-    except (OSError, ValueError, struct.error, UnicodeDecodeError):  # (Malformed is one)
+            with mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ) as buf:
+                index = _index_section(buf, size)
+    except OSError:
         return None
-    if set(per_conn) - set(topics):
+    if index is None:
         return None
+    topics, chunks = index
     counts = Counter()
-    for conn, n in per_conn.items():
-        counts[topics[conn]] += n
+    for per_conn in chunks.values():
+        for conn, n in per_conn.items():
+            counts[topics[conn]] += n
     return counts
 
 
@@ -336,6 +352,7 @@ class Ros1LinearRecords:
 
     def _walk(self, buf, size: int, report: ReadReport) -> Iterator:
         self._maps = _Connections(lambda: _connection_records(buf, size))
+        self._buf, self._size, self._index = buf, size, None  # (the index: read at need)
         at = len(MAGIC)
         cut = False  # (a loss already says that the rest of the file is lost)
         while at < size:
@@ -364,9 +381,12 @@ class Ros1LinearRecords:
                     yield from self._record(op, fields, data, report)
             except (Malformed, OSError, EOFError, RuntimeError, ValueError) as exc:
                 if end <= size:  # a damaged record whose length holds: the walk goes on after it
-                    yield unknown_loss(report, f"{kind} at byte {at}", str(exc))
-                    if op == OP_CHUNK:  # (the sensor's mount, in case it is nowhere else)
+                    if op == OP_CHUNK:
+                        yield from self._lost_chunk(at, f"{kind} at byte {at}", str(exc), report)
+                        # (the sensor's mount, in case it is nowhere else)
                         yield from self._unvouched_statics(fields, data, f"{kind} at byte {at}")
+                    else:
+                        yield unknown_loss(report, f"{kind} at byte {at}", str(exc))
                 elif op == OP_CHUNK and fields.get("compression") == b"none":
                     # its records, the format of the bag's own, were read to the file's end
                     yield unknown_loss(
@@ -412,6 +432,24 @@ class Ros1LinearRecords:
                 yield from self._record(op, inner, body, report)
         if not whole:
             raise Malformed("the file ends inside it (cut short)")
+
+    def _lost_chunk(self, at: int, where: str, why: str, report: ReadReport) -> Iterator:
+        """The loss of the whole chunk at byte `at`, counted where the bag's index lists what
+        it held (its chunk info record, per connection), so that the scans after it keep
+        their numbers; else of an unknown number of messages."""
+        if self._index is None:
+            self._index = _index_section(self._buf, self._size) or ({}, {})
+        held = self._index[1].get(at) or Counter()
+        # (a connection whose record was in the chunk: from the index's copy, yielded before
+        # its lost messages, as the chunk would have)
+        yield from self._maps.known(sorted(held))
+        if not held or any(conn not in self._maps.channels for conn in held):
+            yield unknown_loss(report, where, why)
+            return
+        topics = Counter({self._maps.channels[conn]: n for conn, n in held.items()})
+        report.losses.append(Loss(where, why, sum(held.values()), topics=topics))
+        for conn, n in sorted(held.items()):
+            yield LostMessages(conn, n, where)
 
     def _unvouched_statics(self, fields, data, where: str) -> Iterator[Unvouched]:
         """The /tf_static messages among the whole records a chunk that does not inflate
@@ -513,6 +551,19 @@ class _Connections:
                 continue
             if _parses(copy[2], copy[1]):
                 yield copy
+
+    def known(self, conns: list[int]) -> Iterator[Schema | Channel]:
+        """The Schema and Channel of each connection not met yet, from a whole copy of its
+        record (none where it has none: `channels` then lacks it)."""
+        for conn in conns:
+            if conn in self.channels:
+                continue
+            for fields, data in self.copies().get(conn, []):
+                try:
+                    yield from self.connect(conn, fields, data)
+                    break
+                except Malformed:
+                    continue
 
     def from_copy(self, conn: int) -> Iterator[Schema | Channel | LostMessages]:
         """The connection from another copy of its record; else the message is lost (on a
