@@ -568,14 +568,10 @@ class _Connections:
     def from_copy(self, conn: int) -> Iterator[Schema | Channel | LostMessages]:
         """The connection from another copy of its record; else the message is lost (on a
         channel no record names: the scans after it are numbered as suspect)."""
-        for fields, data in self.copies().get(conn, []):
-            try:
-                yield from self.connect(conn, fields, data)
-                return
-            except Malformed:
-                continue
-        self.unknown[conn] += 1
-        yield LostMessages(conn, 1, f"connection {conn}")
+        yield from self.known([conn])
+        if conn not in self.channels:
+            self.unknown[conn] += 1
+            yield LostMessages(conn, 1, f"connection {conn}")
 
     def report_unknown(self, report: ReadReport) -> None:
         """The messages lost for want of their connection, one loss per connection."""
