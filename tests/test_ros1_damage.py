@@ -275,3 +275,34 @@ def test_a_bz2_stream_damaged_in_a_block_gives_the_blocks_before_it():
     assert len(prefix) >= 290_000 and data.startswith(prefix) and len(prefix) < len(data)
     assert _inflated_before_damage(b"bz2", stream[:10], len(data)) == b""
     assert _inflated_before_damage(b"none", data, 100) == data[:100]
+
+
+@pytest.mark.parametrize("op", [3, 4, 6])
+@pytest.mark.parametrize("header", ["a chunk's", "damaged too"])
+def test_a_chunk_whose_op_field_is_damaged_is_not_passed_over(recording, op, header):
+    """A flipped bit turns a chunk's op into a bag header's, an index data record's or a chunk
+    info record's, which a walk passes over, and its clouds with it. A header that is still a
+    chunk's (compression, size) is read as the chunk it is; one damaged beyond that is a
+    chunk lost, counted from the bag's index: either way the scans keep their numbers."""
+    seq_dir, messages, tmp = recording
+    name = f"op{op}_{header.split()[0]}"
+    data = bytearray(ros1_bag(tmp / f"{name}.bag", messages, BZ2, chunk_bytes=4096).read_bytes())
+    at, _, _ = chunks(bytes(data))[2]  # the third cloud's
+    op_at = bytes(data).index(b"op=\x05", at) + 3
+    data[op_at] = op
+    if header == "damaged too":
+        name_at = bytes(data).index(b"compression=", at)
+        data[name_at : name_at + 11] = b"compressiom"
+    bag = tmp / f"{name}_damaged.bag"
+    bag.write_bytes(bytes(data))
+    scans, report = read(bag)
+    expected = list(SemanticKittiSequence(seq_dir))
+    if header == "a chunk's":
+        assert same_clouds(scans, expected, range(4))
+        assert report.losses[0].where == f"chunk at byte {at}"
+        assert "its op field is damaged" in report.losses[0].what
+        return
+    assert [s.index for s in scans] == [0, 1, 3]
+    assert same_clouds(scans, expected, (0, 1, 3))
+    (loss,) = [x for x in report.losses if x.where == f"chunk at byte {at}"]
+    assert loss.messages == 2 and "the bag's index lists a chunk here" in loss.what

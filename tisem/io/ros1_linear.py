@@ -121,6 +121,23 @@ def _whole_records(buf) -> list[tuple[int, dict[str, bytes], Any]]:
     return out
 
 
+def _disguised_chunk(fields: dict[str, bytes], at: int, report: ReadReport) -> int | None:
+    """OP_CHUNK for a record whose op field is damaged but whose header is a chunk's (a
+    compression and a size: no other record has them), said in the report; else None. A
+    chunk read as an index data record or a chunk info record would be passed over, and its
+    messages with it, with nothing said."""
+    op = fields.get("op", b"")
+    if op == bytes([OP_CHUNK]) or "compression" not in fields or "size" not in fields:
+        return None
+    report.losses.append(
+        Loss(
+            f"chunk at byte {at}",
+            f"its op field is damaged ({bytes(op)!r}); read as the chunk its header is",
+        )
+    )
+    return OP_CHUNK
+
+
 def _op(fields: dict[str, bytes]) -> int:
     """A record's op; `Malformed` for a header without one that a bag holds (zeroed bytes
     parse as empty headers: the walk would step through them out of line with the records)."""
@@ -358,7 +375,7 @@ class Ros1LinearRecords:
         while at < size:
             try:
                 fields, start, end = _framed(buf, at, size, "the file ends inside it (cut short)")
-                op = _op(fields)
+                op = _disguised_chunk(fields, at, report) or _op(fields)
             except Malformed as exc:  # the chain of record lengths is broken here
                 lost, at = _lost_up_to_next(report, buf, f"record at byte {at}", exc, at, size)
                 cut = at >= size
@@ -379,6 +396,12 @@ class Ros1LinearRecords:
                     raise Malformed("the file ends inside it (cut short)")
                 elif op in (OP_CONNECTION, OP_MESSAGE):
                     yield from self._record(op, fields, data, report)
+                elif at in self._chunk_counts():  # (a chunk whose op and header are damaged)
+                    why = (
+                        f"its header is damaged (it reads as op {op}); the bag's index lists a "
+                        "chunk here"
+                    )
+                    yield from self._lost_chunk(at, f"chunk at byte {at}", why, report)
             except (Malformed, OSError, EOFError, RuntimeError, ValueError) as exc:
                 if end <= size:  # a damaged record whose length holds: the walk goes on after it
                     if op == OP_CHUNK:
@@ -433,13 +456,18 @@ class Ros1LinearRecords:
         if not whole:
             raise Malformed("the file ends inside it (cut short)")
 
+    def _chunk_counts(self) -> dict[int, Counter]:
+        """Chunk position -> messages per connection, from the bag's index section (read the
+        first time damage asks; empty for a bag without one)."""
+        if self._index is None:
+            self._index = _index_section(self._buf, self._size) or ({}, {})
+        return self._index[1]
+
     def _lost_chunk(self, at: int, where: str, why: str, report: ReadReport) -> Iterator:
         """The loss of the whole chunk at byte `at`, counted where the bag's index lists what
         it held (its chunk info record, per connection), so that the scans after it keep
         their numbers; else of an unknown number of messages."""
-        if self._index is None:
-            self._index = _index_section(self._buf, self._size) or ({}, {})
-        held = self._index[1].get(at) or Counter()
+        held = self._chunk_counts().get(at) or Counter()
         # (a connection whose record was in the chunk: from the index's copy, yielded before
         # its lost messages, as the chunk would have)
         yield from self._maps.known(sorted(held))
