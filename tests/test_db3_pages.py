@@ -13,7 +13,7 @@ import pytest
 
 pytest.importorskip("rosbags", reason="the rosbags package (tisem[mcap]) is not installed")
 
-from tisem.io.db3_pages import Columns, LeafRows, _varint  # noqa: E402
+from tisem.io.db3_pages import Columns, LeafRows, _message, _varint  # noqa: E402
 from tisem.io.db3_rows import Db3RowRecords  # noqa: E402
 from tisem.io.mcap_records import LostMessages, McapMessage, ReadReport  # noqa: E402
 from tisem.testing.bag_damage import write_db3  # noqa: E402
@@ -156,3 +156,36 @@ def test_a_stale_page_that_disagrees_with_the_live_one_gives_no_row(tmp_path):
     with LeafRows(db3, columns_of(db3)) as pages:
         assert pages.get(1) is None
         assert pages.get(2) is not None and pages.get(2)[2] == rows[1][3]
+
+
+def test_deleted_rows_on_freed_pages_are_not_read(tmp_path):
+    """Rows deleted with their pages (SQLite's secure_delete off, as upstream builds have it)
+    still sit on the freelist's pages, cells and all: they are no rows."""
+    rows = messages(600, lambda rng: 1_500)
+    db3 = write_db3(tmp_path / "bag", rows)
+    with sqlite3.connect(db3) as db:
+        db.execute("PRAGMA secure_delete = OFF")
+        db.execute("DELETE FROM messages WHERE id BETWEEN 100 AND 400")
+        (free,) = db.execute("PRAGMA freelist_count").fetchone()
+    db.close()
+    assert free > 50
+    data = db3.read_bytes()
+    stale = [  # the freed leaves that still list deleted rows
+        n
+        for n in range(2, len(data) // PAGE + 1)
+        if data[(n - 1) * PAGE] == 0x0D and struct.unpack_from(">H", data, (n - 1) * PAGE + 3)[0]
+    ]
+    with LeafRows(db3, columns_of(db3)) as pages:
+        assert all(pages.get(i) is None for i in range(100, 401))
+        assert pages.get(99) == (1, rows[98][2], rows[98][3])  # (topic ids: /tf 1, clouds 2)
+        assert pages.get(401) is not None
+    assert len(stale) > free // 2  # (what the freelist walk keeps out)
+
+
+def test_a_record_header_longer_than_its_record_is_no_row():
+    cols = Columns(4, 0, 1, 2, 3)
+    assert _message(b"\x81\x00\x00", cols) is None  # (a header of 128 bytes in 3)
+    # (serial types: NULL, two 1-byte integers, then 16 = a blob of 2 bytes, 17 = text of 2)
+    assert _message(b"\x05\x00\x01\x01\x11\x07\x08ab", cols) is None  # (text: no blob)
+    assert _message(b"\x05\x00\x01\x01\x10\x07\x08abc", cols) is None  # (a byte too many)
+    assert _message(b"\x05\x00\x01\x01\x10\x07\x08ab", cols) == (7, 8, b"ab")

@@ -217,6 +217,27 @@ def test_a_damaged_first_chunk_s_sensor_mount_is_read_and_every_scan_marked(
     )
 
 
+def test_a_damaged_first_chunk_s_sensor_mount_in_a_rosbag2_folder(tmp_path):
+    """The same in a rosbag2 folder of MCAP files, read file after file: the mount read from
+    the damaged chunk goes through that reader too."""
+    from tisem.io.bag_open import open_scan_reader
+
+    folder = tmp_path / "bag"
+    folder.mkdir()
+    path = folder / "bag_0.mcap"
+    truth = write_synthetic_log(
+        path, n_scans=N_SCANS, n_points=12_000, compression="zstd", chunk_size=8_000
+    )
+    chunk = chunk_of_scan(path, truth, 0)
+    flip(path, chunk.chunk_start_offset + chunk.chunk_length - 100)
+    reader = open_scan_reader(folder)
+    items = list(reader)
+    assert isinstance(items[0], SkippedScan)
+    assert check_scans_against_truth(items, truth) == list(range(1, N_SCANS))
+    assert sorted(reader.report.suspect) == list(range(1, N_SCANS))
+    assert "a static transform read from a damaged chunk" in reader.report.suspect[1]
+
+
 @pytest.mark.parametrize("summary", ["intact", "cut off"])
 def test_a_damaged_chunk_length_field_loses_at_most_that_chunk(tmp_path, summary):
     path = tmp_path / "log.mcap"

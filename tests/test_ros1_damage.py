@@ -20,13 +20,14 @@ from test_rosbag_read import ros1_bag  # noqa: E402
 
 from tisem.io.bag_open import open_scan_reader  # noqa: E402
 from tisem.io.bag_records import RosbagRecords  # noqa: E402
-from tisem.io.mcap_reader import McapOptions  # noqa: E402
+from tisem.io.mcap_reader import McapOptions, McapScanReader  # noqa: E402
 from tisem.io.mcap_records import LostMessages, ReadReport  # noqa: E402
 from tisem.io.ros1_linear import (  # noqa: E402
     MAGIC,
     OP_CHUNK,
     OP_CONNECTION,
     OP_MESSAGE,
+    Ros1LinearRecords,
     _inflate,
     _records,
 )
@@ -306,3 +307,42 @@ def test_a_chunk_whose_op_field_is_damaged_is_not_passed_over(recording, op, hea
     assert same_clouds(scans, expected, (0, 1, 3))
     (loss,) = [x for x in report.losses if x.where == f"chunk at byte {at}"]
     assert loss.messages == 2 and "the bag's index lists a chunk here" in loss.what
+
+
+def test_a_chunk_damaged_after_some_of_it_was_read_is_not_counted_whole(tmp_path):
+    """A damaged connection record in the middle of a chunk (a topic first heard there)
+    stops the chunk after the messages before it were read: the index's count of the whole
+    chunk would count those twice, so the loss is of an unknown number, and the scans after
+    it are marked, not renumbered unmarked."""
+    from rosbags.typesys import Stores, get_typestore
+    from test_mcap_kitti import write_tiny_sequence
+    from test_rosbag_read import recorded_messages
+
+    humble = get_typestore(Stores.ROS2_HUMBLE)
+    text = humble.types["std_msgs/msg/String"]
+    seq = write_tiny_sequence(tmp_path / "seq", n_scans=9, n_points=500)
+    messages = recorded_messages(seq, tmp_path)
+    clouds = [m for m in messages if m[0] == "/velodyne_points"]
+    late = humble.serialize_cdr(text(data="hi"), "std_msgs/msg/String")
+    messages = sorted(
+        [*messages, ("/late", "std_msgs/msg/String", clouds[1][2] + 1, late)], key=lambda m: m[2]
+    )
+    data = bytearray(ros1_bag(tmp_path / "a.bag", messages, None, chunk_bytes=40_000).read_bytes())
+    first = chunks(bytes(data))[0][0]
+    k = bytes(data).index(b"topic=/late", first)
+    field = bytes(data).index(b"message_definition=", k) - 4  # (its 4-byte length)
+    data[field + 3] ^= 0x40  # a field length far past the record
+    bag = tmp_path / "b.bag"
+    bag.write_bytes(bytes(data))
+    # (rosbags reads this bag whole, by its index: the walk is what reads around damage)
+    records = Ros1LinearRecords(bag)
+    reader = McapScanReader(
+        bag, McapOptions(gt_field="gt_label"), records=records, decoders=records.decoders
+    )
+    scans = [s for s in reader if isinstance(s, Scan)]
+    expected = list(SemanticKittiSequence(seq))
+    assert len(scans) == 8
+    for scan in scans:  # every scan is the intact one of its number, or marked
+        same = np.array_equal(scan.points_sensor, expected[scan.index].points_sensor)
+        assert same or scan.index in reader.report.suspect
+    assert sum(loss.uncounted for loss in reader.report.losses) == 1

@@ -27,7 +27,7 @@ import zstandard
 from mcap.records import Channel, Schema
 
 from tisem.errors import DatasetError
-from tisem.io.mcap_items import unknown_loss
+from tisem.io.mcap_items import Unvouched, unknown_loss
 from tisem.io.mcap_records import LostMessages, McapMessage, McapRecords, ReadReport
 from tisem.io.mcap_report import Loss
 
@@ -93,11 +93,13 @@ class SplitMcapRecords:
             # each file is checked against its own summary: counts must not mix across files
             own = ReadReport(path=str(path))
             local_schemas: dict[int, int] = {}
+            schemas_here: dict[int, Schema] = {}  # (by the file's own ids)
             local_channels: dict[int, int] = {}
             topics: dict[int, str] = {}  # local channel id -> topic
             cdr: set[int] = set()  # local ids of cdr channels
             for rec in part.records(own):
                 if isinstance(rec, Schema):
+                    schemas_here[rec.id] = rec
                     key = (rec.name, rec.encoding, bytes(rec.data))
                     new = key not in schema_ids
                     local_schemas[rec.id] = schema_ids.setdefault(key, len(schema_ids) + 1)
@@ -133,6 +135,12 @@ class SplitMcapRecords:
                         where = f"message at log time {rec.log_time * 1e-9:.3f} s"
                         lost = _lost_message(own, topics[rec.channel_id], channel, where, exc)
                         yield dataclasses.replace(lost, where=f"{path.name}: {where}")
+                elif isinstance(rec, Unvouched):  # (its schema resolved by the file's own ids)
+                    yield dataclasses.replace(
+                        rec,
+                        schema=rec.schema or schemas_here.get(rec.channel.schema_id),
+                        where=f"{path.name}: {rec.where}",
+                    )
                 else:
                     channel = None if rec.channel_id is None else local_channels.get(rec.channel_id)
                     yield dataclasses.replace(

@@ -14,6 +14,7 @@ table's shape, and whose overflow chain runs whole through pages the file holds,
 
 from __future__ import annotations
 
+import bisect
 import mmap
 from dataclasses import dataclass
 from pathlib import Path
@@ -86,7 +87,7 @@ class _File:
     def payload(self, at: int, local: int, total: int, end: int) -> bytes | None:
         """The payload of a cell whose local part starts at `at`: the local bytes and its
         overflow chain, None where the chain leaves the file, loops, or ends short."""
-        if at + local > end:
+        if at + local > end or total > local + self.pages * (self.usable - 4):
             return None
         parts = [self.buf[at : at + local]]
         got = local
@@ -106,34 +107,40 @@ class _File:
                 nxt = int.from_bytes(self.buf[start : start + 4], "big")
         return b"".join(parts)
 
-    def cells(self, number: int):
-        """(rowid, payload size, offset of its local part, page end) of each cell of table
-        leaf page `number`; nothing for a page of another kind or a damaged header."""
+    def leaf(self, number: int) -> tuple[int, int] | None:
+        """(where its cell pointers start, how many) of table leaf page `number`, None for a
+        page of another kind or a header that does not fit its page."""
         base = (number - 1) * self.page
         head = base + (HEADER if number == 1 else 0)
-        end = base + self.usable
         if self.buf[head] != TABLE_LEAF:
-            return
+            return None
         count = int.from_bytes(self.buf[head + 3 : head + 5], "big")
-        pointers = head + 8
-        if pointers + 2 * count > end:
-            return
-        for i in range(count):
-            at = base + int.from_bytes(self.buf[pointers + 2 * i : pointers + 2 * i + 2], "big")
-            if not pointers + 2 * count <= at < end:
-                continue
-            try:
-                payload, at = _varint(self.buf, at, end)
-                rowid, at = _varint(self.buf, at, end)
-            except ValueError:
-                continue
-            yield rowid, payload, at, end
+        if head + 8 + 2 * count > base + self.usable:
+            return None
+        return head + 8, count
+
+    def cell(self, number: int, pointers: int, count: int, i: int):
+        """(rowid, payload size, offset of its local part, page end) of cell i of a table leaf
+        page (`leaf`), None where its pointer or header leaves the page."""
+        base = (number - 1) * self.page
+        end = base + self.usable
+        at = base + int.from_bytes(self.buf[pointers + 2 * i : pointers + 2 * i + 2], "big")
+        if not pointers + 2 * count <= at < end:
+            return None
+        try:
+            payload, at = _varint(self.buf, at, end)
+            rowid, at = _varint(self.buf, at, end)
+        except ValueError:
+            return None
+        return rowid, payload, at, end
 
 
 def _message(record: bytes, columns: Columns) -> tuple[int, int, bytes] | None:
     """(topic_id, timestamp, data) of a messages table record, None for another shape."""
     try:
         size, at = _varint(record, 0, len(record))
+        if size > len(record):
+            return None
         serials = []
         while at < size:
             serial, at = _varint(record, at, size)
@@ -163,15 +170,39 @@ def _message(record: bytes, columns: Columns) -> tuple[int, int, bytes] | None:
     return topic_id, timestamp, bytes(data)
 
 
+def _free_pages(file: _File) -> set[int]:
+    """The pages on the database's freelist (header bytes 32-35: its first trunk page; each
+    trunk: the next trunk, a count, the leaf page numbers), as far as the file holds them
+    whole; the walk stops at a loop or a count that does not fit its trunk."""
+    free: set[int] = set()
+    trunk = int.from_bytes(file.buf[32:36], "big")
+    while 1 <= trunk <= file.pages and trunk not in free:
+        free.add(trunk)
+        at = (trunk - 1) * file.page
+        nxt = int.from_bytes(file.buf[at : at + 4], "big")
+        count = int.from_bytes(file.buf[at + 4 : at + 8], "big")
+        if 8 + 4 * count > file.usable:
+            break
+        for k in range(count):
+            free.add(int.from_bytes(file.buf[at + 8 + 4 * k : at + 12 + 4 * k], "big"))
+        trunk = nxt
+    return free
+
+
 class LeafRows:
     """The messages table's rows on the file's table leaf pages, by id (`get`). Opening it
-    passes over every page once and notes where each cell is; a row's bytes are read when
-    asked for, so a recording of any size costs its cells' places, not its data."""
+    passes over every page once and notes each leaf's first and last row id (a leaf's cells
+    are in id order): a recording of any size costs a few numbers per page, and a row's bytes
+    are read when asked for. Pages on the freelist are left out: they hold deleted rows."""
+
+    # a lookup checks at most this many leaves whose id ranges hold the id (rosbag2's leaves
+    # hold ranges one after another; more means damage, or another table's page)
+    MAX_CANDIDATES = 64
 
     def __init__(self, path: Path, columns: Columns) -> None:
         self.columns = columns
-        self._places: dict[int, list[tuple[int, int, int]]] = {}
         self._file = None
+        self._firsts, self._lasts, self._reach, self._pages = [], [], [], []
         with open(path, "rb") as f:
             try:
                 buf = mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ)
@@ -179,24 +210,55 @@ class LeafRows:
                 return
         page = int.from_bytes(buf[16:18], "big") if len(buf) >= HEADER else 0
         page = 65536 if page == 1 else page
-        if page < 512 or page & (page - 1) or buf[20] >= page - 480:
+        if page < 512 or page & (page - 1) or buf[20] > page - 480:
             buf.close()
             return
-        self._file = _File(buf, page, page - buf[20])
-        for number in range(1, self._file.pages + 1):
-            for rowid, size, at, end in self._file.cells(number):
-                self._places.setdefault(rowid, []).append((size, at, end))
+        self._file = file = _File(buf, page, page - buf[20])
+        free = _free_pages(file)
+        ranges = []
+        for number in range(1, file.pages + 1):
+            leaf = None if number in free else file.leaf(number)
+            if leaf is None or leaf[1] == 0:
+                continue
+            first = file.cell(number, *leaf, 0)
+            last = file.cell(number, *leaf, leaf[1] - 1)
+            if first is not None and last is not None and first[0] <= last[0]:
+                ranges.append((first[0], last[0], number))
+        ranges.sort()
+        reach = -1
+        for first, last, number in ranges:
+            reach = max(reach, last)  # (the largest last id of this leaf and those before it)
+            self._firsts.append(first)
+            self._lasts.append(last)
+            self._reach.append(reach)
+            self._pages.append(number)
+
+    def _leaves(self, rowid: int) -> list[int]:
+        """The leaves whose id range holds `rowid` (at most MAX_CANDIDATES)."""
+        found = []
+        k = bisect.bisect_right(self._firsts, rowid) - 1
+        while k >= 0 and self._reach[k] >= rowid and len(found) < self.MAX_CANDIDATES:
+            if self._lasts[k] >= rowid:
+                found.append(self._pages[k])
+            k -= 1
+        return found
 
     def get(self, rowid: int) -> tuple[int, int, bytes] | None:
         """(topic_id, timestamp, data) of row `rowid`, None where no page holds it whole, or
         two pages hold different rows of that id (a stale page beside the live one: neither
         can be trusted)."""
         rows = set()
-        for size, at, end in self._places.get(rowid, ()):
-            record = self._file.payload(at, self._file.local_size(size), size, end)
-            row = None if record is None else _message(record, self.columns)
-            if row is not None:  # (else another table's cell, or one whose data is gone)
-                rows.add(row)
+        for number in self._leaves(rowid):
+            pointers, count = self._file.leaf(number)
+            for i in range(count):  # (a few cells a page: rosbag2 rows are large)
+                cell = self._file.cell(number, pointers, count, i)
+                if cell is None or cell[0] != rowid:
+                    continue
+                _, size, at, end = cell
+                record = self._file.payload(at, self._file.local_size(size), size, end)
+                row = None if record is None else _message(record, self.columns)
+                if row is not None:  # (else another table's cell, or one whose data is gone)
+                    rows.add(row)
         return rows.pop() if len(rows) == 1 else None
 
     def close(self) -> None:

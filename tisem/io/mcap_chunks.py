@@ -131,21 +131,27 @@ def inflate(head: ChunkHeader, complete: bool = True) -> bytes | memoryview:
 
 def _prefix(head: ChunkHeader) -> bytes | memoryview:
     """What a chunk that failed its checks inflates to before its damage stops the
-    decompressor, at most its declared size: the records written before the damage."""
+    decompressor, at most its declared size. That is the chunk's first records, and where
+    the decompressor does not notice the damage (a flipped literal), the damaged bytes too."""
     if head.compression == "":
         return head.data[: head.size]
     out = bytearray()
     try:
-        if head.compression == "zstd":
-            dobj = zstandard.ZstdDecompressor().decompressobj()
-            for at in range(0, len(head.data), _CUT_STEP):
-                out += dobj.decompress(bytes(head.data[at : at + _CUT_STEP]))
-                if len(out) >= head.size:
-                    break
-        elif head.compression == "lz4":
-            for piece in _lz4_pieces(head.data):
+        if head.compression == "zstd":  # (read in bounded pieces: an error loses its piece)
+            reader = zstandard.ZstdDecompressor().stream_reader(bytes(head.data))
+            while len(out) < head.size and (
+                piece := reader.read(min(_CUT_STEP, head.size - len(out)))
+            ):
                 out += piece
-                if len(out) >= head.size:
+        elif head.compression == "lz4":  # (fed in steps: an error loses only its step)
+            dec = lz4.frame.LZ4FrameDecompressor()
+            for at in range(0, len(head.data), _CUT_STEP):
+                out += dec.decompress(
+                    bytes(head.data[at : at + _CUT_STEP]), max_length=head.size + 1
+                )
+                while len(out) <= head.size and not dec.eof and not dec.needs_input:
+                    out += dec.decompress(b"", max_length=head.size + 1 - len(out))
+                if len(out) >= head.size or dec.eof:
                     break
     except UNTRUSTED:
         pass  # (the damage: what came before it is kept)

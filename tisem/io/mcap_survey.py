@@ -345,19 +345,25 @@ class Survey:
             self.tf.add(parent, child or child_default, t, xyz, q)
             if fox:
                 fox_children.add((child or child_default).lstrip("/"))
+        notes = []
         if fox_children:
             promoted = self.tf.promote_constant_edges(fox_children)
             if promoted:
-                self.report.notes.append(
+                notes.append(
                     f"foxglove transforms that never change were taken as "
                     f"static: {', '.join(sorted(promoted))}"
                 )
-        self.report.notes += [
+        notes += [
             f"tf: {given[child]} -> {child} from --static-tf, in place of the recording's "
             f"{n} transform(s) of {child}"
             for child, n in replaced.items()
         ]
-        self.report.notes += [f"tf: {w}" for w in self.tf.warnings]
+        notes += [f"tf: {w}" for w in self.tf.warnings]
+        # (built again with a mount read from damage, `_mount_from_damage`: its notes once)
+        for note in getattr(self, "_tf_notes", []):
+            self.report.notes.remove(note)
+        self._tf_notes = notes
+        self.report.notes += notes
 
     def _mount_from_damage(
         self, samples: list, unvouched: list[Unvouched], schemas: dict, decoders

@@ -121,6 +121,20 @@ def _whole_records(buf) -> list[tuple[int, dict[str, bytes], Any]]:
     return out
 
 
+def _index_data_after(buf, end: int, size: int) -> Counter:
+    """Messages per connection that the index data records right after a chunk (ending at
+    `end`) list: rosbag writes one per connection of the chunk. Empty where none follows."""
+    counts = Counter()
+    try:
+        for op, fields, _, _ in _records(buf, end, size):
+            if op != OP_INDEX_DATA:
+                break
+            counts[_u32(fields, "conn")] += _u32(fields, "count")
+    except Malformed:
+        pass
+    return counts
+
+
 def _disguised_chunk(fields: dict[str, bytes], at: int, report: ReadReport) -> int | None:
     """OP_CHUNK for a record whose op field is damaged but whose header is a chunk's (a
     compression and a size: no other record has them), said in the report; else None. A
@@ -136,6 +150,11 @@ def _disguised_chunk(fields: dict[str, bytes], at: int, report: ReadReport) -> i
         )
     )
     return OP_CHUNK
+
+
+def _static_only(described: tuple[str, str, bytes]) -> tuple[str, str, bytes] | None:
+    """A connection's (topic, type, definition) if its topic is /tf_static's, else None."""
+    return described if described[0].rstrip("/").endswith("tf_static") else None
 
 
 def _op(fields: dict[str, bytes]) -> int:
@@ -383,6 +402,7 @@ class Ros1LinearRecords:
                 continue
             data = memoryview(buf)[start : min(end, size)]
             kind = "chunk" if op == OP_CHUNK else "record"
+            read = 0  # messages of the chunk yielded (or marked lost) before damage stopped it
             try:
                 if op == OP_CHUNK:
                     # bytes inserted in an uncompressed one push its end past its length: no
@@ -391,7 +411,9 @@ class Ros1LinearRecords:
                         buf, end, size
                     )
                     where = f"chunk at byte {at}"
-                    yield from self._chunk(fields, data, end <= size, out_of_line, where, report)
+                    for item in self._chunk(fields, data, end <= size, out_of_line, where, report):
+                        read += isinstance(item, McapMessage | LostMessages)
+                        yield item
                 elif end > size:
                     raise Malformed("the file ends inside it (cut short)")
                 elif op in (OP_CONNECTION, OP_MESSAGE):
@@ -401,11 +423,12 @@ class Ros1LinearRecords:
                         f"its header is damaged (it reads as op {op}); the bag's index lists a "
                         "chunk here"
                     )
-                    yield from self._lost_chunk(at, f"chunk at byte {at}", why, report)
+                    yield from self._lost_chunk(at, end, f"chunk at byte {at}", why, report)
             except (Malformed, OSError, EOFError, RuntimeError, ValueError) as exc:
                 if end <= size:  # a damaged record whose length holds: the walk goes on after it
                     if op == OP_CHUNK:
-                        yield from self._lost_chunk(at, f"{kind} at byte {at}", str(exc), report)
+                        where = f"{kind} at byte {at}"
+                        yield from self._lost_chunk(at, end, where, str(exc), report, read > 0)
                         # (the sensor's mount, in case it is nowhere else)
                         yield from self._unvouched_statics(fields, data, f"{kind} at byte {at}")
                     else:
@@ -463,18 +486,26 @@ class Ros1LinearRecords:
             self._index = _index_section(self._buf, self._size) or ({}, {})
         return self._index[1]
 
-    def _lost_chunk(self, at: int, where: str, why: str, report: ReadReport) -> Iterator:
-        """The loss of the whole chunk at byte `at`, counted where the bag's index lists what
-        it held (its chunk info record, per connection), so that the scans after it keep
-        their numbers; else of an unknown number of messages."""
+    def _lost_chunk(
+        self, at: int, end: int, where: str, why: str, report: ReadReport, partly: bool = False
+    ) -> Iterator:
+        """The loss of the chunk at byte `at` (its record ends at `end`), counted where the
+        bag's index lists what it held (its chunk info record, per connection) and the index
+        data records after the chunk agree, so that the scans after it keep their numbers;
+        else, or where some of it was read (`partly`), of an unknown number of messages."""
         held = self._chunk_counts().get(at) or Counter()
+        after = _index_data_after(self._buf, end, self._size)
+        if partly or (after and after != held):
+            held = Counter()
         # (a connection whose record was in the chunk: from the index's copy, yielded before
         # its lost messages, as the chunk would have)
         yield from self._maps.known(sorted(held))
         if not held or any(conn not in self._maps.channels for conn in held):
             yield unknown_loss(report, where, why)
             return
-        topics = Counter({self._maps.channels[conn]: n for conn, n in held.items()})
+        topics = Counter()
+        for conn, n in held.items():  # (several connections can share a topic)
+            topics[self._maps.channels[conn]] += n
         report.losses.append(Loss(where, why, sum(held.values()), topics=topics))
         for conn, n in sorted(held.items()):
             yield LostMessages(conn, n, where)
@@ -491,21 +522,22 @@ class Ros1LinearRecords:
         if size > MAX_CHUNK_BYTES:
             return
         prefix = _inflated_before_damage(fields.get("compression", b""), data, size)
-        own: dict[int, tuple[str, str, bytes]] = {}
+        own: dict[int, tuple[str, str, bytes] | None] = {}  # conn -> a /tf_static one's
         for op, inner, body in _whole_records(prefix):
             try:
                 conn = _u32(inner, "conn")
                 if op == OP_CONNECTION:
-                    own[conn] = _described(inner, body)
+                    own[conn] = _static_only(_described(inner, body))
                     continue
             except Malformed:
                 continue  # (a damaged record: the index's copy of a connection may serve)
-            described = own.get(conn) or next(self._maps._whole_copies(conn), None)
-            if op != OP_MESSAGE or described is None:
+            if op != OP_MESSAGE:
                 continue
-            topic, msgtype, definition = described
-            if not topic.rstrip("/").endswith("tf_static"):
+            if conn not in own:  # (the index's copy, looked at once per connection)
+                own[conn] = self._maps.static_copy(conn)
+            if own[conn] is None:
                 continue
+            topic, msgtype, definition = own[conn]
             sec, nsec = struct.unpack("<II", inner.get("time", b"\0" * 8)[:8].ljust(8, b"\0"))
             yield Unvouched(
                 where,
@@ -579,6 +611,14 @@ class _Connections:
                 continue
             if _parses(copy[2], copy[1]):
                 yield copy
+
+    def static_copy(self, conn: int) -> tuple[str, str, bytes] | None:
+        """(topic, type, definition) of a whole copy of the connection's record if it is a
+        /tf_static connection (the topic is looked at before the definition is parsed)."""
+        for fields, _ in self.copies().get(conn, []):
+            if fields.get("topic", b"").rstrip(b"/").endswith(b"tf_static"):
+                return next(self._whole_copies(conn), None)
+        return None
 
     def known(self, conns: list[int]) -> Iterator[Schema | Channel]:
         """The Schema and Channel of each connection not met yet, from a whole copy of its
