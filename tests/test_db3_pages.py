@@ -189,3 +189,58 @@ def test_a_record_header_longer_than_its_record_is_no_row():
     assert _message(b"\x05\x00\x01\x01\x11\x07\x08ab", cols) is None  # (text: no blob)
     assert _message(b"\x05\x00\x01\x01\x10\x07\x08abc", cols) is None  # (a byte too many)
     assert _message(b"\x05\x00\x01\x01\x10\x07\x08ab", cols) == (7, 8, b"ab")
+
+
+def _leaf_of(data: bytes, rowid: int) -> tuple[int, int]:
+    """(page number, cells) of the table leaf that holds `rowid` among its first and last."""
+    for n in range(2, len(data) // PAGE + 1):
+        base = (n - 1) * PAGE
+        if data[base] != 0x0D:
+            continue
+        count = struct.unpack_from(">H", data, base + 3)[0]
+        ids = []
+        for i in range(count):
+            at = base + struct.unpack_from(">H", data, base + 8 + 2 * i)[0]
+            _, at = _varint(data, at, base + PAGE)
+            ids.append(_varint(data, at, base + PAGE)[0])
+        if ids and ids[0] <= rowid <= ids[-1] and count > 5:
+            return n, count
+    raise AssertionError(f"no leaf of several cells holds row {rowid}")
+
+
+@pytest.mark.parametrize("damage", ["first cell's pointer", "last cell's id"])
+def test_one_damaged_cell_of_a_leaf_costs_that_row_alone(tmp_path, damage):
+    """A leaf is indexed by every cell that parses, not by its first and last alone; a leaf
+    whose ids span far more than its cells (a damaged id) is looked at apart, so it neither
+    hides its other rows nor stretches the search for everyone else's."""
+    rows = messages(3_000, lambda rng: 150)
+    db3 = write_db3(tmp_path / "bag", rows)
+    data = bytearray(db3.read_bytes())
+    number, count = _leaf_of(bytes(data), 1_500)
+    base = (number - 1) * PAGE
+    if damage == "first cell's pointer":
+        struct.pack_into(">H", data, base + 8, 0)  # (into the page's header)
+    else:  # the last cell's rowid varint made 9 bytes of 0xff: an id near 2^64
+        at = base + struct.unpack_from(">H", data, base + 8 + 2 * (count - 1))[0]
+        _, at = _varint(data, at, base + PAGE)
+        data[at : at + 9] = b"\xff" * 9
+    db3.write_bytes(bytes(data))
+    with LeafRows(db3, columns_of(db3)) as pages:
+        got = {i: pages.get(i) for i in range(1, 3_001)}
+    lost = [i for i, row in got.items() if row is None]
+    assert len(lost) == 1
+    assert all(got[i] == (1 + (i - 1) % 2, rows[i - 1][2], rows[i - 1][3]) for i in got if got[i])
+
+
+def test_a_row_on_more_leaves_than_a_lookup_walks_is_no_row(tmp_path):
+    """Copies of a leaf beyond LeafRows.MAX_STEPS (damage, or pages copied into the file):
+    which is the live one cannot be told, so its rows are none; other rows read as before."""
+    rows = messages(3_000, lambda rng: 150)
+    db3 = write_db3(tmp_path / "bag", rows)
+    data = db3.read_bytes()
+    number, _ = _leaf_of(data, 1_500)
+    leaf = data[(number - 1) * PAGE : number * PAGE]
+    db3.write_bytes(data + leaf * (LeafRows.MAX_STEPS + 2))
+    with LeafRows(db3, columns_of(db3)) as pages:
+        assert pages.get(1_500) is None
+        assert pages.get(10) == (2, rows[9][2], rows[9][3])

@@ -173,10 +173,12 @@ def _message(record: bytes, columns: Columns) -> tuple[int, int, bytes] | None:
 def _free_pages(file: _File) -> set[int]:
     """The pages on the database's freelist (header bytes 32-35: its first trunk page; each
     trunk: the next trunk, a count, the leaf page numbers), as far as the file holds them
-    whole; the walk stops at a loop or a count that does not fit its trunk."""
+    whole and no further than the header's count of them (bytes 36-39); the walk stops at a
+    loop or a count that does not fit its trunk."""
     free: set[int] = set()
+    total = int.from_bytes(file.buf[36:40], "big")
     trunk = int.from_bytes(file.buf[32:36], "big")
-    while 1 <= trunk <= file.pages and trunk not in free:
+    while 1 <= trunk <= file.pages and trunk not in free and len(free) < total:
         free.add(trunk)
         at = (trunk - 1) * file.page
         nxt = int.from_bytes(file.buf[at : at + 4], "big")
@@ -191,18 +193,21 @@ def _free_pages(file: _File) -> set[int]:
 
 class LeafRows:
     """The messages table's rows on the file's table leaf pages, by id (`get`). Opening it
-    passes over every page once and notes each leaf's first and last row id (a leaf's cells
-    are in id order): a recording of any size costs a few numbers per page, and a row's bytes
-    are read when asked for. Pages on the freelist are left out: they hold deleted rows."""
+    passes over every page once and notes each leaf's smallest and largest row id: a
+    recording of any size costs a few numbers per page, and a row's bytes are read when asked
+    for. Pages on the freelist are left out: they hold deleted rows."""
 
-    # a lookup checks at most this many leaves whose id ranges hold the id (rosbag2's leaves
-    # hold ranges one after another; more means damage, or another table's page)
-    MAX_CANDIDATES = 64
+    # a lookup walks back over at most this many leaves whose ranges begin at or below the
+    # id; more that may hold it means damage (or copies), and the id is then ambiguous
+    MAX_STEPS = 64
 
     def __init__(self, path: Path, columns: Columns) -> None:
         self.columns = columns
         self._file = None
         self._firsts, self._lasts, self._reach, self._pages = [], [], [], []
+        # leaves whose ids span far more than their cells do (a damaged id): looked at by
+        # every lookup, kept out of the others' running reach, which they would stretch
+        self._wide: list[tuple[int, int, int]] = []
         with open(path, "rb") as f:
             try:
                 buf = mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ)
@@ -218,12 +223,16 @@ class LeafRows:
         ranges = []
         for number in range(1, file.pages + 1):
             leaf = None if number in free else file.leaf(number)
-            if leaf is None or leaf[1] == 0:
+            if leaf is None:
                 continue
-            first = file.cell(number, *leaf, 0)
-            last = file.cell(number, *leaf, leaf[1] - 1)
-            if first is not None and last is not None and first[0] <= last[0]:
-                ranges.append((first[0], last[0], number))
+            ids = [c[0] for i in range(leaf[1]) if (c := file.cell(number, *leaf, i))]
+            if not ids:
+                continue
+            first, last = min(ids), max(ids)
+            if last - first > max(64, 8 * len(ids)):  # (rosbag2 numbers rows 1, 2, ...)
+                self._wide.append((first, last, number))
+            else:
+                ranges.append((first, last, number))
         ranges.sort()
         reach = -1
         for first, last, number in ranges:
@@ -233,28 +242,49 @@ class LeafRows:
             self._reach.append(reach)
             self._pages.append(number)
 
-    def _leaves(self, rowid: int) -> list[int]:
-        """The leaves whose id range holds `rowid` (at most MAX_CANDIDATES)."""
-        found = []
+    def _leaves(self, rowid: int) -> list[int] | None:
+        """The leaves whose id range holds `rowid`; None where there may be more than
+        MAX_STEPS of them (ambiguous)."""
+        found = [number for first, last, number in self._wide if first <= rowid <= last]
         k = bisect.bisect_right(self._firsts, rowid) - 1
-        while k >= 0 and self._reach[k] >= rowid and len(found) < self.MAX_CANDIDATES:
+        for _ in range(self.MAX_STEPS):
+            if k < 0 or self._reach[k] < rowid:
+                return found
             if self._lasts[k] >= rowid:
                 found.append(self._pages[k])
             k -= 1
-        return found
+        return None if k >= 0 and self._reach[k] >= rowid else found
+
+    def _cells(self, number: int, rowid: int) -> list[tuple]:
+        """The cells of leaf `number` with id `rowid`: a binary search over its cells (in id
+        order), or a look at each where a cell met does not parse."""
+        leaf = self._file.leaf(number)
+        if leaf is None:  # (the file changed since it was indexed)
+            return []
+        lo, hi = 0, leaf[1] - 1
+        while lo <= hi:
+            mid = (lo + hi) // 2
+            cell = self._file.cell(number, *leaf, mid)
+            if cell is None:
+                break
+            if cell[0] == rowid:
+                return [cell]
+            lo, hi = (mid + 1, hi) if cell[0] < rowid else (lo, mid - 1)
+        else:
+            return []
+        cells = (self._file.cell(number, *leaf, i) for i in range(leaf[1]))
+        return [c for c in cells if c is not None and c[0] == rowid]
 
     def get(self, rowid: int) -> tuple[int, int, bytes] | None:
         """(topic_id, timestamp, data) of row `rowid`, None where no page holds it whole, or
         two pages hold different rows of that id (a stale page beside the live one: neither
-        can be trusted)."""
+        can be trusted), or too many leaves may hold it to look at."""
+        leaves = self._leaves(rowid)
+        if leaves is None:
+            return None
         rows = set()
-        for number in self._leaves(rowid):
-            pointers, count = self._file.leaf(number)
-            for i in range(count):  # (a few cells a page: rosbag2 rows are large)
-                cell = self._file.cell(number, pointers, count, i)
-                if cell is None or cell[0] != rowid:
-                    continue
-                _, size, at, end = cell
+        for number in leaves:
+            for _, size, at, end in self._cells(number, rowid):
                 record = self._file.payload(at, self._file.local_size(size), size, end)
                 row = None if record is None else _message(record, self.columns)
                 if row is not None:  # (else another table's cell, or one whose data is gone)

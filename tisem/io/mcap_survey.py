@@ -8,6 +8,7 @@ comes from here (with the damage that may be why), and the scans are then read w
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from collections import Counter
 
@@ -375,12 +376,15 @@ class Survey:
         one damaged byte there would otherwise refuse every scan of an intact rest."""
         given = {child.lstrip("/") for static, _f, _p, child, *_ in samples if static}
         extra, used = [], {}
-        for u in unvouched:
+        for n, u in enumerate(unvouched):
             schema = u.schema or schemas.get(u.channel.schema_id)
             if schema is None or schema.name not in TF_SCHEMAS:
                 continue
+            # on an id no channel has: decoders keep one decoder per channel id, and the
+            # salvaged channel's id is its file's own (a split file numbers its own)
+            channel = dataclasses.replace(u.channel, id=-1 - n)
             try:
-                msg = decoders.decode(u.channel, schema, u.message.data)
+                msg = decoders.decode(channel, schema, u.message.data)
                 edges = pose_edges(
                     schema.name, msg, default_parent=self.options.map_frame, default_child=None
                 )

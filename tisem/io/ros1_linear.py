@@ -615,9 +615,15 @@ class _Connections:
     def static_copy(self, conn: int) -> tuple[str, str, bytes] | None:
         """(topic, type, definition) of a whole copy of the connection's record if it is a
         /tf_static connection (the topic is looked at before the definition is parsed)."""
-        for fields, _ in self.copies().get(conn, []):
-            if fields.get("topic", b"").rstrip(b"/").endswith(b"tf_static"):
-                return next(self._whole_copies(conn), None)
+        for fields, data in self.copies().get(conn, []):
+            if not fields.get("topic", b"").rstrip(b"/").endswith(b"tf_static"):
+                continue
+            try:
+                copy = _described(fields, data)
+            except Malformed:
+                continue
+            if _parses(copy[2], copy[1]):
+                return copy
         return None
 
     def known(self, conns: list[int]) -> Iterator[Schema | Channel]:
