@@ -218,6 +218,19 @@ def test_an_interpolation_across_missing_samples_is_found(chain):
         "stamp (its median spacing is 50.0 ms)"
     )
     assert tf.interpolation_gap("base_link", "map", int(0.61 * NS)) == gap  # either direction
+    one = TfBuffer()  # (one sample left of the edge: every pose is that sample's)
+    one.add("map", "base_link", int(0.2 * NS), [0, 0, 0], [0, 0, 0, 1])
+    assert one.interpolation_gap("map", "base_link", int(0.2 * NS)) is None
+    assert one.interpolation_gap("map", "base_link", int(0.25 * NS)) == (
+        "edge map -> base_link has 1 sample(s) left, at 0.200000 s: how far apart its samples "
+        "were is unknown"
+    )
+    one.add("map", "base_link", int(0.65 * NS), [0, 0, 0], [0, 0, 0, 1])  # (two: no spacing)
+    assert one.interpolation_gap("map", "base_link", int(0.25 * NS)) == (
+        "edge map -> base_link has 2 sample(s) left, at 0.200000 s and 0.650000 s: how far "
+        "apart its samples were is unknown"
+    )
+    assert one.interpolation_gap("map", "base_link", int(0.65 * NS)) is None
     # a stamp that is a sample's own is that sample, the gap beside it notwithstanding
     assert tf.interpolation_gap("map", "base_link", stamps[9]) is None  # 0.45 s
     assert tf.interpolation_gap("map", "base_link", stamps[-1]) is None

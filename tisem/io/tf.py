@@ -356,13 +356,19 @@ class TfBuffer:
         for child in from_source + from_target:
             edge = self._edges[child]
             edge.finalize()
-            if edge.static or len(edge.stamps) < 2:
+            if edge.static:
                 continue
             stamps = edge.stamps
-            spacing = float(np.median(np.diff(stamps)))
             i = int(np.searchsorted(stamps, stamp_ns, side="right"))
             if i > 0 and stamps[i - 1] == stamp_ns:
                 continue
+            if len(stamps) < 3:  # (no spacing to tell a gap by: the rest may all be lost)
+                at = " and ".join(f"{t / 1e9:.6f} s" for t in stamps)
+                return (
+                    f"edge {edge.parent} -> {child} has {len(stamps)} sample(s) left, at {at}: "
+                    f"how far apart its samples were is unknown"
+                )
+            spacing = float(np.median(np.diff(stamps)))
             name, spaced = (
                 f"edge {edge.parent} -> {child}",
                 f"its median spacing is {spacing / 1e6:.1f} ms",
