@@ -129,6 +129,23 @@ def inflate(head: ChunkHeader, complete: bool = True) -> bytes | memoryview:
     return _bounded(_lz4_pieces(data), size)
 
 
+def stepped_prefix(dec, data, size: int) -> bytes:
+    """What a stream decompressor with `max_length` (bz2's, lz4's) gives of `data` fed in
+    steps, until it fails, ends, or gives `size` bytes: a failure loses only its step (bz2
+    checks each block as it ends, so the blocks before a damaged one are whole)."""
+    out = bytearray()
+    try:
+        for at in range(0, len(data), _CUT_STEP):
+            out += dec.decompress(bytes(data[at : at + _CUT_STEP]), max_length=size + 1)
+            while len(out) <= size and not dec.eof and not dec.needs_input:
+                out += dec.decompress(b"", max_length=size + 1 - len(out))
+            if len(out) >= size or dec.eof:
+                break
+    except (OSError, EOFError, RuntimeError, ValueError):
+        pass  # (the damage: what came before it is kept)
+    return bytes(out[:size])
+
+
 def _prefix(head: ChunkHeader) -> bytes | memoryview:
     """What a chunk that failed its checks inflates to before its damage stops the
     decompressor, at most its declared size. That is the chunk's first records, and where
@@ -143,16 +160,8 @@ def _prefix(head: ChunkHeader) -> bytes | memoryview:
                 piece := reader.read(min(_CUT_STEP, head.size - len(out)))
             ):
                 out += piece
-        elif head.compression == "lz4":  # (fed in steps: an error loses only its step)
-            dec = lz4.frame.LZ4FrameDecompressor()
-            for at in range(0, len(head.data), _CUT_STEP):
-                out += dec.decompress(
-                    bytes(head.data[at : at + _CUT_STEP]), max_length=head.size + 1
-                )
-                while len(out) <= head.size and not dec.eof and not dec.needs_input:
-                    out += dec.decompress(b"", max_length=head.size + 1 - len(out))
-                if len(out) >= head.size or dec.eof:
-                    break
+        elif head.compression == "lz4":
+            return stepped_prefix(lz4.frame.LZ4FrameDecompressor(), head.data, head.size)
     except UNTRUSTED:
         pass  # (the damage: what came before it is kept)
     return bytes(out[: head.size])

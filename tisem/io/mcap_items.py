@@ -55,6 +55,11 @@ class Unvouched:
     message: McapMessage
 
 
+def is_static_tf(topic: str) -> bool:
+    """Whether a topic is one of static transforms (/tf_static, a namespace's too)."""
+    return topic.rstrip("/").endswith("tf_static")
+
+
 def unvouched_statics(
     records: Iterable[tuple[int, bytes]], where: str, channels: dict[int, Channel]
 ) -> Iterator[Unvouched]:
@@ -71,7 +76,7 @@ def unvouched_statics(
             schemas[rec.id] = rec
         elif isinstance(rec, McapMessage):
             ch = own.get(rec.channel_id) or channels.get(rec.channel_id)
-            if ch is not None and ch.topic.rstrip("/").endswith("tf_static"):
+            if ch is not None and is_static_tf(ch.topic):
                 yield Unvouched(where, ch, schemas.get(ch.schema_id), rec)
 
 

@@ -31,7 +31,8 @@ from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 from rosbags.typesys.msg import normalize_msgtype
 
 from tisem.errors import DatasetError
-from tisem.io.mcap_items import Unvouched, unknown_loss
+from tisem.io.mcap_chunks import stepped_prefix
+from tisem.io.mcap_items import Unvouched, is_static_tf, unknown_loss
 from tisem.io.mcap_records import LostMessages, McapMessage, ReadReport
 from tisem.io.mcap_report import Loss
 
@@ -46,7 +47,6 @@ OP_FIELD = b"\x04\x00\x00\x00op="
 FIELDS_BEFORE_OP = 256
 MAX_HEADER_BYTES = 1 << 16  # the headers rosbag writes are tens of bytes
 _BAG_HEADER_BYTES = 1 << 13  # the bag header record, padded to 4096 bytes
-_SALVAGE_STEP = 1 << 14  # compressed bytes per step when inflating a damaged chunk
 
 
 class Malformed(ValueError):
@@ -109,16 +109,16 @@ def _records(buf, at: int, end: int) -> Iterator[tuple[int, dict[str, bytes], An
         at = stop
 
 
-def _whole_records(buf) -> list[tuple[int, dict[str, bytes], Any]]:
+def _whole_records(buf) -> tuple[list[tuple[int, dict[str, bytes], Any]], str]:
     """(op, header fields, data) of the whole records at the start of buf, up to the first
-    that is not (the damage, in what a damaged chunk inflated to)."""
+    that is not, and why that one is not ("" where all are)."""
     out = []
     try:
         for op, fields, data, _ in _records(buf, 0, len(buf)):
             out.append((op, fields, data))
-    except Malformed:
-        pass
-    return out
+    except Malformed as exc:
+        return out, str(exc)
+    return out, ""
 
 
 def _index_data_after(buf, end: int, size: int) -> Counter:
@@ -154,7 +154,7 @@ def _disguised_chunk(fields: dict[str, bytes], at: int, report: ReadReport) -> i
 
 def _static_only(described: tuple[str, str, bytes]) -> tuple[str, str, bytes] | None:
     """A connection's (topic, type, definition) if its topic is /tf_static's, else None."""
-    return described if described[0].rstrip("/").endswith("tf_static") else None
+    return described if is_static_tf(described[0]) else None
 
 
 def _op(fields: dict[str, bytes]) -> int:
@@ -339,23 +339,13 @@ def _inflate(compression: bytes, data, size: int) -> tuple[bytes, str]:
 
 def _inflated_before_damage(compression: bytes, data, size: int) -> bytes:
     """What a chunk whose stream fails inflates to before the failure, at most `size` bytes
-    (bz2 checks each block as it ends: the blocks before a damaged one are whole)."""
+    (`mcap_chunks.stepped_prefix`)."""
     if compression == b"none":
         return bytes(data[:size])
     if compression not in (b"bz2", b"lz4"):
         return b""
     dec = bz2.BZ2Decompressor() if compression == b"bz2" else lz4.frame.LZ4FrameDecompressor()
-    out = bytearray()
-    try:
-        for at in range(0, len(data), _SALVAGE_STEP):
-            out += dec.decompress(bytes(data[at : at + _SALVAGE_STEP]), max_length=size + 1)
-            while len(out) <= size and not dec.eof and not dec.needs_input:
-                out += dec.decompress(b"", max_length=size + 1 - len(out))
-            if len(out) > size or dec.eof:
-                break
-    except (OSError, EOFError, RuntimeError, ValueError):
-        pass  # (the damage: what came before it is kept)
-    return bytes(out[:size])
+    return stepped_prefix(dec, data, size)
 
 
 class Ros1LinearRecords:
@@ -430,7 +420,7 @@ class Ros1LinearRecords:
                         where = f"{kind} at byte {at}"
                         yield from self._lost_chunk(at, end, where, str(exc), report, read > 0)
                         # (the sensor's mount, in case it is nowhere else)
-                        yield from self._unvouched_statics(fields, data, f"{kind} at byte {at}")
+                        yield from self._unvouched_statics(fields, data, where)
                     else:
                         yield unknown_loss(report, f"{kind} at byte {at}", str(exc))
                 elif op == OP_CHUNK and fields.get("compression") == b"none":
@@ -462,12 +452,7 @@ class Ros1LinearRecords:
         is reported first, so that the reader marks what follows suspect, and the last record
         before it is lost with it: it may hold bytes that are not its own."""
         records, short = _inflate(fields.get("compression", b""), data, _u32(fields, "size"))
-        held, broken = [], ""
-        try:
-            for op, inner, body, _ in _records(records, 0, len(records)):
-                held.append((op, inner, body))
-        except Malformed as exc:
-            broken = str(exc)
+        held, broken = _whole_records(records)
         if out_of_line and not broken:
             broken = "the record after it is out of line (bytes inserted in it?)"
         if whole and (short or broken):
@@ -523,7 +508,7 @@ class Ros1LinearRecords:
             return
         prefix = _inflated_before_damage(fields.get("compression", b""), data, size)
         own: dict[int, tuple[str, str, bytes] | None] = {}  # conn -> a /tf_static one's
-        for op, inner, body in _whole_records(prefix):
+        for op, inner, body in _whole_records(prefix)[0]:
             try:
                 conn = _u32(inner, "conn")
                 if op == OP_CONNECTION:
@@ -616,7 +601,7 @@ class _Connections:
         """(topic, type, definition) of a whole copy of the connection's record if it is a
         /tf_static connection (the topic is looked at before the definition is parsed)."""
         for fields, data in self.copies().get(conn, []):
-            if not fields.get("topic", b"").rstrip(b"/").endswith(b"tf_static"):
+            if not is_static_tf(bytes(fields.get("topic", b"")).decode("utf-8", "replace")):
                 continue
             try:
                 copy = _described(fields, data)
