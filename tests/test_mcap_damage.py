@@ -826,3 +826,95 @@ def test_the_data_crc_is_checked_even_when_the_walk_never_reaches_the_data_end(t
         for line in lines
     )
     assert sorted(reader.report.suspect) == [s.index for s in scans]
+
+
+def _copy_messages(src, dst, topics: list[str], keep, extra=()) -> None:
+    """The messages of `src` that `keep(topic, log time)` keeps, in a new file `dst` whose
+    channels are registered in the order of `topics` (so that its channel ids are its own),
+    and the `extra` messages, (topic, log time, data) each."""
+    from mcap.writer import CompressionType, Writer
+
+    with open(src, "rb") as f:
+        messages = list(make_reader(f).iter_messages())
+    with open(dst, "wb") as out:
+        w = Writer(out, chunk_size=8_000, compression=CompressionType.ZSTD)
+        w.start(profile="ros2", library="test")
+        ids, schema_ids = {}, {}
+        for topic in topics:
+            schema, channel, _ = next(m for m in messages if m[1].topic == topic)
+            if schema.name not in schema_ids:
+                schema_ids[schema.name] = w.register_schema(
+                    schema.name, schema.encoding, schema.data
+                )
+            ids[topic] = w.register_channel(topic, "cdr", schema_ids[schema.name])
+        kept = [
+            (m.log_time, channel.topic, m.data)
+            for _schema, channel, m in messages
+            if channel.topic in ids and keep(channel.topic, m.log_time)
+        ]
+        for log_time, topic, data in sorted([*kept, *((t, c, d) for c, t, d in extra)]):
+            w.add_message(ids[topic], log_time, data, log_time)
+        w.finish()
+
+
+def test_a_damaged_mount_from_a_split_file_that_numbers_its_channels_its_own_way(tmp_path):
+    """A rosbag2 folder of two MCAP files: the first holds no /tf_static, the second's first
+    chunk holds it and is damaged. There /tf_static is the file's channel 1, the id the
+    recording gave its clouds: the salvaged mount is decoded as a transform all the same, and
+    every scan is marked."""
+    from tisem.io.bag_open import open_scan_reader
+
+    whole = tmp_path / "whole.mcap"
+    truth = write_synthetic_log(whole, n_scans=N_SCANS, n_points=12_000, compression="zstd")
+    folder = tmp_path / "bag"
+    folder.mkdir()
+    split_ns = truth["stamps_ns"][3]  # scans 0-2 in the first file, 3-5 in the second
+    _copy_messages(
+        whole, folder / "bag_0.mcap", ["/velodyne_points", "/tf"], lambda _, t: t < split_ns
+    )
+    second = folder / "bag_1.mcap"
+    _copy_messages(
+        whole,
+        second,
+        ["/tf_static", "/velodyne_points", "/tf"],
+        lambda topic, t: topic == "/tf_static" or t >= split_ns,
+    )
+    with open(second, "rb") as f:
+        chunks = make_reader(f).get_summary().chunk_indexes
+    first_chunk = min(chunks, key=lambda c: c.chunk_start_offset)
+    flip(second, first_chunk.chunk_start_offset + first_chunk.chunk_length - 100)
+    reader = open_scan_reader(folder)
+    items = list(reader)
+    assert isinstance(items[3], SkippedScan)
+    assert check_scans_against_truth(items, truth) == [0, 1, 2, 4, 5]
+    assert sorted(reader.report.suspect) == [0, 1, 2, 4, 5]
+    assert "from the bag_1.mcap: chunk at byte" in reader.report.suspect[0]
+
+
+def test_the_tf_notes_of_a_mount_read_from_damage_are_given_once(tmp_path):
+    """The transforms are built again when the mount comes from a damaged chunk: what the
+    first build noted (here an ignored transform) is noted once, not once per build."""
+    from tisem.io.mcap_writer import Ros2McapWriter
+
+    whole = tmp_path / "whole.mcap"
+    truth = write_synthetic_log(whole, n_scans=N_SCANS, n_points=12_000, compression="zstd")
+    odd = tmp_path / "odd.mcap"  # one /tf message whose translation is not finite
+    T = np.eye(4)
+    T[0, 3] = np.nan
+    with Ros2McapWriter(odd) as w:
+        w.write_transforms([("map", "odd", truth["stamps_ns"][2], T)], truth["stamps_ns"][2])
+    with open(odd, "rb") as f:
+        ((_, _, nan_tf),) = list(make_reader(f).iter_messages())
+    path = tmp_path / "log.mcap"
+    topics = ["/tf_static", "/tf", "/velodyne_points"]
+    _copy_messages(whole, path, topics, lambda *_: True, [("/tf", nan_tf.log_time, nan_tf.data)])
+    with open(path, "rb") as f:
+        chunks = make_reader(f).get_summary().chunk_indexes
+    first_chunk = min(chunks, key=lambda c: c.chunk_start_offset)
+    flip(path, first_chunk.chunk_start_offset + first_chunk.chunk_length - 100)
+    reader = McapScanReader(path)
+    items = list(reader)
+    assert check_scans_against_truth(items, truth) == list(range(1, N_SCANS))
+    assert sorted(reader.report.suspect) == list(range(1, N_SCANS))
+    note = "tf: ignored 1 transform(s) map -> odd with non-finite values"
+    assert reader.report.notes.count(note) == 1

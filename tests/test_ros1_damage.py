@@ -346,3 +346,34 @@ def test_a_chunk_damaged_after_some_of_it_was_read_is_not_counted_whole(tmp_path
         same = np.array_equal(scan.points_sensor, expected[scan.index].points_sensor)
         assert same or scan.index in reader.report.suspect
     assert sum(loss.uncounted for loss in reader.report.losses) == 1
+
+
+def _connection_copy(topic: bytes, definition: bytes) -> tuple[dict, bytes]:
+    """(record fields, data) of an index copy of connection 7's record."""
+    own = {b"topic": topic, b"type": b"test_msgs/X", b"message_definition": definition}
+    data = b"".join(struct.pack("<I", len(k) + 1 + len(v)) + k + b"=" + v for k, v in own.items())
+    return {"topic": topic, "conn": struct.pack("<I", 7)}, data
+
+
+@pytest.mark.parametrize(
+    "copies, expected",
+    [
+        # the /tf_static copy, though another whole copy comes first
+        ([(b"/tf", b"int32 x\n"), (b"/tf_static", b"int32 y\n")], b"int32 y\n"),
+        # the /tf_static copy's definition is damaged: not the other copy, which is /tf's
+        ([(b"/tf_static", b"int32 ( y\n"), (b"/tf", b"int32 x\n")], None),
+        ([(b"/tf", b"int32 x\n")], None),
+    ],
+)
+def test_a_static_copy_is_the_copy_whose_topic_is_tf_static(copies, expected):
+    """A /tf_static message whose chunk's own connection record was lost is read on an index
+    copy of that record: the copy that names /tf_static, never another copy of the connection
+    (the index can hold copies that disagree, where damage changed one)."""
+    from tisem.io.ros1_linear import _Connections
+
+    held = {7: [_connection_copy(topic, definition) for topic, definition in copies]}
+    got = _Connections(lambda: held).static_copy(7)
+    if expected is None:
+        assert got is None
+    else:
+        assert got == ("/tf_static", "test_msgs/msg/X", expected)

@@ -380,11 +380,14 @@ class Survey:
             schema = u.schema or schemas.get(u.channel.schema_id)
             if schema is None or schema.name not in TF_SCHEMAS:
                 continue
-            # on an id no channel has: decoders keep one decoder per channel id, and the
-            # salvaged channel's id is its file's own (a split file numbers its own)
+            # on ids no channel and no schema has: decoders keep one decoder per channel id and
+            # the decoder factories one per schema id, and the salvaged records' ids are their
+            # file's own (a split file numbers its own)
             channel = dataclasses.replace(u.channel, id=-1 - n)
             try:
-                msg = decoders.decode(channel, schema, u.message.data)
+                msg = decoders.decode(
+                    channel, dataclasses.replace(schema, id=-1 - n), u.message.data
+                )
                 edges = pose_edges(
                     schema.name, msg, default_parent=self.options.map_frame, default_child=None
                 )
