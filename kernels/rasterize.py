@@ -85,7 +85,7 @@ def locate_kernel(use_probs: bool):
     def locate_points(
         m: ti.template(),
         s: ScanParams,
-        pts: ti.types.ndarray(dtype=ti.f32, ndim=2),  # (N, 3) sensor frame
+        pts: ti.types.ndarray(dtype=ti.f32, ndim=2),  # (N, k >= 3) sensor frame: x y z first
         evidence: evidence_array(use_probs),  # (N,) or (N, C)
         cell: ti.types.ndarray(dtype=ti.i32, ndim=1),  # (N,) out: table cell id
         code: ti.types.ndarray(dtype=ti.i32, ndim=1),  # (N,) out: voxel in block

@@ -309,7 +309,7 @@ def beside_own_class(m: ti.template(), w, c):
 def flag_dynamic(
     m: ti.template(),
     s: ScanParams,
-    pts: ti.types.ndarray(dtype=ti.f32, ndim=2),  # (N, 3) sensor frame
+    pts: ti.types.ndarray(dtype=ti.f32, ndim=2),  # (N, k >= 3) sensor frame: x y z first
     labels: ti.types.ndarray(dtype=ti.i32, ndim=1),  # (N,) the points' classes
     half: ti.types.vector(3, ti.i32),  # the live window's half-size
     out: ti.types.ndarray(dtype=ti.i8, ndim=1),

@@ -113,7 +113,7 @@ def training_kernel(unit_weight: bool, use_probs: bool, centroids: bool = False)
     def write_training(
         m: ti.template(),
         s: ScanParams,
-        pts: ti.types.ndarray(dtype=ti.f32, ndim=2),  # (N, 3) sensor frame
+        pts: ti.types.ndarray(dtype=ti.f32, ndim=2),  # (N, k >= 3) sensor frame: x y z first
         evidence: evidence_array(use_probs),  # (N,) or (N, C)
         blocks: ti.types.ndarray(dtype=ti.i32, ndim=1),  # (B,) occupied cells
         code: ti.types.ndarray(dtype=ti.i32, ndim=1),  # (N,) voxel codes

@@ -34,17 +34,20 @@ def find_leaving_blocks(
     center: ti.types.vector(3, ti.i32),  # the new box, voxels
     half: ti.types.vector(3, ti.i32),
     out_blocks: ti.types.ndarray(dtype=ti.i32, ndim=2),
-) -> ti.i32:  # (K, 3)
-    """Live leaf blocks not wholly inside the box (storage indices); returns how many."""
+) -> ti.types.vector(2, ti.i32):  # (K, 3)
+    """Live leaf blocks not wholly inside the box (storage indices); returns how many, and how
+    many blocks are live (the window needs both when it moves: one pass over the blocks)."""
     m.counter[None] = 0
+    live = 0
     for B in ti.grouped(m.blk):
+        live += 1
         lo = m.unwrap_blk(B, old_center_blk) * LEAF
         if outside(lo, lo + LEAF - 1, center, half):
             idx = ti.atomic_add(m.counter[None], 1)
             if idx < out_blocks.shape[0]:
                 for a in ti.static(range(3)):
                     out_blocks[idx, a] = B[a]
-    return m.counter[None]
+    return ti.Vector([m.counter[None], live])
 
 
 @ti.kernel

@@ -429,3 +429,39 @@ def test_a_range_that_needs_too_big_a_scan_table_is_refused(taichi_cpu):
     )
     with pytest.raises(ValueError, match=r"needs a scan table of [\d,]+ leaf blocks"):
         Mapper(cfg)
+
+
+def test_points_given_as_the_first_columns_of_wider_rows_map_as_their_copy():
+    """The KITTI reader's points are a view of its x y z intensity rows; the kernels read them
+    in place (`kernel_rows`), not copied. The map is bitwise the one of the same points given
+    as their own (N, 3) array, with free space too (its kernel reads the points), for a scan
+    with a non-finite point (copied, to move it away) and one whose rows end the memory."""
+    from tisem.preprocess import check_scan, kernel_rows
+
+    rng = np.random.default_rng(7)
+    world, gt = street_scene(rng)
+    T = pose(0.3, -0.2, 1.7, yaw=0.4)
+    base = scan_from_world(world, T, 0.0, labels=gt)
+    n = len(gt)
+    rows = np.concatenate([base.points_sensor, rng.random((n, 1), np.float32)], axis=1)
+    view = rows[:, :3]
+    assert np.shares_memory(kernel_rows(view), rows) and kernel_rows(view).shape == (n, 4)
+    checked = check_scan(Scan(view, T, 0.0, labels=gt), C)  # (the mapper's own check)
+    assert np.shares_memory(checked.kernel_points, rows)
+    shifted = np.concatenate([rng.random((n, 1), np.float32), base.points_sensor], axis=1)
+    assert kernel_rows(shifted[:, 1:]).shape == (n, 3)  # (the fourth column would pass the end)
+    broken = view.copy()
+    broken[5] = np.nan
+
+    def snapshot(points: list[np.ndarray]):
+        fresh_runtime()
+        mapper = Mapper(small_config(mode="st", free_space=True))
+        for k, p in enumerate(points):
+            mapper.integrate(Scan(p, T, 0.1 * k, labels=gt, index=k))
+        return _finish(mapper.snapshot())
+
+    wide = snapshot([view, shifted[:, 1:], np.concatenate([broken, rows[:, 3:]], axis=1)[:, :3]])
+    own = snapshot([np.ascontiguousarray(view), shifted[:, 1:].copy(), broken])
+    assert len(wide.keys) > 1000
+    for name in ("keys", "counts", "t_last", "ell_m", "occupancy"):
+        assert np.array_equal(getattr(wide, name), getattr(own, name)), name

@@ -141,7 +141,7 @@ class FreeSpace:
         labels = ev if not checked.use_probs else np.argmax(ev, axis=1)
         labels = np.ascontiguousarray(labels, np.int32)
         raycast.flag_dynamic(
-            self._fields, params, checked.points_sensor, labels, ivec(half_vox), flags
+            self._fields, params, checked.kernel_points, labels, ivec(half_vox), flags
         )
         dynamic = flags.astype(bool)
         self._dynamic_ends = None

@@ -72,6 +72,17 @@ class Evicted:
 
 
 @dataclass
+class Leaving:
+    """The live blocks not wholly inside a box (`blocks[:n]`, storage indices), the box's
+    half-size, and how many blocks were live."""
+
+    blocks: np.ndarray
+    n: int
+    half: np.ndarray
+    live: int
+
+
+@dataclass
 class WindowMove:
     """What one move of the window did."""
 
@@ -89,6 +100,7 @@ class LiveWindow:
         self.store = store
         self._geometry = geometry
         self._cap = int(max_live_blocks)
+        self._leaving_rows: np.ndarray | None = None  # (`_leaving`'s buffer)
         full = geometry.window_half_vox.copy()
         self.state = WindowState(full_half_vox=full, half_vox=full.copy())
 
@@ -127,15 +139,19 @@ class LiveWindow:
         the map untouched, when even the smallest window that holds a scan does not fit."""
         st = self.state
         center = np.asarray(center_vox, np.int64)
-        live = self.live_blocks
+        moved = st.center_vox is not None and bool(np.any(center != st.center_vox))
+        # a moving window finds what leaves a box of its present size in the pass that counts
+        # the live blocks (nearly always the box it keeps)
+        leaving = self._leaving(center, st.half_vox) if moved else None
+        live = leaving.live if leaving is not None else self.live_blocks
         if st.blocks_after_move is not None:  # (what the last scan added)
             st.headroom_blocks = max(st.headroom_blocks, live - st.blocks_after_move)
         half = self._fit_cap(center, live)
         move, left = WindowMove(), None
-        if st.center_vox is not None and (
-            np.any(center != st.center_vox) or np.any(half != st.half_vox)
-        ):
-            left = self._evict(center, half, live)
+        if st.center_vox is not None and (moved or np.any(half != st.half_vox)):
+            if leaving is None or np.any(half != leaving.half):
+                leaving = self._leaving(center, half)
+            left = self._evict(center, half, leaving)
             move.evicted_voxels = len(left.voxels)
         try:
             back = self.store.take_box(center, half)
@@ -155,21 +171,30 @@ class LiveWindow:
             st.blocks_after_move = live - (left.freed_blocks if left is not None else 0)
         return move
 
-    def _evict(self, center: np.ndarray, half: np.ndarray, live_blocks: int) -> Evicted:
-        """Move the live voxels outside the box |w - center| <= half to the store and free the
-        blocks and top cells they leave empty. A store that cannot take them (a full disk)
-        raises with the field as it was."""
+    def _leaving(self, center: np.ndarray, half: np.ndarray) -> Leaving:
+        """The live blocks not wholly inside the box |w - center| <= half, blocks unwrapped
+        around the present centre (kernels/window.py), in one pass that counts them all. Their
+        rows go to one buffer kept between moves, grown when more blocks leave than it holds."""
+        box = (ivec(np.floor_divide(self.state.center_vox, LEAF)), ivec(center), ivec(half))
+        while True:
+            rows = self._leaving_rows
+            if rows is None:
+                rows = self._leaving_rows = np.zeros((1024, 3), np.int32)
+            n, live = (int(v) for v in window.find_leaving_blocks(self._fields, *box, rows))
+            if n <= len(rows):
+                return Leaving(rows, n, half.copy(), live)
+            self._leaving_rows = np.zeros((2 * n, 3), np.int32)
+
+    def _evict(self, center: np.ndarray, half: np.ndarray, found: Leaving) -> Evicted:
+        """Move the live voxels outside the box |w - center| <= half (`found`: its blocks) to
+        the store and free the blocks and top cells they leave empty. A store that cannot take
+        them (a full disk) raises with the field as it was."""
         m, st = self._fields, self.state
-        old_blk = ivec(np.floor_divide(st.center_vox, LEAF))
         box = (ivec(center), ivec(half))
         done = Evicted(_voxel_arrays(0, m), 0, 0, st.top_range)
-        blocks = np.zeros((max(live_blocks, 1), 3), np.int32)
-        n = window.find_leaving_blocks(m, old_blk, *box, blocks)
+        blocks, n = found.blocks, found.n
         if n == 0:
             return done
-        if n > len(blocks):  # (live_blocks is exact; this is a guard)
-            blocks = np.zeros((n, 3), np.int32)
-            n = window.find_leaving_blocks(m, old_blk, *box, blocks)
         leaving = _voxel_arrays(n * LEAF**3, m)
         left = np.zeros(n, np.int32)
         occupancy = leaving.occupancy if m.free_space else np.zeros(0, np.float32)

@@ -62,7 +62,7 @@ class ScanIntegrator:
         m = self._fields
         pts = self._buf.points(len(checked.points_sensor))
         stats = rasterize.locate_kernel(checked.use_probs)(
-            m, self._params, checked.points_sensor, checked.evidence, pts.cell, pts.code, pts.blocks
+            m, self._params, checked.kernel_points, checked.evidence, pts.cell, pts.code, pts.blocks
         )
         report.used = int(stats[rasterize.USED])
         report.dropped_range = int(stats[rasterize.OUT_OF_RANGE]) - report.dropped_nonfinite
@@ -105,7 +105,7 @@ class ScanIntegrator:
         training.training_kernel(self._settings.unit_weight, checked.use_probs, m.class_centroids)(
             m,
             self._params,
-            checked.points_sensor,
+            checked.kernel_points,
             checked.evidence,
             pts.blocks,
             pts.code,
