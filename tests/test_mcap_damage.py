@@ -857,6 +857,14 @@ def _copy_messages(src, dst, topics: list[str], keep, extra=()) -> None:
         w.finish()
 
 
+def flip_first_chunk(path) -> None:
+    """A byte flipped near the end of the file's first chunk (inside its last message)."""
+    with open(path, "rb") as f:
+        chunks = make_reader(f).get_summary().chunk_indexes
+    first = min(chunks, key=lambda c: c.chunk_start_offset)
+    flip(path, first.chunk_start_offset + first.chunk_length - 100)
+
+
 def test_a_damaged_mount_from_a_split_file_that_numbers_its_channels_its_own_way(tmp_path):
     """A rosbag2 folder of two MCAP files: the first holds no /tf_static, the second's first
     chunk holds it and is damaged. There /tf_static is the file's channel 1, the id the
@@ -879,10 +887,7 @@ def test_a_damaged_mount_from_a_split_file_that_numbers_its_channels_its_own_way
         ["/tf_static", "/velodyne_points", "/tf"],
         lambda topic, t: topic == "/tf_static" or t >= split_ns,
     )
-    with open(second, "rb") as f:
-        chunks = make_reader(f).get_summary().chunk_indexes
-    first_chunk = min(chunks, key=lambda c: c.chunk_start_offset)
-    flip(second, first_chunk.chunk_start_offset + first_chunk.chunk_length - 100)
+    flip_first_chunk(second)
     reader = open_scan_reader(folder)
     items = list(reader)
     assert isinstance(items[3], SkippedScan)
@@ -908,10 +913,7 @@ def test_the_tf_notes_of_a_mount_read_from_damage_are_given_once(tmp_path):
     path = tmp_path / "log.mcap"
     topics = ["/tf_static", "/tf", "/velodyne_points"]
     _copy_messages(whole, path, topics, lambda *_: True, [("/tf", nan_tf.log_time, nan_tf.data)])
-    with open(path, "rb") as f:
-        chunks = make_reader(f).get_summary().chunk_indexes
-    first_chunk = min(chunks, key=lambda c: c.chunk_start_offset)
-    flip(path, first_chunk.chunk_start_offset + first_chunk.chunk_length - 100)
+    flip_first_chunk(path)
     reader = McapScanReader(path)
     items = list(reader)
     assert check_scans_against_truth(items, truth) == list(range(1, N_SCANS))
