@@ -465,3 +465,32 @@ def test_points_given_as_the_first_columns_of_wider_rows_map_as_their_copy():
     assert len(wide.keys) > 1000
     for name in ("keys", "counts", "t_last", "ell_m", "occupancy"):
         assert np.array_equal(getattr(wide, name), getattr(own, name)), name
+
+
+def test_points_and_labels_in_read_only_memory_reach_the_kernels_as_copies():
+    """A CUDA launch copies every host array back after the kernel: arrays in read-only memory
+    (a read-only mmap, bytes) reach the kernels as writeable copies, wider rows and all, and so
+    do unaligned ones; writeable, aligned ones are not copied."""
+    from tisem.preprocess import check_scan
+
+    rows = np.arange(40, dtype=np.float32).reshape(10, 4)
+    labels = np.full(10, ROAD, np.int32)
+    frozen = np.frombuffer(rows.tobytes(), np.float32).reshape(10, 4)  # (bytes: read-only)
+    frozen_labels = np.frombuffer(labels.tobytes(), np.int32)
+    shifted = np.r_[np.zeros(2, np.uint8), rows.view(np.uint8).ravel()]  # rows at byte 2
+    unaligned = np.frombuffer(shifted.data, np.float32, offset=2).reshape(10, 4)
+    cases = [
+        (rows[:, :3], labels, True),
+        (frozen[:, :3], frozen_labels, False),
+        (frozen[:, :3].copy(), labels, True),
+        (unaligned[:, :3], labels, False),
+    ]
+    for points, ids, in_place in cases:
+        checked = check_scan(Scan(points, np.eye(4), 0.0, labels=ids), C)
+        for a in (checked.kernel_points, checked.evidence):
+            assert a.flags.c_contiguous and a.flags.aligned
+        assert checked.evidence.flags.writeable
+        assert np.array_equal(checked.kernel_points[:, :3], rows[:, :3])
+        assert np.shares_memory(checked.kernel_points, points) == in_place
+        if not in_place:
+            assert checked.kernel_points.flags.writeable

@@ -48,11 +48,23 @@ class CheckedScan:
         )
 
 
+def kernel_array(a: np.ndarray, dtype=None) -> np.ndarray:
+    """`a` (in `dtype`) as the kernels may take it: C-contiguous, aligned and in writeable
+    memory, copied only where it is not. A CUDA launch copies every host array to the device
+    and back after the kernel, whether the kernel wrote to it or not: read-only memory (a
+    read-only mmap, bytes) would be written."""
+    if (dtype is None or a.dtype == dtype) and a.flags.c_contiguous and a.flags.aligned:
+        if a.flags.writeable:
+            return a
+    return np.array(a, dtype=dtype, order="C")
+
+
 def kernel_rows(points: np.ndarray) -> np.ndarray:
     """(N, 3) float32 points as a C-contiguous float32 (N, k >= 3) array whose first three
-    columns they are. Points that are the first columns of wider rows in one block of memory
-    (the KITTI reader's view of its x y z intensity rows) are passed as those rows, not copied:
-    a copy of a scan's 1.5 MB costs ~1 ms a scan, mostly the page faults of new memory."""
+    columns they are. Points that are the first columns of wider rows in one block of writeable
+    memory (the KITTI reader's view of its x y z intensity rows) are passed as those rows, not
+    copied: a copy of a scan's 1.5 MB costs ~1 ms a scan, mostly the page faults of new memory.
+    Elsewhere `kernel_array`."""
     pts = points
     owner = pts.base
     row_bytes = pts.strides[0] if pts.ndim == 2 else 0
@@ -64,8 +76,10 @@ def kernel_rows(points: np.ndarray) -> np.ndarray:
         and pts.strides[1] == 4
         and row_bytes % 4 == 0
         and 12 < row_bytes <= 64
+        and pts.ctypes.data % 4 == 0
         and isinstance(owner, np.ndarray)
         and owner.flags.c_contiguous
+        and owner.flags.writeable
     ):
         start = pts.ctypes.data
         low = owner.ctypes.data
@@ -74,7 +88,7 @@ def kernel_rows(points: np.ndarray) -> np.ndarray:
             return np.lib.stride_tricks.as_strided(
                 pts, shape=(len(pts), row_bytes // 4), strides=(row_bytes, 4), writeable=False
             )
-    return np.ascontiguousarray(pts, dtype=np.float32)
+    return kernel_array(pts, np.float32)
 
 
 def check_scan(scan: Scan, num_classes: int) -> CheckedScan:
@@ -102,14 +116,14 @@ def check_scan(scan: Scan, num_classes: int) -> CheckedScan:
     if scan.labels is not None:
         if np.shape(scan.labels) != (len(pts),):
             raise ValueError(f"{where}: {np.shape(scan.labels)} labels for {len(pts)} points")
-        labels = np.ascontiguousarray(checked_ids(scan.labels, "train ids", where, num_classes))
+        labels = kernel_array(checked_ids(scan.labels, "train ids", where, num_classes))
         return CheckedScan(pts, labels, False, nonfinite)
     if np.shape(scan.probs) != (len(pts), num_classes):
         raise ValueError(
             f"{where}: probabilities of shape {np.shape(scan.probs)}; the map "
             f"has {num_classes} classes, the scan {len(pts)} points"
         )
-    probs = np.ascontiguousarray(checked_probabilities(scan.probs, where, finite))
+    probs = kernel_array(checked_probabilities(scan.probs, where, finite))
     if nonfinite:
         probs = np.where(finite[:, None], probs, 0).astype(np.float32)
     return CheckedScan(pts, probs, True, nonfinite)
