@@ -73,12 +73,13 @@ class Evicted:
 
 @dataclass
 class Leaving:
-    """The live blocks not wholly inside a box (`blocks[:n]`, storage indices), the box's
-    half-size, and how many blocks were live."""
+    """The live blocks not wholly inside the box |w - center| <= half (`blocks[:n]`, storage
+    indices), and how many blocks were live."""
 
+    center: np.ndarray
+    half: np.ndarray
     blocks: np.ndarray
     n: int
-    half: np.ndarray
     live: int
 
 
@@ -100,7 +101,7 @@ class LiveWindow:
         self.store = store
         self._geometry = geometry
         self._cap = int(max_live_blocks)
-        self._leaving_rows: np.ndarray | None = None  # (`_leaving`'s buffer)
+        self._leaving_rows = np.zeros((1024, 3), np.int32)  # (`_leaving`'s buffer)
         full = geometry.window_half_vox.copy()
         self.state = WindowState(full_half_vox=full, half_vox=full.copy())
 
@@ -151,7 +152,7 @@ class LiveWindow:
         if st.center_vox is not None and (moved or np.any(half != st.half_vox)):
             if leaving is None or np.any(half != leaving.half):
                 leaving = self._leaving(center, half)
-            left = self._evict(center, half, leaving)
+            left = self._evict(leaving)
             move.evicted_voxels = len(left.voxels)
         try:
             back = self.store.take_box(center, half)
@@ -178,18 +179,17 @@ class LiveWindow:
         box = (ivec(np.floor_divide(self.state.center_vox, LEAF)), ivec(center), ivec(half))
         while True:
             rows = self._leaving_rows
-            if rows is None:
-                rows = self._leaving_rows = np.zeros((1024, 3), np.int32)
             n, live = (int(v) for v in window.find_leaving_blocks(self._fields, *box, rows))
             if n <= len(rows):
-                return Leaving(rows, n, half.copy(), live)
+                return Leaving(center, half.copy(), rows, n, live)
             self._leaving_rows = np.zeros((2 * n, 3), np.int32)
 
-    def _evict(self, center: np.ndarray, half: np.ndarray, found: Leaving) -> Evicted:
-        """Move the live voxels outside the box |w - center| <= half (`found`: its blocks) to
-        the store and free the blocks and top cells they leave empty. A store that cannot take
-        them (a full disk) raises with the field as it was."""
+    def _evict(self, found: Leaving) -> Evicted:
+        """Move the live voxels outside the box of `found` (its blocks) to the store and free
+        the blocks and top cells they leave empty. A store that cannot take them (a full disk)
+        raises with the field as it was."""
         m, st = self._fields, self.state
+        center, half = found.center, found.half
         box = (ivec(center), ivec(half))
         done = Evicted(_voxel_arrays(0, m), 0, 0, st.top_range)
         blocks, n = found.blocks, found.n

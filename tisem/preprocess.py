@@ -4,7 +4,7 @@ of the points the map uses (the reference mapper's; the Taichi mapper's kernels 
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -30,12 +30,11 @@ class CheckedScan:
     use_probs: bool
     dropped_nonfinite: int
     # the points as kernels take them: C-contiguous float32 (N, k >= 3), the points in its
-    # first three columns (`kernel_rows`)
-    kernel_points: np.ndarray | None = None
+    # first three columns (`kernel_rows`); always derived, so `dataclasses.replace` keeps it so
+    kernel_points: np.ndarray = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
-        if self.kernel_points is None:
-            self.kernel_points = kernel_rows(self.points_sensor)
+        self.kernel_points = kernel_rows(self.points_sensor)
 
     def subset(self, keep: np.ndarray) -> CheckedScan:
         """Only the points where `keep` (bool, (N,)) is set, in their order; none of them
@@ -53,9 +52,14 @@ def kernel_array(a: np.ndarray, dtype=None) -> np.ndarray:
     memory, copied only where it is not. A CUDA launch copies every host array to the device
     and back after the kernel, whether the kernel wrote to it or not: read-only memory (a
     read-only mmap, bytes) would be written."""
-    if (dtype is None or a.dtype == dtype) and a.flags.c_contiguous and a.flags.aligned:
-        if a.flags.writeable:
-            return a
+    flags = a.flags
+    if (
+        (dtype is None or a.dtype == dtype)
+        and flags.c_contiguous
+        and flags.aligned
+        and flags.writeable
+    ):
+        return a
     return np.array(a, dtype=dtype, order="C")
 
 
@@ -65,23 +69,19 @@ def kernel_rows(points: np.ndarray) -> np.ndarray:
     memory (the KITTI reader's view of its x y z intensity rows) are passed as those rows, not
     copied: a copy of a scan's 1.5 MB costs ~1 ms a scan, mostly the page faults of new memory.
     Elsewhere `kernel_array`."""
-    pts = points
-    owner = pts.base
-    row_bytes = pts.strides[0] if pts.ndim == 2 else 0
+    pts, owner = points, points.base
+    row_bytes, start = pts.strides[0], pts.ctypes.data
     if (
         pts.dtype == np.float32
-        and pts.ndim == 2
-        and pts.shape[1] == 3
         and len(pts) > 0
         and pts.strides[1] == 4
         and row_bytes % 4 == 0
         and 12 < row_bytes <= 64
-        and pts.ctypes.data % 4 == 0
+        and start % 4 == 0
         and isinstance(owner, np.ndarray)
         and owner.flags.c_contiguous
         and owner.flags.writeable
     ):
-        start = pts.ctypes.data
         low = owner.ctypes.data
         high = low + owner.nbytes
         if low <= start and start + len(pts) * row_bytes <= high:  # the wider rows exist
