@@ -7,7 +7,7 @@ Every step of `tisem.mapper.Mapper.integrate` (steps 2-8 run by
 |-------------------------------------------|--------------|---------------------------------|
 | 1. preprocess: sensor -> map frame, range | rasterize.py | locate_kernel (locate, to_local)|
 |    and height band, the live window       |              |                                 |
-| 2. downsample / voxelize: points sorted   | rasterize.py | locate_kernel, scatter_points   |
+| 2. downsample / voxelize: points sorted   | rasterize.py | locate_kernel, scatter_kernel   |
 |    by leaf block, then by voxel; centroid | table.py     | column_slots                    |
 |    and class histogram per voxel          | training.py  | sort_blocks, training_kernel    |
 | 3. redundant-voxel filter                 | training.py  | voxel_kept                      |

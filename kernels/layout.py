@@ -286,6 +286,10 @@ class MapFields:
         self.col_lo = ti.field(ti.i32)
         self.col_hi = ti.field(ti.i32)
         fb.dense(ti.ij, self.table_shape[:2]).place(self.col_lo, self.col_hi)
+        # per x row of the table: its columns' count, then its first slot (kernels/table.py
+        # hands the slots out row after row, so that a scan's order never depends on threads)
+        self.row_slots = ti.field(ti.i32)
+        fb.dense(ti.i, self.table_shape[0]).place(self.row_slots)
         # which map blocks the scan's kernels can reach: per NEAR x NEAR x NEAR table cells, the
         # last scan with a training block within reach (kernels/lengths.py marks it). A dense
         # read per map block replaces a sparse is_active test per (training block, neighbour).

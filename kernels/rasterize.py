@@ -144,15 +144,27 @@ def locate_kernel(use_probs: bool):
     return locate_points
 
 
-@ti.kernel
-def scatter_points(
-    m: ti.template(),
-    cell: ti.types.ndarray(dtype=ti.i32, ndim=1),
-    perm: ti.types.ndarray(dtype=ti.i32, ndim=1),
-):  # (N,) out: points by block
-    """List every kept point in its block's slice (table.column_slots gave the slices, and
-    restarted p_count as the fill cursor that this counts back up)."""
-    for n in range(cell.shape[0]):
-        if cell[n] != DROPPED:
-            i = m.cell_of_id(cell[n])
-            perm[m.p_start[i] + ti.atomic_add(m.p_count[i], 1)] = n
+@functools.cache
+def scatter_kernel(in_order: bool):
+    """The kernel that lists every kept point in its block's slice (table.column_slots gave
+    the slices, and restarted p_count as the fill cursor that this counts back up).
+
+    `in_order` (CPUs): one thread, each block's points in the scan's order, so that a voxel's
+    points are summed in the same order whatever the threads (and on two threads no slower
+    than the atomic cursors, whose cache lines the threads fought over). Otherwise (GPUs) a
+    thread per point with atomic cursors: a block's points in the order the threads come,
+    which moves a centroid or evidence sum by float rounding from run to run."""
+
+    @ti.kernel
+    def scatter_points(
+        m: ti.template(),
+        cell: ti.types.ndarray(dtype=ti.i32, ndim=1),
+        perm: ti.types.ndarray(dtype=ti.i32, ndim=1),
+    ):  # (N,) out: points by block
+        ti.loop_config(serialize=in_order)
+        for n in range(cell.shape[0]):
+            if cell[n] != DROPPED:
+                i = m.cell_of_id(cell[n])
+                perm[m.p_start[i] + ti.atomic_add(m.p_count[i], 1)] = n
+
+    return scatter_points

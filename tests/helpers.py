@@ -446,3 +446,20 @@ def distance_to_other_class(xyz, gt):
         other = gt != c
         d[other] = np.minimum(d[other], tree.query(xyz[other], k=1)[0])
     return d
+
+
+def check_scan_orders(step, where: str = "") -> None:
+    """The scan's two sorted orders are fixed by the scan alone: its points by table cell (in
+    table order), a cell's points in the scan's order; its training rows cell after cell in
+    table order. (Handed out first come first served, they changed with the threads' timing,
+    and free space's rays, every stride-th row, with them.)"""
+    kept = np.flatnonzero(step.kept)
+    by_cell = kept[np.argsort(step.point_cell[kept], kind="stable")]
+    np.testing.assert_array_equal(step.block_order, by_cell, err_msg=f"{where}: points by block")
+    rows = step.layer_rows[:, -1]
+    used = rows > 0
+    np.testing.assert_array_equal(
+        step.row_start[used],
+        (np.cumsum(rows) - rows)[used],
+        err_msg=f"{where}: training rows in table order",
+    )

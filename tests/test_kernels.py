@@ -17,6 +17,7 @@ import pytest
 from helpers import (
     C,
     away_from_faces,
+    check_scan_orders,
     engine_entropy,
     hand_rasterize,
     kernel_table_fields,
@@ -320,6 +321,7 @@ def _check_stages(step, scan, ref, cfg, where):
     """Steps 1-3 of a traced scan: the located voxels by hand, the training points by the
     reference."""
     keys, npts, _, hist = hand_rasterize(scan, cfg)
+    check_scan_orders(step, where)
     layer = located_voxels(step)
     np.testing.assert_array_equal(layer["keys"], keys, err_msg=f"{where}: located voxels")
     np.testing.assert_array_equal(layer["npts"], npts, err_msg=f"{where}: points per voxel")

@@ -74,7 +74,7 @@ class ScanIntegrator:
         pts = pts._replace(blocks=pts.blocks[: int(stats[rasterize.BLOCKS])])
         pts.blocks.sort()
         table.column_slots(m, table.points_in, m.p_start, True)
-        rasterize.scatter_points(m, pts.cell, pts.by_block)
+        rasterize.scatter_kernel(not self._settings.per_voxel)(m, pts.cell, pts.by_block)
         if trace is not None:
             trace.points_located(
                 pts.cell,
