@@ -828,16 +828,19 @@ def test_the_data_crc_is_checked_even_when_the_walk_never_reaches_the_data_end(t
     assert sorted(reader.report.suspect) == [s.index for s in scans]
 
 
-def _copy_messages(src, dst, topics: list[str], keep, extra=()) -> None:
+def _copy_messages(src, dst, topics: list[str], keep, extra=(), zstd_messages=False) -> None:
     """The messages of `src` that `keep(topic, log time)` keeps, in a new file `dst` whose
     channels are registered in the order of `topics` (so that its channel ids are its own),
-    and the `extra` messages, (topic, log time, data) each."""
+    and the `extra` messages, (topic, log time, data) each. Its chunks are zstd-compressed,
+    or (`zstd_messages`, as rosbag2's per-message compression writes) each message is."""
+    import zstandard
     from mcap.writer import CompressionType, Writer
 
     with open(src, "rb") as f:
         messages = list(make_reader(f).iter_messages())
     with open(dst, "wb") as out:
-        w = Writer(out, chunk_size=8_000, compression=CompressionType.ZSTD)
+        chunks = CompressionType.NONE if zstd_messages else CompressionType.ZSTD
+        w = Writer(out, chunk_size=8_000, compression=chunks)
         w.start(profile="ros2", library="test")
         ids, schema_ids = {}, {}
         for topic in topics:
@@ -853,6 +856,8 @@ def _copy_messages(src, dst, topics: list[str], keep, extra=()) -> None:
             if channel.topic in ids and keep(channel.topic, m.log_time)
         ]
         for log_time, topic, data in sorted([*kept, *((t, c, d) for c, t, d in extra)]):
+            if zstd_messages:
+                data = zstandard.ZstdCompressor().compress(data)
             w.add_message(ids[topic], log_time, data, log_time)
         w.finish()
 
@@ -865,20 +870,40 @@ def flip_first_chunk(path) -> None:
     flip(path, first.chunk_start_offset + first.chunk_length - 100)
 
 
-def test_a_damaged_mount_from_a_split_file_that_numbers_its_channels_its_own_way(tmp_path):
+PER_MESSAGE_METADATA = """rosbag2_bagfile_information:
+  version: 5
+  storage_identifier: mcap
+  relative_file_paths: [bag_0.mcap, bag_1.mcap]
+  compression_format: zstd
+  compression_mode: MESSAGE
+"""
+
+
+@pytest.mark.parametrize("compression", ["chunks", "messages", "messages, no metadata"])
+def test_a_damaged_mount_from_a_split_file_that_numbers_its_channels_its_own_way(
+    tmp_path, compression
+):
     """A rosbag2 folder of two MCAP files: the first holds no /tf_static, the second's first
     chunk holds it and is damaged. There /tf_static is the file's channel 1, the id the
     recording gave its clouds: the salvaged mount is decoded as a transform all the same, and
-    every scan is marked."""
+    every scan is marked. With rosbag2's per-message compression the salvaged message is
+    inflated first, as the folder's metadata says, or (without it) as its bytes say."""
     from tisem.io.bag_open import open_scan_reader
 
     whole = tmp_path / "whole.mcap"
     truth = write_synthetic_log(whole, n_scans=N_SCANS, n_points=12_000, compression="zstd")
     folder = tmp_path / "bag"
     folder.mkdir()
+    per_message = compression != "chunks"
+    if compression == "messages":
+        (folder / "metadata.yaml").write_text(PER_MESSAGE_METADATA)
     split_ns = truth["stamps_ns"][3]  # scans 0-2 in the first file, 3-5 in the second
     _copy_messages(
-        whole, folder / "bag_0.mcap", ["/velodyne_points", "/tf"], lambda _, t: t < split_ns
+        whole,
+        folder / "bag_0.mcap",
+        ["/velodyne_points", "/tf"],
+        lambda _, t: t < split_ns,
+        zstd_messages=per_message,
     )
     second = folder / "bag_1.mcap"
     _copy_messages(
@@ -886,6 +911,7 @@ def test_a_damaged_mount_from_a_split_file_that_numbers_its_channels_its_own_way
         second,
         ["/tf_static", "/velodyne_points", "/tf"],
         lambda topic, t: topic == "/tf_static" or t >= split_ns,
+        zstd_messages=per_message,
     )
     flip_first_chunk(second)
     reader = open_scan_reader(folder)

@@ -121,10 +121,7 @@ class SplitMcapRecords:
                     if rec.channel_id not in local_channels:
                         continue
                     channel = local_channels[rec.channel_id]
-                    compressed = self.zstd_messages
-                    if compressed is None:
-                        compressed = rec.channel_id in cdr and rec.data[:4] == ZSTD_MAGIC
-                    if not compressed:
+                    if not self._compressed(rec.data, rec.channel_id in cdr):
                         yield dataclasses.replace(rec, channel_id=channel)
                         continue
                     try:
@@ -136,9 +133,18 @@ class SplitMcapRecords:
                         lost = _lost_message(own, topics[rec.channel_id], channel, where, exc)
                         yield dataclasses.replace(lost, where=f"{path.name}: {where}")
                 elif isinstance(rec, Unvouched):  # (its schema resolved by the file's own ids)
+                    message = rec.message
+                    if self._compressed(message.data, rec.channel.message_encoding == "cdr"):
+                        try:
+                            message = dataclasses.replace(
+                                message, data=inflate_message(message.data)
+                            )
+                        except zstandard.ZstdError:  # (salvage only: the mount stays unread)
+                            continue
                     yield dataclasses.replace(
                         rec,
                         schema=rec.schema or schemas_here.get(rec.channel.schema_id),
+                        message=message,
                         where=f"{path.name}: {rec.where}",
                     )
                 else:
@@ -150,6 +156,12 @@ class SplitMcapRecords:
         self.excess = sum((p.excess for p in self.parts), Counter())
         crcs = {p.data_crc for p in self.parts}
         self.data_crc = "mismatch" if "mismatch" in crcs else "match" if crcs == {"match"} else None
+
+    def _compressed(self, data: bytes, cdr: bool) -> bool:
+        """Whether a message's data is a zstd frame of its own to inflate."""
+        if self.zstd_messages is None:  # (no metadata: a cdr message tells by its first bytes)
+            return cdr and data[:4] == ZSTD_MAGIC
+        return self.zstd_messages
 
 
 def _lost_message(
