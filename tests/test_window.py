@@ -280,6 +280,35 @@ def test_cap_shrinks_the_window_and_the_map_stays_correct(taichi_cpu, caplog):
 
 
 @pytest.mark.slow
+def test_a_shrunk_window_that_jumps_to_open_ground_is_said_to_be_full_again(taichi_cpu, caplog):
+    """Shrunk under the cap, then a jump to where nothing is mapped: the live blocks left
+    behind still count over the room, but none lies in the full box there, so the window takes
+    its full size back with that scan, and says so then; shrunk again later, it warns again."""
+    here = drive([4.0 * i for i in range(12)], seed=6)
+    there = drive([400.0 + 4.0 * i for i in range(12)], seed=8, t0=here[-1].stamp_s + 20.0)
+
+    def said(text):
+        return sum(text in r.getMessage() for r in caplog.records)
+
+    seen = []  # per scan: the window's half-size, the "full" and "shrunk" lines said by then
+    with caplog.at_level(logging.INFO, logger="tisem.live_window"):
+        map_drive(
+            config(window_xy_m=64.0, max_live_blocks=3300),
+            here + there,
+            check=lambda m: seen.append(
+                (int(m.window.half_vox[0]), said("back to its full size"), said("shrunk"))
+            ),
+        )
+    full_half = max(h for h, _, _ in seen)
+    jump = len(here)
+    assert min(h for h, _, _ in seen[:jump]) < full_half, "the window shrank before the jump"
+    assert seen[jump - 1][1:] == (0, 1)
+    assert seen[jump] == (full_half, 1, 1), "full again with the jump, and said so"
+    assert min(h for h, _, _ in seen[jump + 1 :]) < full_half
+    assert seen[-1][1:] == (1, 2), "shrunk again later: a second warning"
+
+
+@pytest.mark.slow
 def test_cap_too_small_for_the_scans_cuts_them_and_a_map_that_cannot_fit_is_refused(
     taichi_cpu, tmp_path, caplog
 ):

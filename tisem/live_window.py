@@ -264,10 +264,7 @@ class LiveWindow:
         full_blk = -(-full // LEAF)  # rings of blocks the full box can touch
         stored = self.store.count_blocks_by_ring(center_blk, full_blk)
         if live + int(stored.sum()) <= budget:
-            if st.shrunk:
-                log.info("live window back to its full size (%d live blocks)", live)
-                st.shrunk = False
-            return full
+            return self._full_size(live)
         rings = np.zeros(int(full_blk[0]) + 1, np.int32)
         if st.center_vox is not None:
             window.blocks_by_ring(
@@ -280,8 +277,8 @@ class LiveWindow:
         within = np.cumsum(rings + stored)  # blocks within ring r: the box of half 4r holds
         fits = np.flatnonzero(within <= budget)
         r = int(fits.max()) if len(fits) else -1
-        if r >= full_blk[0]:
-            return full
+        if r >= full_blk[0]:  # (blocks now behind the full box leave with this move)
+            return self._full_size(live)
         reach = self._geometry.scan_reach_vox
         r_min = -(-reach // LEAF)
         if r < r_min:
@@ -308,6 +305,14 @@ class LiveWindow:
         half = full.copy()
         half[:2] = r * LEAF  # a box of half 4r voxels touches rings <= r
         return half
+
+    def _full_size(self, live: int) -> np.ndarray:
+        """The configured half-size, said once when a shrunk window gets it back."""
+        st = self.state
+        if st.shrunk:
+            log.info("live window back to its full size (%d live blocks)", live)
+            st.shrunk = False
+        return st.full_half_vox
 
     # ------------------------------------------------------------------ reading
     def lookup_world(
