@@ -45,7 +45,9 @@ def column_slots(
     The order is fixed, not first come first served: which training rows cast free-space
     rays (every stride-th row) follows it, so the same scans clear the same space whatever
     the threads do. A task per x row of the table counts it, one short serial pass turns the
-    rows' counts into first slots, then a task per row again hands its slots out.
+    rows' counts into first slots, then a task per row again hands its slots out (a few
+    hundred tasks: plenty for two CPU threads, few for a GPU, where this is not the costly
+    step).
     """
     m.counter[None] = 0
     for cx in range(m.table_shape[0]):

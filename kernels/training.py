@@ -4,11 +4,11 @@ class evidence) sorted by block.
 
 Three passes, none with float atomics: `sort_blocks`, one task per occupied leaf block, sorts
 the block's points by voxel (a counting sort over its 64 voxels) and counts the voxels that pass
-the filter (`voxel_kept`) per z layer; `table.column_slots`, one task per (x, y) column of the
-scan's table, hands out the rows, a column's blocks one after another in z, so that any z-range
-of a column is one contiguous slice (kernels/bki.py); the training kernel, one task per block
-again, sums each kept voxel's run of points into its row. Tasks per block rather than per column
-keep thousands of them busy on a GPU.
+the filter (`voxel_kept`) per z layer; `table.column_slots` hands out the rows in table order,
+a column's blocks one after another in z, so that any z-range of a column is one contiguous
+slice (kernels/bki.py); the training kernel, one task per block again, sums each kept voxel's
+run of points into its row. Tasks per block rather than per column keep thousands of them busy
+on a GPU.
 
 None of this touches the map: the next steps find each row's map voxel from the row's block and
 its voxel index in the block (`visit_training_voxels`).

@@ -5,8 +5,9 @@ known labels (a street, probes, mixed ground), and readers of what each step of
 Taichi rules these follow: every test gets its own runtime (the `taichi_cpu` fixture of
 conftest.py: `init_taichi("cpu", threads=2)`, one Mapper per runtime), because using a field of
 an earlier runtime aborts the process; no Taichi object outlives its runtime; and the test
-kernels below live in this real source file (Taichi reads kernel source from disk). With 2
-threads float atomics are not bitwise reproducible, so comparisons carry named tolerances.
+kernels below live in this real source file (Taichi reads kernel source from disk).
+Comparisons with the numpy reference (float64 against the kernels' float32) carry named
+tolerances.
 """
 
 # (no `from __future__ import annotations`: Taichi reads the kernels' annotations)

@@ -110,6 +110,11 @@ def ensure_initialized() -> None:
         _generation = 1
 
 
+def on_cpu() -> bool:
+    """Whether the running Taichi backend is a CPU (x64 or arm64)."""
+    return ti.lang.impl.current_cfg().arch in (ti.x64, ti.arm64)
+
+
 def describe() -> str:
     """A one-line description of the running backend, for logs and benchmark tables."""
     import platform

@@ -12,6 +12,7 @@ import logging
 
 import numpy as np
 
+from tisem import backend
 from tisem.block_cap import cut_to_nearest, new_blocks_beyond
 from tisem.config import MapperConfig
 from tisem.geometry import MapGeometry
@@ -43,6 +44,8 @@ class ScanIntegrator:
         self._fields = fields
         self._params = params  # the scan constants: the mapper writes them before each scan
         self._settings = settings
+        # (a CPU lists each block's points in the scan's order, in one thread: kernels/rasterize.py)
+        self._points_in_order = backend.on_cpu()
         self._min_points = config.min_points
         self._num_classes = config.num_classes
         self._resolution_m = geometry.resolution_m
@@ -74,7 +77,7 @@ class ScanIntegrator:
         pts = pts._replace(blocks=pts.blocks[: int(stats[rasterize.BLOCKS])])
         pts.blocks.sort()
         table.column_slots(m, table.points_in, m.p_start, True)
-        rasterize.scatter_kernel(not self._settings.per_voxel)(m, pts.cell, pts.by_block)
+        rasterize.scatter_kernel(self._points_in_order)(m, pts.cell, pts.by_block)
         if trace is not None:
             trace.points_located(
                 pts.cell,
