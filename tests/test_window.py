@@ -225,9 +225,8 @@ def test_points_on_voxel_faces_find_the_same_voxel_live_and_stored(taichi_cpu):
 def test_small_window_equals_window_holding_everything(taichi_cpu):
     """Out 40 m and back at 10 m per scan with a 25 m window (everything leaves and comes back)
     gives the same map as a 64 m window that never evicts: labels and queries identical,
-    counters, times and lengths within float rounding (the kernel update has no float atomics,
-    one thread per voxel; the scan's voxel centroids are float atomic sums, whose order two
-    threads may change in the last bit: in practice the maps come out bitwise equal)."""
+    counters, times and lengths bit for bit (no kernel has float atomics, and a scan's points
+    are summed in one order whatever the threads)."""
     scans = drive(out_and_back(5, 10.0), seed=5)
     small, reps = map_drive(config(), scans)
     assert sum(r.evicted_voxels for r in reps) > 0 and sum(r.reloaded_voxels for r in reps) > 0
@@ -241,7 +240,7 @@ def test_small_window_equals_window_holding_everything(taichi_cpu):
     big, reps = map_drive(config(window_xy_m=64.0), scans)
     assert sum(r.evicted_voxels for r in reps) == 0 and big.stored_voxels == 0
     snap_big = big.snapshot()
-    assert_same_voxels(snap_small, snap_big, rtol=1e-5, atol=1e-6)
+    assert_same_voxels(snap_small, snap_big)
     labels, probs = big.query(q)
     np.testing.assert_array_equal(q_small[0], labels)
     # voxel centres: same answer from field and store; raw points may differ in the last bit of
@@ -273,7 +272,7 @@ def test_cap_shrinks_the_window_and_the_map_stays_correct(taichi_cpu, caplog):
     assert max(b for b, _ in seen) <= cap
     assert min(h for _, h in seen) < 200  # 64 m = 320 voxels: it did shrink
     assert capped.stored_voxels > 0
-    assert_same_voxels(capped.snapshot(), want, rtol=1e-5, atol=1e-6)
+    assert_same_voxels(capped.snapshot(), want)
     labels, probs = capped.query(q)
     np.testing.assert_array_equal(labels, want_q[0])
     np.testing.assert_allclose(probs, want_q[1], rtol=0, atol=1e-6)
