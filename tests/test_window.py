@@ -225,8 +225,9 @@ def test_points_on_voxel_faces_find_the_same_voxel_live_and_stored(taichi_cpu):
 def test_small_window_equals_window_holding_everything(taichi_cpu):
     """Out 40 m and back at 10 m per scan with a 25 m window (everything leaves and comes back)
     gives the same map as a 64 m window that never evicts: labels and queries identical,
-    counters, times and lengths bit for bit (no kernel has float atomics, and a scan's points
-    are summed in one order whatever the threads)."""
+    counters, times and lengths within float rounding (no kernel has float atomics and a
+    scan's points are summed in one order, but the two window sizes compile to two kernels,
+    whose fast-math sums may round differently: in practice the maps come out bitwise equal)."""
     scans = drive(out_and_back(5, 10.0), seed=5)
     small, reps = map_drive(config(), scans)
     assert sum(r.evicted_voxels for r in reps) > 0 and sum(r.reloaded_voxels for r in reps) > 0
@@ -240,7 +241,7 @@ def test_small_window_equals_window_holding_everything(taichi_cpu):
     big, reps = map_drive(config(window_xy_m=64.0), scans)
     assert sum(r.evicted_voxels for r in reps) == 0 and big.stored_voxels == 0
     snap_big = big.snapshot()
-    assert_same_voxels(snap_small, snap_big)
+    assert_same_voxels(snap_small, snap_big, rtol=1e-5, atol=1e-6)
     labels, probs = big.query(q)
     np.testing.assert_array_equal(q_small[0], labels)
     # voxel centres: same answer from field and store; raw points may differ in the last bit of
