@@ -946,3 +946,24 @@ def test_the_tf_notes_of_a_mount_read_from_damage_are_given_once(tmp_path):
     assert sorted(reader.report.suspect) == list(range(1, N_SCANS))
     note = "tf: ignored 1 transform(s) map -> odd with non-finite values"
     assert reader.report.notes.count(note) == 1
+
+
+def test_the_fuzz_campaigns_per_message_recording_reads_as_its_plain_twin(tmp_path):
+    """The fuzz's rosbag2 split compressed message by message (its folder's metadata says so)
+    gives the scans of the same recording written plain: the base its damaged copies are
+    judged against is the recording, not an empty one."""
+    from tisem.io.bag_open import open_scan_reader
+    from tisem.testing.mcap_damage import ZSTD_MESSAGES_FOLDER, write_bases
+    from tisem.testing.oracle import reference
+
+    bases = write_bases(tmp_path)
+    per_message = bases["zstd messages"]
+    assert per_message.path.parent.name == ZSTD_MESSAGES_FOLDER
+    assert per_message.data.count(b"\x28\xb5\x2f\xfd") >= 5, "each message a zstd frame"
+    plain = reference(open_scan_reader(bases["uncompressed"].path))
+    got = reference(open_scan_reader(per_message.path))
+    assert sorted(got) == sorted(plain) and len(got) == 5
+    for k, scan in got.items():
+        np.testing.assert_array_equal(scan.points_sensor, plain[k].points_sensor)
+        np.testing.assert_array_equal(scan.labels, plain[k].labels)
+        np.testing.assert_array_equal(scan.T_world_sensor, plain[k].T_world_sensor)

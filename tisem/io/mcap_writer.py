@@ -22,6 +22,7 @@ from pathlib import Path
 from typing import BinaryIO
 
 import numpy as np
+import zstandard
 from mcap.well_known import SchemaEncoding
 from mcap.writer import CompressionType, IndexType
 from mcap.writer import Writer as McapWriter
@@ -169,6 +170,9 @@ class Ros2McapWriter:
 
     compression: zstd | lz4 | none. crcs=False, chunked=False and indexed=False reproduce
     rosbag2's presets (no chunk CRC; `fastwrite`: no chunks; no summary at all).
+    zstd_messages: each message's data a zstd frame of its own, as rosbag2's per-message
+    compression writes it (give compression "none": rosbag2 leaves its chunks uncompressed
+    then; a reader learns of it from the folder's metadata.yaml).
     """
 
     def __init__(
@@ -180,6 +184,7 @@ class Ros2McapWriter:
         crcs: bool = True,
         chunked: bool = True,
         indexed: bool = True,
+        zstd_messages: bool = False,
     ) -> None:
         if compression not in COMPRESSION:
             raise ValueError(
@@ -199,6 +204,7 @@ class Ros2McapWriter:
             use_summary_offsets=indexed,
         )
         self._writer.start(profile="ros2", library="tisem")
+        self._zstd = zstandard.ZstdCompressor() if zstd_messages else None
         self._schemas: dict[str, tuple[int, object]] = {}  # type -> (schema id, encoder)
         self._channels: dict[str, int] = {}
         # topic -> the metadata of its Channel record (rosbag2: `offered_qos_profiles`)
@@ -222,12 +228,13 @@ class Ros2McapWriter:
             self._channels[topic] = self._writer.register_channel(
                 topic, "cdr", schema_id, self.channel_metadata.get(topic, {})
             )
+        data = encode(message)
         self._writer.add_message(
             self._channels[topic],
             log_time=int(log_time_ns),
             publish_time=int(log_time_ns if publish_time_ns is None else publish_time_ns),
             sequence=sequence,
-            data=encode(message),
+            data=data if self._zstd is None else self._zstd.compress(data),
         )
 
     def write_cloud(

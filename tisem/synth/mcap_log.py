@@ -106,12 +106,14 @@ def write_synthetic_log(
     frame_id: str = "velodyne",
     data_crc: bool = False,
     cloud_hook: Callable[[int, dict], dict] | None = None,
+    zstd_messages: bool = False,
 ) -> dict:
     """A small ROS 2 recording: /tf_static base_link->velodyne (non-identity), /tf
     map->base_link at `tf_rate_hz` from `synthetic_pose`, clouds at 10 Hz whose header stamps
     fall between tf samples and whose log times lag by 35 ms (a recorder's receive time).
     `tf_end_s` (seconds after the start) stops /tf early: later scans have no pose. The
     writer options (compression, crcs, chunked, indexed, chunk_size) are `Ros2McapWriter`'s;
+    `zstd_messages` compresses each message on its own (rosbag2's per-message compression);
     `data_crc` also fills in the data section's CRC (the data-end record), which an unchunked
     file needs to have any CRC at all. `cloud_hook(i, message)` may change the PointCloud2
     message of scan i (a dict, as `array_to_ros_cloud` makes it) before it is written: clouds
@@ -146,6 +148,7 @@ def write_synthetic_log(
         chunked=chunked,
         indexed=indexed,
         chunk_size=chunk_size,
+        zstd_messages=zstd_messages,
     ) as w:
         w.write_transforms([("base_link", frame_id, t0, T_BASE_LIDAR)], t0, static=True)
         for log_time, kind, i in sorted(events, key=lambda e: e[:2]):

@@ -53,15 +53,18 @@ class _Target:
     """The intact inputs of one target, their scans, and its cases."""
 
     def __init__(self, name: str, folder: Path) -> None:
-        from tisem.io.mcap_reader import McapScanReader
         from tisem.io.semantickitti import SemanticKittiSequence
         from tisem.testing import kitti_damage, mcap_damage
         from tisem.testing.oracle import reference
 
         self.name, self.folder = name, folder
         if name == "mcap":
+            from tisem.io.bag_open import open_scan_reader
+
             self.bases = mcap_damage.write_bases(folder)
-            self.refs = {b: reference(McapScanReader(base.path)) for b, base in self.bases.items()}
+            self.refs = {
+                b: reference(open_scan_reader(base.path)) for b, base in self.bases.items()
+            }
         elif name == "rosbag":
             from tisem.io.bag_open import open_scan_reader
             from tisem.testing import bag_damage
@@ -86,21 +89,26 @@ class _Target:
             return bag_damage.bag_mutation(self.bases, rng, case)
         return kitti_damage.kitti_mutation(rng, case)
 
+    def case_path(self, mutation, case: int) -> Path:
+        """Where case `case` is built (a per-message MCAP split in its rosbag2 folder)."""
+        if self.name == "mcap":
+            from tisem.testing.mcap_damage import case_folder
+
+            return case_folder(self.folder, mutation.base) / f"case{case}.mcap"
+        if self.name == "rosbag":
+            return self.folder / f"case{case}.bag"
+        return self.folder / f"case{case}"
+
     def build(self, mutation, case: int) -> Path:
-        if self.name in ("mcap", "rosbag"):
-            path = self.folder / f"case{case}.{'mcap' if self.name == 'mcap' else 'bag'}"
-            mutation.write(self.bases, path)
-        else:
-            path = self.folder / f"case{case}"
-            mutation.write(self.base, path)
+        path = self.case_path(mutation, case)
+        mutation.write(self.base if self.name == "kitti" else self.bases, path)
         return path
 
     def judge(self, mutation, path: Path) -> Outcome:
-        from tisem.testing.oracle import judge_bag, judge_kitti, judge_mcap
+        from tisem.testing.oracle import judge_bag, judge_kitti
 
-        if self.name == "mcap":
-            return judge_mcap(path, self.refs[mutation.base], mutation.detectable)
-        if self.name == "rosbag":
+        # (opened as a user opens them: a per-message split by its folder's metadata)
+        if self.name in ("mcap", "rosbag"):
             return judge_bag(path, self.refs[mutation.base], mutation.detectable)
         return judge_kitti(path, self.ref, mutation.detectable)
 
@@ -171,9 +179,7 @@ def _worker(
             finally:
                 signal.alarm(0)
             emit(case=case, outcome=outcome.kind, detail=outcome.detail)
-            _remove(runner.folder / f"case{case}.mcap")
-            _remove(runner.folder / f"case{case}.bag")
-            _remove(runner.folder / f"case{case}")
+            _remove(runner.case_path(mutation, case))
             case += 1
 
 

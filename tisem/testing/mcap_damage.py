@@ -1,4 +1,7 @@
 """Damaged MCAP files: small intact recordings to start from, and seeded mutations of them.
+The recordings cover every layout the reader handles, among them a rosbag2 split compressed
+message by message, in a folder whose metadata.yaml says so (read it as a user would, with
+`tisem.io.bag_open.open_scan_reader`).
 
 A mutation is either a byte edit of an intact file (a cut, a bit flip, a run of bytes, a length
 field set to 2^32 or 2^63, a compression name, chunk index entries duplicated or deleted) at a
@@ -30,7 +33,18 @@ BASES = {
     "no summary": dict(compression="zstd", indexed=False),
     "float labels": dict(compression="zstd", label_dtype="<f8"),
     "foxglove": dict(foxglove=True),
+    # rosbag2's per-message compression: each message a zstd frame, the chunks uncompressed;
+    # a split file of a folder whose metadata.yaml says so (ZSTD_MESSAGES_FOLDER)
+    "zstd messages": dict(compression="none", zstd_messages=True),
 }
+ZSTD_MESSAGES_FOLDER = "zstd_messages_bag"
+_ZSTD_MESSAGES_METADATA = """rosbag2_bagfile_information:
+  version: 5
+  storage_identifier: mcap
+  relative_file_paths: [zstd_messages.mcap]
+  compression_format: zstd
+  compression_mode: MESSAGE
+"""
 _COMMON = dict(n_scans=5, n_points=40, chunk_size=1500, tf_rate_hz=20.0, seed=7)
 _NAMES = {
     0x01: "header",
@@ -132,11 +146,24 @@ def _write(path: Path, options: dict, hook=None) -> None:
         write_synthetic_log(path, **options, cloud_hook=hook)
 
 
+def case_folder(folder: Path, base: str) -> Path:
+    """Where a recording made from `base` goes: `folder`, or for the per-message base the
+    rosbag2 folder beside it whose metadata says its files compress message by message."""
+    if not BASES[base].get("zstd_messages"):
+        return folder
+    bag = folder / ZSTD_MESSAGES_FOLDER
+    if not bag.is_dir():
+        bag.mkdir(parents=True)
+        (bag / "metadata.yaml").write_text(_ZSTD_MESSAGES_METADATA)
+    return bag
+
+
 def write_bases(folder: Path) -> dict[str, Base]:
-    """The intact recordings, written into `folder`."""
+    """The intact recordings, written into `folder` (the per-message one into its rosbag2
+    folder there: read it with `tisem.io.bag_open.open_scan_reader`)."""
     out = {}
     for name, options in BASES.items():
-        path = folder / f"{name.replace(' ', '_')}.mcap"
+        path = case_folder(folder, name) / f"{name.replace(' ', '_')}.mcap"
         _write(path, {**_COMMON, **options})
         data = path.read_bytes()
         out[name] = Base(name, path, data, layout(data), {**_COMMON, **options})
