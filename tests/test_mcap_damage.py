@@ -957,13 +957,14 @@ def test_the_fuzz_campaigns_per_message_recording_reads_as_its_plain_twin(tmp_pa
     from tisem.testing.oracle import reference
 
     bases = write_bases(tmp_path)
-    per_message = bases["zstd messages"]
-    assert per_message.path.parent.name == ZSTD_MESSAGES_FOLDER
-    assert per_message.data.count(b"\x28\xb5\x2f\xfd") >= 5, "each message a zstd frame"
     plain = reference(open_scan_reader(bases["uncompressed"].path))
-    got = reference(open_scan_reader(per_message.path))
-    assert sorted(got) == sorted(plain) and len(got) == 5
-    for k, scan in got.items():
-        np.testing.assert_array_equal(scan.points_sensor, plain[k].points_sensor)
-        np.testing.assert_array_equal(scan.labels, plain[k].labels)
-        np.testing.assert_array_equal(scan.T_world_sensor, plain[k].T_world_sensor)
+    for name in ("zstd messages", "zstd messages unchunked"):
+        per_message = bases[name]
+        assert per_message.path.parent.name == ZSTD_MESSAGES_FOLDER
+        assert per_message.data.count(b"\x28\xb5\x2f\xfd") >= 5, "each message a zstd frame"
+        got = reference(open_scan_reader(per_message.path))
+        assert sorted(got) == sorted(plain) and len(got) == 5, name
+        for k, scan in got.items():
+            np.testing.assert_array_equal(scan.points_sensor, plain[k].points_sensor)
+            np.testing.assert_array_equal(scan.labels, plain[k].labels)
+            np.testing.assert_array_equal(scan.T_world_sensor, plain[k].T_world_sensor)

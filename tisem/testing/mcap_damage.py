@@ -34,14 +34,18 @@ BASES = {
     "float labels": dict(compression="zstd", label_dtype="<f8"),
     "foxglove": dict(foxglove=True),
     # rosbag2's per-message compression: each message a zstd frame, the chunks uncompressed;
-    # a split file of a folder whose metadata.yaml says so (ZSTD_MESSAGES_FOLDER)
+    # split files of a folder whose metadata.yaml says so (ZSTD_MESSAGES_FOLDER)
     "zstd messages": dict(compression="none", zstd_messages=True),
+    # ... and as rosbag2's `fastwrite` preset writes it: no chunks, so no CRC but the data's
+    "zstd messages unchunked": dict(
+        compression="none", chunked=False, data_crc=True, zstd_messages=True
+    ),
 }
 ZSTD_MESSAGES_FOLDER = "zstd_messages_bag"
 _ZSTD_MESSAGES_METADATA = """rosbag2_bagfile_information:
   version: 5
   storage_identifier: mcap
-  relative_file_paths: [zstd_messages.mcap]
+  relative_file_paths: [zstd_messages.mcap, zstd_messages_unchunked.mcap]
   compression_format: zstd
   compression_mode: MESSAGE
 """
@@ -152,8 +156,8 @@ def case_folder(folder: Path, base: str) -> Path:
     if not BASES[base].get("zstd_messages"):
         return folder
     bag = folder / ZSTD_MESSAGES_FOLDER
-    if not bag.is_dir():
-        bag.mkdir(parents=True)
+    if not (bag / "metadata.yaml").is_file():
+        bag.mkdir(parents=True, exist_ok=True)
         (bag / "metadata.yaml").write_text(_ZSTD_MESSAGES_METADATA)
     return bag
 

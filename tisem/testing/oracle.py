@@ -141,15 +141,9 @@ def _failure(e: BaseException) -> Outcome:
     return Outcome("failure", f"{type(e).__name__} at {where}: {str(e)[:300]}")
 
 
-def judge_mcap(path: Path, ref: dict[int, Scan], detectable: bool) -> Outcome:
-    """Read a damaged recording twice (as a run does, for the final map) and judge it."""
-    from tisem.io.mcap_reader import McapScanReader
-
-    return judge_recording(McapScanReader, path, ref, detectable)
-
-
 def judge_bag(path: Path, ref: dict[int, Scan], detectable: bool) -> Outcome:
-    """`judge_mcap` for any recording `open_scan_reader` takes (a ROS 1 bag, ...)."""
+    """Read a damaged recording twice (as a run does, for the final map) and judge it: any
+    recording `open_scan_reader` takes (an MCAP file, a ROS 1 bag, ...)."""
     from tisem.io.bag_open import open_scan_reader
 
     return judge_recording(open_scan_reader, path, ref, detectable)
