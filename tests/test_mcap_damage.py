@@ -22,7 +22,7 @@ from tisem.io.mcap_reader import McapOptions, McapScanReader
 from tisem.labels import raw_to_train
 from tisem.scan import Scan
 from tisem.synth.mcap_log import write_synthetic_log
-from tisem.testing.mcap_damage import layout
+from tisem.testing.mcap_damage import layout, per_message_metadata
 
 N_SCANS = 6
 
@@ -870,15 +870,6 @@ def flip_first_chunk(path) -> None:
     flip(path, first.chunk_start_offset + first.chunk_length - 100)
 
 
-PER_MESSAGE_METADATA = """rosbag2_bagfile_information:
-  version: 5
-  storage_identifier: mcap
-  relative_file_paths: [bag_0.mcap, bag_1.mcap]
-  compression_format: zstd
-  compression_mode: MESSAGE
-"""
-
-
 @pytest.mark.parametrize("compression", ["chunks", "messages", "messages, no metadata"])
 def test_a_damaged_mount_from_a_split_file_that_numbers_its_channels_its_own_way(
     tmp_path, compression
@@ -896,7 +887,7 @@ def test_a_damaged_mount_from_a_split_file_that_numbers_its_channels_its_own_way
     folder.mkdir()
     per_message = compression != "chunks"
     if compression == "messages":
-        (folder / "metadata.yaml").write_text(PER_MESSAGE_METADATA)
+        (folder / "metadata.yaml").write_text(per_message_metadata(["bag_0.mcap", "bag_1.mcap"]))
     split_ns = truth["stamps_ns"][3]  # scans 0-2 in the first file, 3-5 in the second
     _copy_messages(
         whole,

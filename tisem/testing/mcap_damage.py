@@ -42,13 +42,17 @@ BASES = {
     ),
 }
 ZSTD_MESSAGES_FOLDER = "zstd_messages_bag"
-_ZSTD_MESSAGES_METADATA = """rosbag2_bagfile_information:
-  version: 5
-  storage_identifier: mcap
-  relative_file_paths: [zstd_messages.mcap, zstd_messages_unchunked.mcap]
-  compression_format: zstd
-  compression_mode: MESSAGE
-"""
+
+
+def per_message_metadata(files: list[str]) -> str:
+    """The metadata.yaml of a rosbag2 folder of MCAP `files` compressed message by message."""
+    return (
+        "rosbag2_bagfile_information:\n  version: 5\n  storage_identifier: mcap\n"
+        f"  relative_file_paths: [{', '.join(files)}]\n"
+        "  compression_format: zstd\n  compression_mode: MESSAGE\n"
+    )
+
+
 _COMMON = dict(n_scans=5, n_points=40, chunk_size=1500, tf_rate_hz=20.0, seed=7)
 _NAMES = {
     0x01: "header",
@@ -158,7 +162,10 @@ def case_folder(folder: Path, base: str) -> Path:
     bag = folder / ZSTD_MESSAGES_FOLDER
     if not (bag / "metadata.yaml").is_file():
         bag.mkdir(parents=True, exist_ok=True)
-        (bag / "metadata.yaml").write_text(_ZSTD_MESSAGES_METADATA)
+        names = [
+            f"{name.replace(' ', '_')}.mcap" for name, o in BASES.items() if o.get("zstd_messages")
+        ]
+        (bag / "metadata.yaml").write_text(per_message_metadata(names))
     return bag
 
 
