@@ -83,7 +83,7 @@ class Mapper:
         self._generation = backend.claim_map_slot()
         self.C = cfg.num_classes
         if parallel_loop is None:
-            parallel_loop = "voxel" if ti.lang.impl.current_cfg().arch == ti.cuda else "block"
+            parallel_loop = "block" if backend.on_cpu() else "voxel"
         self._settings = kernel_settings(cfg, per_voxel=parallel_loop == "voxel")
         self._fields = MapFields(
             self.C,

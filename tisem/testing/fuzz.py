@@ -58,24 +58,17 @@ class _Target:
         from tisem.testing.oracle import reference
 
         self.name, self.folder = name, folder
-        if name == "mcap":
-            from tisem.io.bag_open import open_scan_reader
-
-            self.bases = mcap_damage.write_bases(folder)
-            self.refs = {
-                b: reference(open_scan_reader(base.path)) for b, base in self.bases.items()
-            }
-        elif name == "rosbag":
-            from tisem.io.bag_open import open_scan_reader
-            from tisem.testing import bag_damage
-
-            self.bases = bag_damage.write_bases(folder)
-            self.refs = {
-                b: reference(open_scan_reader(base.path)) for b, base in self.bases.items()
-            }
-        else:
+        if name == "kitti":
             self.base = kitti_damage.write_base(folder / "intact")
             self.ref = reference(SemanticKittiSequence(self.base))
+            return
+        from tisem.io.bag_open import open_scan_reader
+        from tisem.testing import bag_damage
+
+        # (recordings are opened as a user opens them: a per-message split by its folder)
+        writer = mcap_damage if name == "mcap" else bag_damage
+        self.bases = writer.write_bases(folder)
+        self.refs = {b: reference(open_scan_reader(base.path)) for b, base in self.bases.items()}
 
     def mutation(self, seed: int, case: int):
         from tisem.testing import kitti_damage, mcap_damage
@@ -107,10 +100,9 @@ class _Target:
     def judge(self, mutation, path: Path) -> Outcome:
         from tisem.testing.oracle import judge_bag, judge_kitti
 
-        # (opened as a user opens them: a per-message split by its folder's metadata)
-        if self.name in ("mcap", "rosbag"):
-            return judge_bag(path, self.refs[mutation.base], mutation.detectable)
-        return judge_kitti(path, self.ref, mutation.detectable)
+        if self.name == "kitti":
+            return judge_kitti(path, self.ref, mutation.detectable)
+        return judge_bag(path, self.refs[mutation.base], mutation.detectable)
 
 
 def _remove(path: Path) -> None:

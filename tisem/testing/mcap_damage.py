@@ -154,6 +154,10 @@ def _write(path: Path, options: dict, hook=None) -> None:
         write_synthetic_log(path, **options, cloud_hook=hook)
 
 
+def _file_name(base: str) -> str:
+    return f"{base.replace(' ', '_')}.mcap"
+
+
 def case_folder(folder: Path, base: str) -> Path:
     """Where a recording made from `base` goes: `folder`, or for the per-message base the
     rosbag2 folder beside it whose metadata says its files compress message by message."""
@@ -162,19 +166,17 @@ def case_folder(folder: Path, base: str) -> Path:
     bag = folder / ZSTD_MESSAGES_FOLDER
     if not (bag / "metadata.yaml").is_file():
         bag.mkdir(parents=True, exist_ok=True)
-        names = [
-            f"{name.replace(' ', '_')}.mcap" for name, o in BASES.items() if o.get("zstd_messages")
-        ]
+        names = [_file_name(name) for name, o in BASES.items() if o.get("zstd_messages")]
         (bag / "metadata.yaml").write_text(per_message_metadata(names))
     return bag
 
 
 def write_bases(folder: Path) -> dict[str, Base]:
-    """The intact recordings, written into `folder` (the per-message one into its rosbag2
-    folder there: read it with `tisem.io.bag_open.open_scan_reader`)."""
+    """The intact recordings, written into `folder` (the per-message ones into their rosbag2
+    folder there: read them with `tisem.io.bag_open.open_scan_reader`)."""
     out = {}
     for name, options in BASES.items():
-        path = case_folder(folder, name) / f"{name.replace(' ', '_')}.mcap"
+        path = case_folder(folder, name) / _file_name(name)
         _write(path, {**_COMMON, **options})
         data = path.read_bytes()
         out[name] = Base(name, path, data, layout(data), {**_COMMON, **options})
