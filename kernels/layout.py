@@ -4,16 +4,17 @@ The map is one sparse tree indexed by *storage* voxel index u in [0, N):
 
     root.pointer(top cells) -> pointer(8^3 leaf blocks) -> bitmasked(4^3 voxels) -> dense(l, C)
 
-holding the semantic counters sigma[u, c], the time of the last update t_last_rel[u], the
-kernel length length[u] and, with free space only, the occupancy evidence (kernels/raycast.py).
+holding the semantic counters sigma[u, c] (with compact_counters behind a pointer per voxel
+beside the bitmask instead), the time of the last update t_last_rel[u], the kernel length
+length[u] and, with free space only, the occupancy evidence (kernels/raycast.py).
 A scan never touches a sparse node until its training points are known: its points are sorted
 by leaf block in a dense table of the blocks around the sensor (kernels/rasterize.py,
 kernels/training.py), which costs plain integer atomics instead of sparse activations.
 
 Why this shape (measured on a 2-thread CPU): a small two-level pointer top keeps struct-fors
 cheap (a one-level pointer over the whole window costs a dense root of 16 B per cell and seconds
-per struct-for), 4^3 bitmasked leaves suit surface-like LiDAR data (~10 voxels per 8^3 block),
-and the class axis as an inner dense(l, C) of a 4-D scalar field needs one atomic per label
+per struct-for), 4^3 bitmasked leaves suit surface-like LiDAR data (~7 live voxels of a block's
+64), and the class axis as an inner dense(l, C) of a 4-D scalar field needs one atomic per label
 (taichi 1.7.x aborts on atomics into one component of a vector field). Struct-fors run over the
 3-D fields placed on the leaf, never the 4-D one (that builds an element list per voxel).
 
@@ -145,6 +146,7 @@ class MapFields:
         empty_evidence: float = 2.0,
         occupancy_cap: float = 4.0,
         class_centroids: bool = False,
+        compact_counters: bool = False,
         seen_empty_s: float = 0.0,
         spare_beside_unseen: bool = False,
         spare_static_beside_own: bool = False,
@@ -163,7 +165,8 @@ class MapFields:
         # one SNode tree per map, built and finalised here
         fb = ti.FieldsBuilder()
 
-        # map layer: 88 B per voxel of a live block (20 x f32 counters, time, length) + bitmask
+        # map layer: 88 B per voxel of a live block (20 x f32 counters, time, length) + bitmask,
+        # or with compact_counters 1.5 KB per live block and 80 B per live voxel
         self.counts = ti.field(ti.f32)
         # the voxel's last update, float32 seconds since the map's first scan
         self.t_last_rel = ti.field(ti.f32)
@@ -174,7 +177,20 @@ class MapFields:
         self.blk = self.top.pointer(ti.ijk, MID)
         # the bitmask says which voxels are live: struct-fors over voxels run over t_last_rel
         self.vox = self.blk.bitmasked(ti.ijk, LEAF)
-        self.vox.dense(ti.l, self.C).place(self.counts)
+        # A block holds ~7 live voxels of 64, so counters stored for all 64 (5 KB a block) are
+        # mostly zeros, and a growing map pays a page fault for each new 4 KB of them. With
+        # compact_counters they sit behind a pointer per voxel, the live voxels' packed
+        # together: 20 % less memory on a long drive and 40 % fewer page faults while the map
+        # grows, but the update's reads through the pointer cost 3-7 % more time a scan on a
+        # large live map (docs/long_drive.md). A voxel's counters are written only with its
+        # time, so their pointer is live exactly when the voxel is; reading those of a voxel
+        # that is not gives 0, as in the block.
+        self.compact_counters = bool(compact_counters)
+        if self.compact_counters:
+            self.vox_counts = self.blk.pointer(ti.ijk, LEAF)
+            self.vox_counts.dense(ti.l, self.C).place(self.counts)
+        else:
+            self.vox.dense(ti.l, self.C).place(self.counts)
         self.vox.place(self.t_last_rel)
         # free space (placed only when it is on, so that a map without it keeps its layout and
         # memory): the voxel's occupancy evidence, hits minus crossings by rays, decayed with

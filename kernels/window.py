@@ -70,9 +70,10 @@ def export_leaving(
 
     Each leaving voxel is written to the outputs (world keys unwrapped at `old_center`; its
     occupancy evidence only in a map with free space, its class centroids only in a map that
-    keeps them, else `occupancy` and `centroids` may be empty), then
-    zeroed and its bit cleared (a bitmasked cell keeps its data when deactivated, and the next
-    voxel there must start from zero). `left[b]` counts block b's voxels that stay.
+    keeps them, else `occupancy` and `centroids` may be empty), then zeroed (with compact
+    counters, its counters freed) and its bit cleared (a bitmasked cell keeps its data when
+    deactivated, and the next voxel there must start from zero). `left[b]` counts block b's
+    voxels that stay.
     """
     m.counter[None] = 0
     for b, i, j, k in ti.ndrange(n_blocks, LEAF, LEAF, LEAF):
@@ -98,8 +99,12 @@ def export_leaving(
                         if idx < keys.shape[0]:
                             centroids[idx, k] = m.centroids[u, k]
                         m.centroids[u, k] = 0.0
-                for c in ti.static(range(m.C)):
-                    m.counts[u, c] = 0.0
+                if ti.static(m.compact_counters):
+                    # its counters' memory goes back to taichi's pool, which zero-fills it
+                    deactivate(m.vox_counts, u)
+                else:
+                    for c in ti.static(range(m.C)):
+                        m.counts[u, c] = 0.0
                 m.t_last_rel[u] = 0.0
                 m.length[u] = 0.0
                 deactivate(m.vox, u)

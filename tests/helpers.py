@@ -19,7 +19,7 @@ import numpy as np
 import taichi as ti
 from scipy.spatial import cKDTree
 from tisem.kernels import bki, entropy
-from tisem.kernels.layout import TOP, MapFields
+from tisem.kernels.layout import LEAF, TOP, MapFields
 
 from tisem.backend import init_taichi
 from tisem.config import MapperConfig
@@ -464,3 +464,16 @@ def check_scan_orders(step, where: str = "") -> None:
         (np.cumsum(rows) - rows)[used],
         err_msg=f"{where}: training rows in table order",
     )
+
+
+@ti.kernel
+def counters_apart_from_voxels(m: ti.template()) -> ti.i32:
+    """Cells of the live blocks whose counters are allocated where no voxel is live, or whose
+    live voxel has none (kernels/layout.py keeps a live voxel's counters behind a pointer)."""
+    apart = 0
+    for b0, b1, b2 in m.blk:
+        for i, j, k in ti.ndrange(LEAF, LEAF, LEAF):
+            u = ti.Vector([b0 * LEAF + i, b1 * LEAF + j, b2 * LEAF + k])
+            if ti.is_active(m.vox, u) != ti.is_active(m.vox_counts, u):
+                apart += 1
+    return apart

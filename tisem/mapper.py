@@ -93,6 +93,7 @@ class Mapper:
             cfg.empty_evidence,
             cfg.occupancy_cap,
             class_centroids=cfg.class_centroids,
+            compact_counters=cfg.compact_counters,
             seen_empty_s=cfg.seen_empty_s,
             spare_beside_unseen=cfg.spare_beside_unseen,
             spare_static_beside_own=cfg.spare_static_beside_own,
