@@ -210,9 +210,10 @@ def test_an_uncompressed_mcap_bag_is_read_file_by_file_and_survives_damage(recor
     assert any(line.startswith("cut_bag_1.mcap: ") for line in reader.report.lines())
 
 
-def rewrite_mcap(path: Path, change) -> None:
+def rewrite_mcap(path: Path, change, chunked: bool = True) -> None:
     """Write the MCAP file again, message by message, with `change(k, data)` applied to the data
-    of its k-th point cloud."""
+    of its k-th point cloud; `chunked` False: no chunks (rosbag2's `fastwrite` preset), so no
+    CRC covers a message."""
     from mcap.reader import make_reader
     from mcap.writer import CompressionType
     from mcap.writer import Writer as McapWriter
@@ -223,7 +224,9 @@ def rewrite_mcap(path: Path, change) -> None:
         items = list(reader.iter_messages(log_time_order=False))
     with open(path, "wb") as out:
         # small uncompressed chunks, as rosbag2 writes them: a cut keeps the chunks before it
-        writer = McapWriter(out, chunk_size=4096, compression=CompressionType.NONE)
+        writer = McapWriter(
+            out, chunk_size=4096, compression=CompressionType.NONE, use_chunking=chunked
+        )
         writer.start(profile="ros2", library="test")
         schemas = {
             sid: writer.register_schema(s.name, s.encoding, s.data)
@@ -270,6 +273,28 @@ def test_a_bag_compressed_message_by_message_is_read_by_tisem_and_survives_damag
     cut = open_scan_reader(folder, McapOptions(gt_field="gt_label"))
     scans = [s for s in cut if isinstance(s, Scan)]
     assert 1 <= len(scans) < 4 and scans[0].index == 0
+
+
+@pytest.mark.parametrize("chunked", [True, False])
+def test_a_frame_that_does_not_inflate_outside_any_crc_marks_the_scans_after_it(recording, chunked):
+    """A per-message frame that does not inflate is one lost message on its record's channel.
+    In a CRC-checked chunk that channel is vouched for; outside any chunk the damage may have
+    changed it too, so the scans after it may be numbered otherwise than in the intact file:
+    they are mapped, and marked."""
+    seq_dir, messages, tmp = recording
+    folder = rosbags_bag(
+        tmp / f"each_zstd_{chunked}", messages, StoragePlugin.MCAP, CompressionMode.MESSAGE
+    )
+    (split,) = identify(folder).files
+    rewrite_mcap(split, lambda k, data: data[: len(data) // 2] if k == 1 else data, chunked)
+    reader = open_scan_reader(folder, McapOptions(gt_field="gt_label"))
+    got = list(reader)
+    assert [type(s).__name__ for s in got] == ["Scan", "SkippedScan", "Scan", "Scan"]
+    if chunked:
+        assert reader.report.suspect == {}
+    else:
+        assert sorted(reader.report.suspect) == [2, 3]
+        assert "counted from its damaged bytes" in reader.report.suspect[2]
 
 
 def test_a_db3_with_damaged_pages_is_read_around_them(recording, tmp_path):

@@ -130,7 +130,9 @@ class SplitMcapRecords:
                         )
                     except zstandard.ZstdError as exc:
                         where = f"message at log time {rec.log_time * 1e-9:.3f} s"
-                        lost = _lost_message(own, topics[rec.channel_id], channel, where, exc)
+                        lost = _lost_message(
+                            own, topics[rec.channel_id], channel, where, exc, not rec.crc_checked
+                        )
                         yield dataclasses.replace(lost, where=f"{path.name}: {where}")
                 elif isinstance(rec, Unvouched):  # (its schema resolved by the file's own ids)
                     message = rec.message
@@ -165,10 +167,12 @@ class SplitMcapRecords:
 
 
 def _lost_message(
-    report: ReadReport, topic: str, channel: int, where: str, exc: Exception
+    report: ReadReport, topic: str, channel: int, where: str, exc: Exception, guessed: bool
 ) -> LostMessages:
     """A message read whole whose compressed data does not inflate: one lost message on its
-    topic (no longer counted as read)."""
+    topic (no longer counted as read). `guessed`: no CRC covers the record, so the damage that
+    spoilt its data may have changed its channel id too, and the scans after it may be
+    numbered otherwise than in the intact file (the reader marks them)."""
     report.messages[topic] -= 1
     report.losses.append(
         Loss(
@@ -178,7 +182,7 @@ def _lost_message(
             topics=Counter({topic: 1}),
         )
     )
-    return LostMessages(channel, 1, where)
+    return LostMessages(channel, 1, where, guessed=guessed)
 
 
 def _merge_report(into: ReadReport, part: ReadReport, name: str) -> None:
