@@ -181,7 +181,7 @@ class MapFields:
         # mostly zeros, and a growing map pays a page fault for each new 4 KB of them. With
         # compact_counters they sit behind a pointer per voxel, the live voxels' packed
         # together: 20 % less memory on a long drive and 40 % fewer page faults while the map
-        # grows, but the update's reads through the pointer cost 3-7 % more time a scan on a
+        # grows, but the update's reads through the pointer cost 3-10 % more time a scan on a
         # large live map (docs/long_drive.md). A voxel's counters are written only with its
         # time, so their pointer is live exactly when the voxel is; reading those of a voxel
         # that is not gives 0, as in the block.

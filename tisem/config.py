@@ -181,7 +181,7 @@ class MapperConfig:
     # this leaves a third of that or more for a scan's growth
     # the live voxels' counters only, behind a pointer per voxel (a block holds ~7 live voxels
     # of 64, and stores counters for all 64 without it): ~20 % less memory on a long drive, 40 %
-    # fewer page faults while the map grows into new space, but 3-7 % more time per scan on a
+    # fewer page faults while the map grows into new space, but 3-10 % more time per scan on a
     # large live map (docs/long_drive.md). The map is the same bit for bit.
     compact_counters: bool = False
     store_dir: str | None = None  # where the host store keeps the voxels that left the
