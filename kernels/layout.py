@@ -183,8 +183,9 @@ class MapFields:
         # together: 20 % less memory on a long drive and 40 % fewer page faults while the map
         # grows, but the update's reads through the pointer cost 3-10 % more time a scan on a
         # large live map (docs/long_drive.md). A voxel's counters are written only with its
-        # time, so their pointer is live exactly when the voxel is; reading those of a voxel
-        # that is not gives 0, as in the block.
+        # time, so their pointer is live only where the voxel is (a live voxel whose evidence
+        # was too small to fuse has none yet); reading those of one without gives 0, as in the
+        # block.
         self.compact_counters = bool(compact_counters)
         if self.compact_counters:
             self.vox_counts = self.blk.pointer(ti.ijk, LEAF)

@@ -467,13 +467,13 @@ def check_scan_orders(step, where: str = "") -> None:
 
 
 @ti.kernel
-def counters_apart_from_voxels(m: ti.template()) -> ti.i32:
-    """Cells of the live blocks whose counters are allocated where no voxel is live, or whose
-    live voxel has none (kernels/layout.py keeps a live voxel's counters behind a pointer)."""
+def counters_without_voxel(m: ti.template()) -> ti.i32:
+    """Cells of the live blocks whose counters are allocated where no voxel is live
+    (compact_counters keeps a live voxel's counters behind a pointer of its own)."""
     apart = 0
     for b0, b1, b2 in m.blk:
         for i, j, k in ti.ndrange(LEAF, LEAF, LEAF):
             u = ti.Vector([b0 * LEAF + i, b1 * LEAF + j, b2 * LEAF + k])
-            if ti.is_active(m.vox, u) != ti.is_active(m.vox_counts, u):
+            if ti.is_active(m.vox_counts, u) and not ti.is_active(m.vox, u):
                 apart += 1
     return apart

@@ -16,7 +16,7 @@ import math
 import numpy as np
 import pytest
 import taichi as ti
-from helpers import counters_apart_from_voxels, fresh_runtime
+from helpers import counters_without_voxel, fresh_runtime
 
 from tisem.config import MapperConfig, RunConfig
 from tisem.mapper import Mapper
@@ -200,8 +200,8 @@ def test_evict_and_reload_round_trip_exactly(taichi_cpu):
 def test_compact_counters_live_and_leave_with_their_voxel(taichi_cpu):
     """compact_counters, out and back with a window that holds one scan: voxels leave, their
     blocks are freed and their storage reused, and come back from the store. After every scan
-    the counters are allocated for exactly the live voxels (a counter left behind would keep
-    memory and hand its stale evidence to the next voxel in that cell), and the map equals the
+    no counters are allocated where no voxel is live (counters left behind would keep memory
+    and hand their stale evidence to the next voxel in that cell), and the map equals the
     default layout's in a window that never evicts, bit for bit."""
     scans = drive(out_and_back(n_out=6), seed=5)
     small, _ = map_drive(config(compact_counters=True), scans, check=assert_counters_with_voxels)
@@ -215,7 +215,7 @@ def test_compact_counters_live_and_leave_with_their_voxel(taichi_cpu):
 
 def assert_counters_with_voxels(mapper):
     assert mapper.live_voxels > 0
-    assert counters_apart_from_voxels(mapper._fields) == 0
+    assert counters_without_voxel(mapper._fields) == 0
 
 
 def test_points_on_voxel_faces_find_the_same_voxel_live_and_stored(taichi_cpu):

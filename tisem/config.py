@@ -175,7 +175,8 @@ class MapperConfig:
     # blocks (docs/long_drive.md)
     window_z_m: float = 24.0
     max_live_blocks: int = 65_536  # hard cap on live 4^3 leaf blocks (~5.6 KB each, ~8.2 KB
-    # with class centroids). taichi 1.7.4 maps a 2nd 1 GiB host
+    # with class centroids; compact_counters: 1.5 / 4.1 KB and
+    # 80 B per live voxel). taichi 1.7.4 maps a 2nd 1 GiB host
     # chunk (unsafe: its allocator bug) at 147,456 live blocks,
     # 106,482 with class centroids, measured (docs/long_drive.md);
     # this leaves a third of that or more for a scan's growth

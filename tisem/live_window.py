@@ -291,7 +291,7 @@ class LiveWindow:
                 raise ValueError(
                     f"the live map cannot stay under max_live_blocks={self._cap}: the smallest "
                     f"window that holds a scan (+-{reach * res:.0f} m) has {here} blocks here; "
-                    f"raise max_live_blocks (~5-8 KB each) or lower max_range_m"
+                    f"raise max_live_blocks (up to ~9 KB each) or lower max_range_m"
                 )
             r = r_min
         if not st.shrunk:
