@@ -159,21 +159,19 @@ def _file_name(base: str) -> str:
 
 
 def case_folder(folder: Path, base: str) -> Path:
-    """Where a recording made from `base` goes: `folder`, or for the per-message base the
-    rosbag2 folder beside it whose metadata says its files compress message by message."""
-    if not BASES[base].get("zstd_messages"):
-        return folder
-    bag = folder / ZSTD_MESSAGES_FOLDER
-    if not (bag / "metadata.yaml").is_file():
-        bag.mkdir(parents=True, exist_ok=True)
-        names = [_file_name(name) for name, o in BASES.items() if o.get("zstd_messages")]
-        (bag / "metadata.yaml").write_text(per_message_metadata(names))
-    return bag
+    """Where a recording made from `base` goes: `folder`, or for the per-message bases the
+    rosbag2 folder in it whose metadata says its files compress message by message (made by
+    `write_bases`)."""
+    return folder / ZSTD_MESSAGES_FOLDER if BASES[base].get("zstd_messages") else folder
 
 
 def write_bases(folder: Path) -> dict[str, Base]:
     """The intact recordings, written into `folder` (the per-message ones into their rosbag2
     folder there: read them with `tisem.io.bag_open.open_scan_reader`)."""
+    bag = folder / ZSTD_MESSAGES_FOLDER
+    bag.mkdir(parents=True, exist_ok=True)
+    names = [_file_name(name) for name, o in BASES.items() if o.get("zstd_messages")]
+    (bag / "metadata.yaml").write_text(per_message_metadata(names))
     out = {}
     for name, options in BASES.items():
         path = case_folder(folder, name) / _file_name(name)
