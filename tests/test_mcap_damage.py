@@ -762,6 +762,43 @@ def test_lost_tf_messages_counted_on_an_unknown_channel_still_mark_the_scans(tmp
     assert all(signature(s) == intact[s.index] for s in items if s.index not in suspect)
 
 
+@pytest.mark.parametrize("form", ["file", "file without summary", "rosbag2 folder"])
+def test_a_cloud_outside_any_crc_whose_channel_id_is_damaged_marks_the_scans_after_it(
+    tmp_path, form
+):
+    """A message outside chunks whose channel id no Channel record names cannot be decoded. No
+    CRC covers it, so it may have been a cloud whose id the damage changed: the scans after it
+    are mapped and marked (their numbers may differ from the intact file's), the loss is
+    reported as such, and the scans before it are untouched. The same in a rosbag2 folder,
+    whose files number their channels their own way."""
+    from tisem.io.bag_open import open_scan_reader
+
+    folder = tmp_path / "bag"
+    folder.mkdir()
+    path = folder / "bag_0.mcap"
+    truth = write_synthetic_log(
+        path, n_scans=N_SCANS, n_points=200, chunked=False, compression="none"
+    )
+    clouds = [r for r in regions_of(path, "message") if r.end - r.start > 2000]
+    data = bytearray(path.read_bytes())
+    struct.pack_into("<H", data, clouds[2].start + 9, 77)  # the channel id of cloud 2
+    if form == "file without summary":  # read linearly, as a file cut after its data
+        data = data[: regions_of(path, "data end")[0].end]
+    path.write_bytes(bytes(data))
+    reader = open_scan_reader(folder if form == "rosbag2 folder" else path)
+    items = list(reader)
+    assert check_scans_against_truth(items[:2], truth) == [0, 1]
+    assert [type(i).__name__ for i in items] == ["Scan"] * (N_SCANS - 1)
+    assert sorted(reader.report.suspect) == list(range(2, N_SCANS - 1))
+    where = "bag_0.mcap: " if form == "rosbag2 folder" else ""
+    assert set(reader.report.suspect.values()) == {
+        f"{where}message at log time 100.248 s, lost on a channel no record names (a cloud, "
+        "maybe), came before it, so its number may differ from the intact file's"
+    }
+    (line,) = [line for line in reader.report.lines() if "channel 77" in line]
+    assert "no Channel record names its id" in line and "1 message" in line
+
+
 def test_a_message_index_whose_opcode_turned_message_is_not_taken_for_a_cloud(tmp_path):
     """0x07 -> 0x05 is one bit: the chunk index says a message index record starts there."""
     path = tmp_path / "log.mcap"

@@ -290,11 +290,17 @@ def test_a_frame_that_does_not_inflate_outside_any_crc_marks_the_scans_after_it(
     reader = open_scan_reader(folder, McapOptions(gt_field="gt_label"))
     got = list(reader)
     assert [type(s).__name__ for s in got] == ["Scan", "SkippedScan", "Scan", "Scan"]
+    (line,) = [line for line in reader.report.lines() if "does not inflate" in line]
     if chunked:
         assert reader.report.suspect == {}
+        assert "may have changed its channel" not in line
     else:
         assert sorted(reader.report.suspect) == [2, 3]
         assert "counted from its damaged bytes" in reader.report.suspect[2]
+        assert line.endswith(
+            "no CRC covers its record, so the damage may have changed its channel: "
+            "1 message(s) lost (1 on /velodyne_points)"
+        )
 
 
 def test_a_db3_with_damaged_pages_is_read_around_them(recording, tmp_path):

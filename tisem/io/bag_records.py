@@ -150,7 +150,12 @@ class SplitMcapRecords:
                         where=f"{path.name}: {rec.where}",
                     )
                 else:
-                    channel = None if rec.channel_id is None else local_channels.get(rec.channel_id)
+                    # an id this file's records do not name stays one no channel has
+                    channel = (
+                        None
+                        if rec.channel_id is None
+                        else local_channels.get(rec.channel_id, -1 - rec.channel_id)
+                    )
                     yield dataclasses.replace(
                         rec, channel_id=channel, where=f"{path.name}: {rec.where}"
                     )
@@ -177,7 +182,12 @@ def _lost_message(
     report.losses.append(
         Loss(
             where,
-            f"its zstd frame does not inflate ({exc})",
+            f"its zstd frame does not inflate ({exc})"
+            + (
+                "; no CRC covers its record, so the damage may have changed its channel"
+                if guessed
+                else ""
+            ),
             messages=1,
             topics=Counter({topic: 1}),
         )

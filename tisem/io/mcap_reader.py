@@ -107,10 +107,6 @@ class McapScanReader:
                     targets.add(rec.id)
                 continue
             if isinstance(rec, LostMessages):
-                if rec.guessed:  # a flipped channel id may have put a cloud on another topic
-                    renumbered = renumbered or (
-                        f"{rec.where}, whose messages were counted from its damaged bytes,"
-                    )
                 if rec.channel_id is None:
                     renumbered = (
                         renumbered or f"{rec.where}, holding an unknown number of messages,"
@@ -118,9 +114,13 @@ class McapScanReader:
                 elif rec.channel_id not in self._channels:
                     # counted from damaged records on a channel no record names: clouds, maybe
                     renumbered = renumbered or (
-                        f"{rec.where}, holding messages on a channel no record names,"
+                        f"{rec.where}, lost on a channel no record names (a cloud, maybe),"
                     )
-                elif rec.channel_id in targets:
+                elif rec.guessed:  # a flipped channel id may have put a cloud on another topic
+                    renumbered = renumbered or (
+                        f"{rec.where}, whose messages were counted from its damaged bytes,"
+                    )
+                if rec.channel_id in targets:
                     # keep the intact file's numbering: a lost cloud is a skipped scan
                     for _ in range(rec.count):
                         index += 1

@@ -80,18 +80,34 @@ class McapRecords:
             for rec in walk.run():
                 if isinstance(rec, McapMessage):
                     ch = walk.channels.get(rec.channel_id)
-                    if ch is None:  # its Channel record was in a lost chunk
+                    if ch is None:
                         orphans[rec.channel_id] += 1
+                        if not rec.crc_checked:
+                            # no CRC vouches for its id: a cloud whose id the damage changed
+                            # reads so too, and the scans after it would be renumbered
+                            yield LostMessages(
+                                rec.channel_id,
+                                1,
+                                f"message at log time {rec.log_time * 1e-9:.3f} s",
+                                guessed=True,
+                            )
                         continue
                     report.messages[ch.topic] += 1
                 yield rec
         walk.finish()
         self._check_data_crc(report, walk)
+        # with a summary every channel is known, so only damage gives a message an unknown id
+        why = (
+            "no Channel record names its id (damaged bytes?)"
+            if self.summary is not None
+            else "no Channel record names its id (its record was in a lost chunk, or the "
+            "damage changed the id)"
+        )
         for cid, n in orphans.items():
             report.losses.append(
                 Loss(
                     lost_on(None, cid),
-                    "its Channel record was lost, so its messages cannot be decoded",
+                    f"{why}, so its messages cannot be decoded",
                     messages=n,
                     topics=Counter({lost_on(None, cid): n}),
                 )
