@@ -792,11 +792,40 @@ def test_a_cloud_outside_any_crc_whose_channel_id_is_damaged_marks_the_scans_aft
     assert sorted(reader.report.suspect) == list(range(2, N_SCANS - 1))
     where = "bag_0.mcap: " if form == "rosbag2 folder" else ""
     assert set(reader.report.suspect.values()) == {
-        f"{where}message at log time 100.248 s, lost on a channel no record names (a cloud, "
+        f"{where}message at log time 100.248 s, a loss on a channel no record names (clouds, "
         "maybe), came before it, so its number may differ from the intact file's"
     }
     (line,) = [line for line in reader.report.lines() if "channel 77" in line]
     assert "no Channel record names its id" in line and "1 message" in line
+
+
+def test_a_damaged_id_that_names_a_later_channel_neither_counts_nor_renumbers_a_scan(tmp_path):
+    """Read linearly, a message can carry the id of a channel whose record comes later: here the
+    first /tf message, damaged into the clouds' id before their Channel record. It is no cloud
+    the scans' pass can number, so the scan count leaves it out (it was one too many), and, as
+    no CRC vouches for it, the scans after it are marked."""
+    path = tmp_path / "log.mcap"
+    truth = write_synthetic_log(
+        path, n_scans=N_SCANS, n_points=200, chunked=False, compression="none"
+    )
+    with open(path, "rb") as f:
+        channels = make_reader(f).get_summary().channels.values()
+    ids = {c.topic: c.id for c in channels}
+    data = bytearray(path.read_bytes())
+    first_tf = next(
+        r
+        for r in regions_of(path, "message")
+        if struct.unpack_from("<H", data, r.start + 9)[0] == ids["/tf"]
+    )
+    struct.pack_into("<H", data, first_tf.start + 9, ids["/velodyne_points"])
+    path.write_bytes(bytes(data[: regions_of(path, "data end")[0].end]))
+    reader = McapScanReader(path)
+    items = list(reader)
+    assert len(reader) == len(items) == N_SCANS
+    # (scan 0 lies before the second /tf sample: without the first it has no pose)
+    assert isinstance(items[0], SkippedScan) and "cannot look up" in items[0].reason
+    assert check_scans_against_truth(items, truth) == list(range(1, N_SCANS))
+    assert sorted(reader.report.suspect) == list(range(1, N_SCANS))
 
 
 def test_a_message_index_whose_opcode_turned_message_is_not_taken_for_a_cloud(tmp_path):

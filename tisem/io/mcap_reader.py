@@ -100,9 +100,11 @@ class McapScanReader:
         scratch = ReadReport()  # damage was reported by the survey already
         index = -1
         targets = set()  # channel ids of the topic (usually one)
+        named = set()  # channel ids whose Channel record has come
         renumbered = None  # what before may have changed the numbering
         for rec in self._records.records(scratch):
             if isinstance(rec, Channel):
+                named.add(rec.id)
                 if rec.topic == self.topic:
                     targets.add(rec.id)
                 continue
@@ -111,10 +113,10 @@ class McapScanReader:
                     renumbered = (
                         renumbered or f"{rec.where}, holding an unknown number of messages,"
                     )
-                elif rec.channel_id not in self._channels:
-                    # counted from damaged records on a channel no record names: clouds, maybe
+                elif rec.channel_id not in named:
+                    # on a channel no record has named (yet): clouds, maybe
                     renumbered = renumbered or (
-                        f"{rec.where}, lost on a channel no record names (a cloud, maybe),"
+                        f"{rec.where}, a loss on a channel no record names (clouds, maybe),"
                     )
                 elif rec.guessed:  # a flipped channel id may have put a cloud on another topic
                     renumbered = renumbered or (

@@ -96,18 +96,12 @@ class McapRecords:
                 yield rec
         walk.finish()
         self._check_data_crc(report, walk)
-        # with a summary every channel is known, so only damage gives a message an unknown id
-        why = (
-            "no Channel record names its id (damaged bytes?)"
-            if self.summary is not None
-            else "no Channel record names its id (its record was in a lost chunk, or the "
-            "damage changed the id)"
-        )
         for cid, n in orphans.items():
             report.losses.append(
                 Loss(
                     lost_on(None, cid),
-                    f"{why}, so its messages cannot be decoded",
+                    "no Channel record names its id (its record was lost, or the damage "
+                    "changed the id), so its messages cannot be decoded",
                     messages=n,
                     topics=Counter({lost_on(None, cid): n}),
                 )

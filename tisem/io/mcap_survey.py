@@ -115,7 +115,9 @@ class Survey:
                 )
                 continue
             if isinstance(rec, LostMessages):
-                if rec.channel_id is not None:
+                # counted on a channel only where its record came first, as the scans' pass
+                # (McapScanReader) numbers them: a loss on an id named later is unknown there
+                if rec.channel_id in channels:
                     lost_clouds[rec.channel_id] += rec.count
                 continue
             ch = channels[rec.channel_id]
