@@ -73,7 +73,10 @@ SET_MISTAKES = [
     ("ell_min_m=2", ("ell_min_m = 2", "must not exceed ell_max_m")),
     ("online_eval=maybe", ("online_eval = 'maybe'", "true or false")),
     ("last=-1", ("last = -1", "out of range")),
-    ("no_such_key=1", ("unknown key 'no_such_key'",)),
+    ("no_such_key=1", ("unknown key 'no_such_key'; known: ",)),
+    ("tau_ss=3", ("unknown key 'tau_ss' (did you mean tau_s?); known: ",)),
+    ("mapper.firts=3", ("unknown key 'firts'; known: ",)),
+    ("firts=3", ("unknown key 'firts' (did you mean first?); known: ",)),
     ("resolution_m", ("expected key=value",)),
     ("resolution_m=[0.2", ("not a YAML value",)),
 ]
@@ -95,6 +98,7 @@ CONFIG_FILES = [
     ),
     ("not a mapping", "- 1\n- 2\n", ("expected a mapping", "list")),
     ("section", "mapper: 3\n", ("mapper must be a mapping",)),
+    ("typo", "mapper:\n  tau_ss: 3\n", ("mapper: unknown key 'tau_ss' (did you mean tau_s?)",)),
     ("nan", "prior: .nan\n", ("prior = nan", "not a finite number")),
     ("missing store_dir", "store_dir: /nonexistent/spill\n", ("does not exist",)),
 ]

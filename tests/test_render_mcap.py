@@ -46,5 +46,5 @@ def test_render_draws_an_mcap_run_like_its_kitti_twin(tmp_path):
 
 def test_render_refuses_a_run_json_without_input(tmp_path, capsys):
     (tmp_path / "run.json").write_text("{}")
-    assert main(["render", str(tmp_path)]) == 1
+    assert main(["render", str(tmp_path)]) == 2  # bad input, as every command says it
     assert "names no input ('data'" in capsys.readouterr().err

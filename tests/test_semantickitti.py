@@ -174,6 +174,20 @@ def test_synthetic_sequence_good(tmp_path):
     np.testing.assert_allclose(SemanticKittiSequence(tmp_path / "17").times, [5.0, 5.2, 5.4])
 
 
+def test_a_range_past_the_last_scan_says_where_it_stops(tmp_path, caplog):
+    """--last 499 on a folder of three scans maps what there is, and says so."""
+    folder = make_sequence(tmp_path / "17")
+    with caplog.at_level("WARNING"):
+        seq = SemanticKittiSequence(folder, first=1, last=499)
+    assert seq.scan_ids == [1, 2]
+    (line,) = [r.getMessage() for r in caplog.records if "last=" in r.getMessage()]
+    assert line.endswith("last=499 is past the folder's last scan (2): scans 1..2 are mapped")
+    caplog.clear()
+    with caplog.at_level("WARNING"):
+        assert SemanticKittiSequence(folder, first=1, last=2).scan_ids == [1, 2]
+    assert not [r for r in caplog.records if "last=" in r.getMessage()]
+
+
 def test_truncated_bin_is_skipped_and_iteration_goes_on(tmp_path):
     d = make_sequence(tmp_path / "seq")
     bin1 = d / "velodyne" / "000001.bin"

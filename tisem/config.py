@@ -33,6 +33,7 @@ from tisem.config_rules import (
     Number,
     check_fields,
     read_yaml,
+    unknown_name,
     yaml_value,
 )
 from tisem.errors import ConfigError
@@ -419,7 +420,7 @@ def _apply(obj, data: dict, where: str, rules: dict) -> None:
     names = {f.name for f in fields(obj)}
     for key, value in data.items():
         if key not in names:
-            raise ConfigError(f"{where}: unknown key {key!r}; known: {', '.join(sorted(names))}")
+            raise ConfigError(f"{where}: {unknown_name('key', key, sorted(names))}")
         current = getattr(obj, key)
         if dataclasses.is_dataclass(current):
             if not isinstance(value, dict):
@@ -444,11 +445,11 @@ def set_value(cfg: RunConfig, assignment: str) -> None:
     else:
         raise ConfigError(f"--set {assignment}: unknown key {key.strip()!r}")
     if path[-1] not in rules or rules[path[-1]] is None:
-        raise ConfigError(
-            f"--set {assignment}: unknown key {key.strip()!r}; known: "
-            f"{', '.join(sorted(k for k in MAPPER_RULES))} (and input, first, "
-            f"last, online_eval)"
-        )
+        known = sorted(k for k, rule in MAPPER_RULES.items() if rule is not None)
+        others = sorted(k for k, rule in RUN_RULES.items() if rule is not None)
+        if key.strip().startswith("mapper."):
+            others = []
+        raise ConfigError(f"--set {assignment}: {unknown_name('key', path[-1], known + others)}")
     value = yaml_value(text, f"--set {assignment}")
     setattr(obj, path[-1], rules[path[-1]].check(path[-1], value, "--set"))
 

@@ -9,6 +9,7 @@ A rule checks one value and returns it in the field's type, or raises a one-line
 
 from __future__ import annotations
 
+import difflib
 import math
 import os
 import re
@@ -39,6 +40,13 @@ VEHICLE_CLASSES = ("car",)
 # the bits of an int32 (a literal 1 << 31 overflows it), and unroll their per-class loops:
 # 31 classes at most
 MAX_CLASSES = 31
+
+
+def unknown_name(what: str, name: str, known) -> str:
+    """ "unknown key 'tau_ss' (did you mean tau_s?); known: ..." for a name not among `known`."""
+    near = difflib.get_close_matches(str(name), list(known), n=2, cutoff=0.7)
+    hint = f" (did you mean {' or '.join(near)}?)" if near else ""
+    return f"unknown {what} {name!r}{hint}; known: {', '.join(known)}"
 
 
 def _prefix(where: str, key: str, value) -> str:
@@ -123,8 +131,7 @@ class ClassNames:
         for name in value:
             if name not in known:
                 raise ConfigError(
-                    f"{_prefix(where, key, list(value))}: unknown class "
-                    f"{name!r}; known: {', '.join(known)}"
+                    f"{_prefix(where, key, list(value))}: {unknown_name('class', name, known)}"
                 )
         if len(set(value)) != len(value):
             raise ConfigError(f"{_prefix(where, key, list(value))}: a class is named twice")

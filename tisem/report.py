@@ -41,7 +41,10 @@ def run_metrics(progress: RunProgress, final: Confusion, mapper: Mapper, cfg: Ru
         "mode": cfg.mapper.mode,
         "scans": progress.mapped,
         "skipped": [vars(s) for s in progress.skipped],
-        "seconds_per_scan": float(np.median(seconds)) if seconds else None,
+        # the first scan compiles or loads the kernels: in a short run its second or more would
+        # dominate the median, so it is given apart
+        "seconds_per_scan": float(np.median(seconds[1:] or seconds)) if seconds else None,
+        "seconds_first_scan": float(seconds[0]) if seconds else None,
         "seconds_total": float(np.sum(seconds)),
         "active_voxels": mapper.live_voxels + mapper.stored_voxels,
         "live_voxels": mapper.live_voxels,
@@ -54,6 +57,17 @@ def run_metrics(progress: RunProgress, final: Confusion, mapper: Mapper, cfg: Ru
         "input": _summary(progress.input),
         "config": to_dict(cfg),
     }
+
+
+def _speed(metrics: dict) -> str:
+    """The run's time per scan, the first scan's apart (metrics of older runs lack it)."""
+    sps, first = metrics["seconds_per_scan"], metrics.get("seconds_first_scan")
+    ms = f"{sps * 1000 if sps else float('nan'):.1f} ms per scan"
+    if first is None:
+        return f"{ms} (median)"
+    if metrics["scans"] < 2:
+        return f"{ms} (its only scan, which loads the kernels)"
+    return f"{ms} (median after the first, which took {first * 1000:.0f} ms: it loads the kernels)"
 
 
 def aligned(table: str) -> str:
@@ -109,11 +123,9 @@ def results_table(metrics: dict, per_class: bool = False, input_name: str = "net
             for name, m in rows
         ]
         text += "\n\nIoU per class\n" + aligned(format_per_class(shown))
-    sps = metrics["seconds_per_scan"]
     text += (
         f"\n\n{metrics['scans']} scans mapped, {len(metrics['skipped'])} skipped; "
-        f"{sps * 1000 if sps else float('nan'):.1f} ms per scan (median); "
-        f"{metrics['active_voxels']:,} voxels"
+        f"{_speed(metrics)}; {metrics['active_voxels']:,} voxels"
     )
     dropped = metrics.get("dropped") or {}
     band, out_of_range = dropped.get("dropped_band", 0), dropped.get("dropped_range", 0)

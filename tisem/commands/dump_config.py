@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
 import sys
 from pathlib import Path
 
@@ -44,6 +45,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 
 
 def dump(args: argparse.Namespace) -> int:
+    # the config's checks import taichi, whose first import prints a banner on stdout: here
+    # stdout is the YAML a user redirects to a file
+    os.environ["ENABLE_TAICHI_HEADER_PRINT"] = "0"
     overrides = [*args.overrides, *([f"mode={args.mode}"] if args.mode else [])]
     with cli.bad_input("config: "):
         cfg = load_config(args.config, overrides)

@@ -16,7 +16,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from tisem.commands import entry, new_parser
+from tisem.commands import EXIT_BAD_INPUT, entry, new_parser
 from tisem.extras import require
 
 
@@ -67,7 +67,7 @@ def main(argv: list[str] | None = None) -> int:
         )
     except (OSError, ValueError) as exc:  # DatasetError / MapFileError are ValueErrors
         print(f"render: {exc}", file=sys.stderr)
-        return 1
+        return EXIT_BAD_INPUT
     x0, y0, x1, y1 = result["region"]
     print(
         f"wrote {result['out']}: region x {x0:.1f}..{x1:.1f} y {y0:.1f}..{y1:.1f} m, "

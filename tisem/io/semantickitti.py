@@ -205,6 +205,11 @@ class SemanticKittiSequence:
         # the pose of each scan: poses.txt's entry of its number, or of its place in an extract
         pose_of, note = entry_of_scan(all_ids, self.scan_ids, self.num_poses, self.poses_file)
         self.entry_notes = [note] if note else []
+        if last is not None and last > all_ids[-1]:  # (a range written for a longer sequence)
+            self.entry_notes.append(
+                f"{self.velodyne_dir}: last={last} is past the folder's last scan "
+                f"({all_ids[-1]}): scans {self.scan_ids[0]}..{self.scan_ids[-1]} are mapped"
+            )
         self.has_pose = pose_of < self.num_poses
         self.poses_lidar = np.full((len(ids), 4, 4), np.nan)
         self.poses_lidar[self.has_pose] = lidar_all[pose_of[self.has_pose]]
