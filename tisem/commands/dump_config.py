@@ -1,7 +1,7 @@
 """Print the config a run would use, as YAML: the defaults, a --config file, --set overrides.
 
     tisem dump-config > my.yaml                    # every key with its default, to edit
-    tisem dump-config --config my.yaml --set tau_s=5 --mode bki
+    tisem dump-config --config my.yaml --set tau_s=2.5 --mode bki
     tisem map-kitti --config my.yaml ...           # the run uses exactly this
 
 Every value is checked as a run would check it: a bad key or value is one line and exit 2.
