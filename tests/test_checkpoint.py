@@ -134,7 +134,7 @@ def query_points(scans, rng, extra=500):
 
 def comparable_metrics(m: dict) -> dict:
     """The metrics of a run without its timings."""
-    return {k: v for k, v in m.items() if k not in ("seconds_per_scan", "seconds_total")}
+    return {k: v for k, v in m.items() if not k.startswith("seconds_")}
 
 
 def progress_upto(mapper, last_index: int) -> RunProgress:

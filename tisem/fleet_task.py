@@ -27,6 +27,7 @@ from tisem.config import run_config_from_dict
 from tisem.errors import NothingMapped, SkippedScan
 from tisem.logs import LogSpec, open_log, read_losses
 from tisem.merge import contribution, merge_snapshots
+from tisem.progress import seconds_per_scan
 from tisem.snapshot import MapSnapshot
 from tisem.tiles import (
     TILE_VOX,
@@ -207,7 +208,7 @@ def map_task(
         "scans": mapped,
         "skipped": skipped,
         "read_losses": read_losses(scans),
-        "seconds_per_scan": float(np.median(seconds)) if seconds else None,
+        "seconds_per_scan": seconds_per_scan(seconds),
         "mapping_seconds": float(np.sum(seconds)),
         "wall_seconds": time.perf_counter() - started,
         "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,

@@ -28,6 +28,13 @@ log = logging.getLogger(__name__)
 __all__ = ["DropLog", "RunProgress"]
 
 
+def seconds_per_scan(seconds: list[float]) -> float | None:
+    """A run's time per scan: the median of the scans after the first, which compiles or loads
+    the kernels (in a short run its second or more would dominate the median); the first's
+    own time where it is the only one."""
+    return float(np.median(seconds[1:] or seconds)) if seconds else None
+
+
 class DropLog:
     """Points a mapped scan lost, and why: logged per scan (when it is more than the routine
     range filter) and totalled for metrics.json."""

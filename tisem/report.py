@@ -8,7 +8,7 @@ import numpy as np
 
 from tisem.config import RunConfig, to_dict
 from tisem.evaluate import Confusion, format_per_class, format_table
-from tisem.progress import RunProgress
+from tisem.progress import RunProgress, seconds_per_scan
 
 if TYPE_CHECKING:
     from tisem.mapper import Mapper
@@ -41,9 +41,7 @@ def run_metrics(progress: RunProgress, final: Confusion, mapper: Mapper, cfg: Ru
         "mode": cfg.mapper.mode,
         "scans": progress.mapped,
         "skipped": [vars(s) for s in progress.skipped],
-        # the first scan compiles or loads the kernels: in a short run its second or more would
-        # dominate the median, so it is given apart
-        "seconds_per_scan": float(np.median(seconds[1:] or seconds)) if seconds else None,
+        "seconds_per_scan": seconds_per_scan(seconds),
         "seconds_first_scan": float(seconds[0]) if seconds else None,
         "seconds_total": float(np.sum(seconds)),
         "active_voxels": mapper.live_voxels + mapper.stored_voxels,

@@ -135,7 +135,8 @@ class SemanticKittiSequence:
     with `scan_ids`; NaN where times.txt is too short), has_ground_truth (a `labels/` folder),
     input_dir (the folder the input labels come from), num_poses (poses in poses.txt),
     entry_notes (a line each for poses.txt and times.txt when their entries are paired with
-    the scans in order, as for a sequence's extract: `kitti_files.entry_of_scan`; logged),
+    the scans in order, as for a sequence's extract: `kitti_files.entry_of_scan`, and one for
+    a `last` past the folder's last scan; logged),
     time_entries (the entry of times.txt, or of a TUM trajectory, of each scan; None without).
 
     ``seq[k]`` is the k-th scan of the selected range (not the scan id) and raises `ScanError`
