@@ -76,6 +76,7 @@ SET_MISTAKES = [
     ("no_such_key=1", ("unknown key 'no_such_key'; known: ",)),
     ("tau_ss=3", ("unknown key 'tau_ss' (did you mean tau_s?); known: ",)),
     ("mapper.firts=3", ("unknown key 'firts'; known: ",)),
+    ("mapper.first=3", ("first is a key of the run, not of its mapper section: --set first=3",)),
     ("firts=3", ("unknown key 'firts' (did you mean first?); known: ",)),
     ("resolution_m", ("expected key=value",)),
     ("resolution_m=[0.2", ("not a YAML value",)),

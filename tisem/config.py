@@ -448,6 +448,11 @@ def set_value(cfg: RunConfig, assignment: str) -> None:
         known = sorted(k for k, rule in MAPPER_RULES.items() if rule is not None)
         others = sorted(k for k, rule in RUN_RULES.items() if rule is not None)
         if key.strip().startswith("mapper."):
+            if path[-1] in others:
+                raise ConfigError(
+                    f"--set {assignment}: {path[-1]} is a key of the run, not of its mapper "
+                    f"section: --set {path[-1]}={text}"
+                )
             others = []
         raise ConfigError(f"--set {assignment}: {unknown_name('key', path[-1], known + others)}")
     value = yaml_value(text, f"--set {assignment}")
