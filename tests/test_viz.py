@@ -233,5 +233,5 @@ def test_render_app_region_scan_and_bev(results_dir, tmp_path, capsys):
     assert app.main([str(results_dir), "--bev"]) == 0
     assert (results_dir / "map_bev.png").stat().st_size > 0
 
-    assert app.main([str(results_dir), "--scan", "99"]) == 1
+    assert app.main([str(results_dir), "--scan", "99"]) == 2  # bad input
     assert "scan 99 is not a mapped scan" in capsys.readouterr().err
