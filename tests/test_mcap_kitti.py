@@ -259,3 +259,29 @@ def test_map_mcap_errors_are_one_line_not_tracebacks(tmp_path):
     )
     assert done.returncode == 2 and "not an MCAP file" in done.stderr
     assert "Traceback" not in done.stderr
+
+
+def test_map_mcap_tells_notes_on_a_whole_recording_from_losses(tmp_path):
+    """rosbag2 writes chunks without CRCs: a whole recording read with that note is not one
+    that lost something, and the run's closing lines say which it is."""
+    from tisem.synth.mcap_log import write_synthetic_log
+
+    def closing(path):
+        done = subprocess.run(
+            [sys.executable, str(REPO / "apps" / "map_mcap.py"), str(path), "--no-progress"]
+            + ["--out", str(tmp_path / path.stem)],
+            capture_output=True,
+            text=True,
+            timeout=600,
+        )
+        assert done.returncode == 0, done.stderr
+        return done.stdout
+
+    whole = tmp_path / "whole.mcap"
+    write_synthetic_log(whole, n_scans=4, n_points=400, crcs=False, chunk_size=3_000)
+    said = closing(whole)
+    assert "whole.mcap: read whole, with these notes:" in said and "carry no CRC" in said
+    assert "not everything could be used" not in said
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(whole.read_bytes()[: int(whole.stat().st_size * 0.7)])
+    assert "cut.mcap: not everything could be used:" in closing(cut)
