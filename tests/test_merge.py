@@ -200,7 +200,7 @@ def test_load_map_gives_a_tiled_map_read_lazily(tmp_path):
     assert 0 < loaded.tiles_loaded < len(loaded.tile_keys)
 
 
-def test_merge_app_refuses_other_frames_in_one_line(tmp_path, capsys):
+def test_merge_app_refuses_other_frames_in_one_line(tmp_path, capsys, caplog):
     from test_pipeline import load_app
 
     module = load_app("merge_maps")
@@ -217,8 +217,41 @@ def test_merge_app_refuses_other_frames_in_one_line(tmp_path, capsys):
     # the tiles merged, counted by the progress bar (and none with --no-progress)
     tiles = len(merged.tile_keys)
     assert "merging tiles: 100%" in (bar := capsys.readouterr().err) and f" {tiles}/{tiles} " in bar
-    assert module.main([*argv, "--transform", "1=0.4,0,0", "--no-progress"]) == 0
+    assert module.main([*argv, "--transform", "1=0.4,0,0", "--no-progress"]) == 2  # not empty
+    assert "give --overwrite" in caplog.text
+    again = [*argv, "--transform", "1=0.4,0,0", "--no-progress", "--overwrite"]
+    assert module.main(again) == 0
     assert "merging tiles" not in capsys.readouterr().err
+    assert TiledMap.open(tmp_path / "m").voxels == merged.voxels
+
+
+def test_merge_app_never_writes_over_an_input_or_a_folder_of_the_users(tmp_path, caplog):
+    """--out is a new or empty folder, or (--overwrite) a previous merge, whose own files
+    alone are replaced; never the folder of a map being merged."""
+    from test_pipeline import load_app
+
+    module = load_app("merge_maps")
+    rng = np.random.default_rng(9)
+    for name in ("a", "b"):
+        (tmp_path / name).mkdir()
+        save_map(tmp_path / name / "map.npz", random_map(rng, 50), CONFIG, {"world_frame": "w"})
+    before = (tmp_path / "a" / "map.npz").read_bytes()
+    maps = [str(tmp_path / "a"), str(tmp_path / "b" / "map.npz")]
+    for out in ("a", "b"):
+        caplog.clear()
+        assert module.main([*maps, "--out", str(tmp_path / out), "--overwrite"]) == 2
+        assert "holds the map" in caplog.text
+    assert (tmp_path / "a" / "map.npz").read_bytes() == before
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "notes.txt").write_text("mine")
+    assert module.main([*maps, "--out", str(mine), "--overwrite"]) == 2
+    assert "holds no merged map" in caplog.text
+    merged = tmp_path / "merged"
+    assert module.main([*maps, "--out", str(merged), "--no-progress"]) == 0
+    (merged / "notes.txt").write_text("mine")
+    assert module.main([*maps, "--out", str(merged), "--no-progress", "--overwrite"]) == 0
+    assert (merged / "notes.txt").read_text() == "mine" and TiledMap.open(merged).voxels > 0
 
 
 def test_merge_cost_benchmark_runs():

@@ -32,7 +32,14 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="MAP",
         help="a results folder, a map.npz or a tiled map folder",
     )
-    p.add_argument("--out", type=Path, required=True, help="folder of the merged tiled map")
+    p.add_argument(
+        "--out", type=Path, required=True, help="a new or empty folder for the merged tiled map"
+    )
+    p.add_argument(
+        "--overwrite",
+        action="store_true",
+        help="replace a previous merge's files in --out (and nothing else there)",
+    )
     p.add_argument(
         "--transform",
         action="append",
@@ -67,9 +74,47 @@ def parse_transforms(given: list[str]) -> dict:
     return transforms
 
 
+# what a merge writes in its folder (tisem.merge_files): --overwrite removes these alone
+MERGE_FILES = ("tiles.json", "map.npz", "map.ply", "map_bev.png")
+
+
+def claim_out(out: Path, inputs: list[Path], overwrite: bool) -> None:
+    """--out must be a new or empty folder, or with --overwrite a previous merge's (whose
+    files are removed), and never the folder of a map being merged; AppError otherwise."""
+    if out.exists() and not out.is_dir():
+        raise cli.AppError(f"--out {out}: is a file, not a folder")
+    for given in inputs:
+        folder = given if given.is_dir() else given.parent
+        if folder.resolve() == out.resolve():
+            raise cli.AppError(
+                f"--out {out}: holds the map {given} being merged, which the merge would "
+                f"replace; choose another --out"
+            )
+    contents = sorted(p.name for p in out.iterdir()) if out.is_dir() else []
+    if not contents:
+        return
+    shown = ", ".join(contents[:5]) + (", ..." if len(contents) > 5 else "")
+    if not overwrite:
+        raise cli.AppError(
+            f"--out {out}: the folder is not empty ({shown}); give --overwrite to replace a "
+            f"previous merge there, or another --out"
+        )
+    if not (out / MERGE_FILES[0]).is_file():
+        raise cli.AppError(
+            f"--out {out}: the folder is not empty ({shown}) and holds no merged map (no "
+            f"{MERGE_FILES[0]}) for --overwrite to replace; choose another --out"
+        )
+    removed = [p for p in (out / name for name in MERGE_FILES) if p.is_file()]
+    removed += sorted((out / "tiles").glob("tile_*.npz"))
+    for path in removed:
+        path.unlink()
+    log.info("--overwrite: removed %d files of a previous merge from %s", len(removed), out)
+
+
 def merge(args: argparse.Namespace) -> int:
     from tisem.merge_files import merge_maps
 
+    claim_out(args.out, args.maps, args.overwrite)
     with cli.bad_input():
         result = merge_maps(
             args.maps,
