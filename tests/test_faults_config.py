@@ -209,3 +209,17 @@ def test_validate_refuses_what_a_program_sets_directly():
         cfg.validate()
     with pytest.raises(ConfigError, match=r"^num_classes = True: not a number"):
         MapperConfig(num_classes=True).validate()
+
+
+def test_a_sweep_mistake_is_named_as_the_sweeps_and_a_set_mistake_as_the_sets():
+    """`tisem batch --sweep tau=1,5` is not a --set: the line names the option it came from."""
+    from tisem.batch import plan_cells
+    from tisem.errors import ConfigError
+
+    with pytest.raises(ConfigError, match=r"^--sweep tau=1: unknown key 'tau' \(did you mean"):
+        plan_cells([], [], ["tau=1,5"])
+    with pytest.raises(ConfigError, match=r"^--sweep: tau_s = -1: "):
+        plan_cells([], [], ["tau_s=-1,5"])
+    with pytest.raises(ConfigError, match=r"^--set tau=1: unknown key"):
+        plan_cells([], ["tau=1"], ["tau_s=1,5"])
+    assert len(plan_cells([], ["mode=bki"], ["tau_s=1,5"])) == 0  # (no logs: no cells)

@@ -25,6 +25,7 @@ from pathlib import Path
 
 from tisem import cluster
 from tisem.config import load_config, to_dict
+from tisem.errors import ConfigError
 from tisem.logs import LogSpec, discover_logs, open_log, read_losses
 
 log = logging.getLogger(__name__)
@@ -94,7 +95,11 @@ def plan_cells(
     for combo in combos:
         assignments = [f"{k}={v}" for k, v in combo]
         name = ",".join(assignments) or "default"
-        cfg = load_config(config_path, [*overrides, *assignments])  # bad keys fail here
+        try:
+            cfg = load_config(config_path, [*overrides, *assignments])  # bad keys fail here
+        except ConfigError as exc:
+            load_config(config_path, overrides)  # a --set's mistake is named as one
+            raise ConfigError(str(exc).replace("--set", "--sweep", 1)) from None
         for spec in logs:
             cells.append(
                 {
