@@ -261,3 +261,47 @@ def test_merge_cost_benchmark_runs():
     result = merge_cost.run(merge_cost.parse_args(["--voxels", "3000"]))
     assert result["rows"] > result["voxels"] > 0.9 * result["rows"]  # half the area shared
     assert result["bytes_per_voxel"] > 0
+
+
+@pytest.mark.parametrize("blend", ["missing", "off"])
+def test_a_tiled_map_answers_between_its_voxels_as_the_mapper_does(tmp_path, taichi_cpu, blend):
+    """A point in no voxel gets the blend of the voxels within query_radius_m, across tile
+    borders, as `Mapper.query` gives it (query_blend missing), or 0 (off); points in voxels
+    get their voxel's answer either way."""
+    import tisem
+    from tisem.config import to_dict
+
+    cfg = tisem.MapperConfig(query_blend=blend)
+    mapper = tisem.Mapper(cfg)
+    rng = np.random.default_rng(3)
+    for k in range(4):
+        xy = rng.uniform(-8, 8, (4000, 2))
+        points = np.c_[xy, np.full(4000, -1.7)]
+        labels = np.where(xy[:, 0] < 0, 9, 11)  # road | sidewalk, split at x = 0
+        labels[rng.random(4000) < 0.1] = 15  # noise: vegetation
+        pose = np.eye(4)
+        pose[:3, 3] = [0.1 * k, 0.0, 1.7]
+        mapper.integrate(tisem.Scan(points, pose, stamp_s=0.1 * k, labels=labels))
+    snap = mapper.snapshot()
+    folder = tmp_path / "tiled"
+    mapper_config = to_dict(cfg)
+    entries = [write_tile(folder, t, p, mapper_config) for t, p in split_by_tile(snap, 32)]
+    write_index(
+        folder, TileIndex(cfg.resolution_m, cfg.num_classes, 32, "w", mapper_config, entries, {})
+    )
+    tiled = TiledMap.open(folder)
+    assert len(tiled.tile_keys) >= 4
+    # above the ground (in no voxel, 0.1-0.35 m above a voxel centre), across the tile borders
+    # at x, y = 0 and +-6.4 m, and in voxels
+    centres = (snap.keys + 0.5) * cfg.resolution_m
+    pick = rng.choice(len(snap), 400, replace=False)
+    above = centres[pick] + np.c_[rng.uniform(-0.1, 0.1, (400, 2)), rng.uniform(0.1, 0.35, 400)]
+    points = np.concatenate([above, centres[pick[:100]], [[200.0, 0.0, 0.0]]])
+    want_labels, want_probs = mapper.query(points)
+    labels, probs = tiled.query(points)
+    assert np.array_equal(labels, want_labels)
+    # (the kernels sample g from a table, in float32)
+    np.testing.assert_allclose(probs, want_probs, atol=1e-4)
+    blended = (want_labels[:400] != 0).mean()
+    assert blended > 0.5 if blend == "missing" else blended == 0
+    assert labels[-1] == 0 and not probs[-1].any()

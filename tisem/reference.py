@@ -12,6 +12,7 @@ import math
 import numpy as np
 from scipy.spatial import cKDTree
 
+from tisem.blend import blended_posterior, sparse_kernel
 from tisem.class_centroids import CENTROID_COLS, SLOT, split_labels
 from tisem.config import MapperConfig
 from tisem.geometry import block_aligned_origin
@@ -20,13 +21,6 @@ from tisem.labels import MOVABLE_CLASSES
 from tisem.map_clock import MapClock
 from tisem.preprocess import select_points
 from tisem.scan import Scan, scan_label, to_frame
-
-
-def sparse_kernel(r: np.ndarray) -> np.ndarray:
-    """Melkumyan-Ramos g(r), 0 for r >= 1."""
-    r = np.asarray(r, dtype=np.float64)
-    g = (2 + np.cos(2 * np.pi * r)) / 3 * (1 - r) + np.sin(2 * np.pi * r) / (2 * np.pi)
-    return np.where(r < 1, np.maximum(g, 0.0), 0.0)
 
 
 def normalized_entropy(p: np.ndarray) -> np.ndarray:
@@ -314,11 +308,7 @@ class ReferenceMapper:
             return out
         centres = (self.keys[has] + self.origin_vox + 0.5) * self.res
         posterior = self.counts[has] / total[has, None]
-        for i, near in enumerate(cKDTree(centres).query_ball_point(points_world, r=radius)):
-            if near:
-                d = np.linalg.norm(centres[near] - points_world[i], axis=1)
-                out[i] = (sparse_kernel(d / radius)[:, None] * posterior[near]).sum(axis=0)
-        return out
+        return blended_posterior(centres, posterior, points_world, radius)
 
     def voxel_centroids(self) -> np.ndarray:
         """(M, CENTROID_COLS) class centroids in the order of `voxels()`."""

@@ -23,6 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
+from tisem.blend import blended_posterior
 from tisem.io.mapfile import atomic_write, load_map_file, save_map
 from tisem.scan import checked_query_points
 from tisem.snapshot import MapSnapshot
@@ -284,11 +285,14 @@ class TiledMap:
             yield tile, self.tile(tile)
 
     def query(
-        self, points_world: np.ndarray, with_probs: bool = True
+        self, points_world: np.ndarray, with_probs: bool = True, blend: bool | None = None
     ) -> tuple[np.ndarray, np.ndarray | None]:
-        """Labels (N,) int32 and probabilities (N, C) float32 of world points, from the
-        voxel each falls in, as `Mapper.query` gives them with `query_blend: off`: a point in
-        no voxel gets label 0 and zeros (no blend of the voxels around it)."""
+        """Labels (N,) int32 and probabilities (N, C) float32 of world points, as `Mapper.query`
+        gives them: from the voxel each falls in (with its class centroids), and for a point
+        whose voxel holds no evidence and is not seen empty, the blend of the voxels within
+        `query_radius_m` (tisem.blend), where the map's config says `query_blend: missing`;
+        else, and where there is nothing within reach, label 0 and zeros. `blend` False:
+        lookups only; True: blend whatever the config says."""
         pts = checked_query_points(points_world)
         n = len(pts)
         labels = np.zeros(n, np.int32)
@@ -299,6 +303,7 @@ class TiledMap:
         keys = np.floor(pts[finite] / self.resolution_m).astype(np.int64)
         inside = np.all(np.abs(keys) < _PACK_OFFSET, axis=1)
         finite, keys = finite[inside], keys[inside]
+        empty = np.zeros(n, bool)  # points in a voxel seen through (free space)
         tiles = tile_ids(keys, self.index.tile_vox)
         for tile in np.unique(tiles, axis=0):
             at = np.all(tiles == tile, axis=1)
@@ -311,9 +316,41 @@ class TiledMap:
             rows, target = pos[found], finite[at][found]
             voxels = take_rows(snap, rows)
             labels[target] = voxels.point_labels(pts[target])
+            empty[target] = voxels.empty()
             if with_probs:
                 probs[target] = voxels.probabilities()
+        config = self.index.mapper_config
+        if blend is None:
+            blend = config.get("query_blend", "off") == "missing"
+        radius = float(config.get("query_radius_m", 0.0))
+        if blend and radius > 0:
+            todo = finite[(labels[finite] == 0) & ~empty[finite]]
+            self._blend_into(pts, todo, radius, labels, probs)
         return labels, probs
+
+    def _blend_into(self, pts, todo, radius, labels, probs) -> None:
+        """The blend for the points `todo`, from their tile and the tiles around it (a tile is
+        far wider than the query radius)."""
+        keys = np.floor(pts[todo] / self.resolution_m).astype(np.int64)
+        tiles = tile_ids(keys, self.index.tile_vox)
+        for tile in np.unique(tiles, axis=0):
+            at = todo[np.all(tiles == tile, axis=1)]
+            around = [
+                self.tile((int(tile[0]) + dx, int(tile[1]) + dy))
+                for dx in (-1, 0, 1)
+                for dy in (-1, 0, 1)
+            ]
+            snap = concat_snapshots(around, self.num_classes, self.resolution_m)
+            total = snap.counts.sum(axis=1)
+            usable = (total > 0) & ~snap.empty()
+            centres = (snap.keys[usable] + 0.5) * self.resolution_m
+            posterior = snap.counts[usable] / total[usable, None]
+            acc = blended_posterior(centres, posterior, pts[at], radius)
+            sums = acc.sum(axis=1)
+            got = sums > 0
+            labels[at[got]] = np.argmax(acc[got], axis=1)
+            if probs is not None:
+                probs[at[got]] = acc[got] / sums[got, None]
 
     def snapshot(
         self, max_voxels: int | None = None, tiles: Iterable[tuple[int, int]] | None = None
