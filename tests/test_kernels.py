@@ -476,22 +476,20 @@ def split_is_clear(counts, centroids, offsets, cfg) -> np.ndarray:
 
 def _check_blend(mapper, ref, pts, lab, prob, missing, tainted, where):
     """Points in no voxel: the blended posterior of the voxels within the query radius, as
-    numpy's, where the live window holds all of them and none is tainted (`_check_map`);
-    outside the window, 0."""
+    numpy's, where none is tainted (`_check_map`) and the live window holds all of them (the
+    kernel reads live voxels only), or outside the window (the host reads every voxel within
+    reach there, live or stored)."""
     res, radius = ref.res, ref.config.query_radius_m
     st = mapper.window.state
     local = np.floor(pts / res).astype(np.int64) - mapper.origin_vox
     off = np.abs(local - st.center_vox)
-    held = np.all(off <= st.half_vox - math.ceil(radius / res) - 1, axis=1)
+    outside = np.any(off > st.half_vox, axis=1)
+    held = np.all(off <= st.half_vox - math.ceil(radius / res) - 1, axis=1) | outside
     if tainted:
         near = cKDTree((np.array(sorted(tainted)) + 0.5) * res).query(
             pts, distance_upper_bound=radius + res
         )[0]
         held &= ~np.isfinite(near)
-    outside = missing & np.any(off > st.half_vox, axis=1)
-    assert np.all(lab[outside] == 0) and not prob[outside].any(), (
-        f"{where}: query outside the window"
-    )
     # where the voxels within reach all sit at the radius's edge, the blend's total weight is
     # float error (g ~ 0) and its normalised posterior is not comparable
     held &= missing

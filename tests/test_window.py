@@ -256,6 +256,22 @@ def test_small_window_equals_window_holding_everything(taichi_cpu):
     snap_small = small.snapshot()
     q = np.concatenate([snap_small.centers(), scans[0].points_world()])
     q_small = small.query(q)
+    # points in no voxel (0.1-0.35 m off a voxel's centre, most above it) well outside the
+    # small window, between stored voxels: the continuous map's blend there too
+    rng = np.random.default_rng(5)
+    res = small.config.resolution_m
+    centres = snap_small.centers()
+    off = np.c_[rng.uniform(-0.1, 0.1, (len(centres), 2)), rng.uniform(0.1, 0.35, len(centres))]
+    between = centres + off
+    st = small.window.state
+    local = np.floor(between / res).astype(np.int64) - small.origin_vox
+    reach = int(np.ceil(small.config.query_radius_m / res)) + 1
+    far = np.any(np.abs(local - st.center_vox) > st.half_vox + reach, axis=1)
+    in_voxel = {tuple(k) for k in snap_small.keys}
+    free = np.array([tuple(k) not in in_voxel for k in np.floor(between / res).astype(np.int64)])
+    between = between[far & free][:2000]
+    assert len(between) > 500
+    b_small = small.query(between)
     del small
 
     fresh_runtime()
@@ -268,6 +284,13 @@ def test_small_window_equals_window_holding_everything(taichi_cpu):
     # voxel centres: same answer from field and store; raw points may differ in the last bit of
     # the probability (the field's kernel divides in float32 like numpy, in another order)
     np.testing.assert_allclose(q_small[1], probs, rtol=0, atol=1e-6)
+    # the blend: the field's kernel samples g from a table, the host computes it
+    b_big = big.query(between)
+    assert (b_big[0] > 0).mean() > 0.5
+    top = np.sort(b_big[1], axis=1)[:, ::-1]
+    clear = top[:, 0] - top[:, 1] > 1e-3
+    np.testing.assert_array_equal(b_small[0][clear], b_big[0][clear])
+    np.testing.assert_allclose(b_small[1], b_big[1], rtol=0, atol=5e-4)
 
 
 @pytest.mark.slow

@@ -25,6 +25,7 @@ from dataclasses import dataclass
 import numpy as np
 import taichi as ti
 
+from tisem.blend import sparse_kernel
 from tisem.geometry import MapGeometry
 from tisem.kernels import centroids as kcentroids
 from tisem.kernels import query as kquery
@@ -385,27 +386,64 @@ class LiveWindow:
             # the voxel index exactly as the kernel computes it (float32 local * 1/res), so a
             # point on a voxel face finds the same voxel live or stored
             vox = np.floor(local[rest] * np.float32(inv_res)).astype(np.int64)
-            snap = self._stored(vox, centroid_ratio)
+            snap, empty = self._stored(vox, centroid_ratio)
             labels[rest] = snap.point_labels(local[rest])
             if probs is not None:
                 probs[rest] = snap.probabilities()
+            if blend_radius_m > 0:
+                seen_empty = np.zeros(len(local), bool)
+                seen_empty[rest] = empty
+                todo = np.flatnonzero(rest & (labels == 0) & ~seen_empty)
+                self._blend_beyond(local, todo, blend_radius_m, labels, probs)
 
-    def _stored(self, vox: np.ndarray, centroid_ratio: float) -> MapSnapshot:
+    def _blend_beyond(self, local, todo, radius_m, labels, probs) -> None:
+        """The blend (tisem.blend) for points outside the window whose voxel holds no
+        evidence: the kernel blends only the points in it, from the live voxels. Here every
+        voxel within reach, live or stored, gives its normalised counters (a lookup of its
+        centre), so that a map answers between its voxels wherever they are."""
+        if not len(todo):
+            return
+        res = self._geometry.resolution_m
+        reach = int(np.ceil(radius_m / res))
+        steps = np.arange(-reach, reach + 1)
+        offsets = np.stack(np.meshgrid(steps, steps, steps, indexing="ij"), -1).reshape(-1, 3)
+        pts = local[todo].astype(np.float64)
+        keys = np.floor(pts / res).astype(np.int64)
+        around = keys[:, None, :] + offsets[None, :, :]  # (K, (2 reach + 1)^3, 3)
+        dist = np.linalg.norm((around + 0.5) * res - pts[:, None, :], axis=2)
+        point, slot = np.nonzero(dist < radius_m)
+        near, which = np.unique(around[point, slot], axis=0, return_inverse=True)
+        near_labels = np.zeros(len(near), np.int32)
+        near_probs = np.zeros((len(near), self._fields.C), np.float32)
+        centres = ((near + 0.5) * res).astype(np.float32)
+        self.lookup(centres, np.ones(len(near), bool), near_labels, near_probs)
+        acc = np.zeros((len(todo), self._fields.C))
+        weight = sparse_kernel(dist[point, slot] / radius_m)
+        np.add.at(acc, point, weight[:, None] * near_probs[which.ravel()])
+        sums = acc.sum(axis=1)
+        got = sums > 0
+        labels[todo[got]] = np.argmax(acc[got], axis=1)
+        if probs is not None:
+            probs[todo[got]] = acc[got] / sums[got, None]
+
+    def _stored(self, vox: np.ndarray, centroid_ratio: float) -> tuple[MapSnapshot, np.ndarray]:
         """The stored voxels of local keys `vox`, a row per key: zeros where the store holds
         none (or a key beyond its range), and where the voxel is empty space (free space: it
-        answers as no voxel does, as in the field)."""
+        answers as no voxel does, as in the field); and which rows are empty space."""
         m = self._fields
         ok = np.all(np.abs(vox) <= KEY_LIMIT, axis=1)
         found, _ = self.store.lookup(vox[ok])
         columns = np.zeros((len(vox), found.shape[1]), np.float32)
         columns[ok] = found
         v = from_store((vox, columns, np.zeros(len(vox)), np.zeros(len(vox))), m.C)
+        empty = np.zeros(len(vox), bool)
         if v.occupancy is not None:
-            v.counts[v.occupancy <= -m.empty_evidence] = 0.0
+            empty = v.occupancy <= -m.empty_evidence
+            v.counts[empty] = 0.0
         res = self._geometry.resolution_m
         snap = MapSnapshot(vox, v.counts, v.t_last_rel, v.length_m, res, centroids=v.centroids)
         snap.centroid_ratio = centroid_ratio
-        return snap
+        return snap, empty
 
     def live_arrays(self) -> VoxelArrays:
         """Every live voxel, in no particular order."""
