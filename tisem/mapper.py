@@ -275,10 +275,10 @@ class Mapper:
     ) -> tuple[np.ndarray, np.ndarray | None]:
         """Labels (N,) int32 train ids and probabilities (N, C) float32 of world points.
 
-        A point in the live window whose voxel holds no evidence gets, with query_blend
-        `missing`, the kernel-weighted posterior of the live voxels within query_radius_m;
-        otherwise (none there, query_blend `off`, or a point outside the window and the store)
-        label 0 and all-zero probabilities.
+        A point whose voxel holds no evidence gets, with query_blend `missing`, the
+        kernel-weighted posterior of the voxels within query_radius_m (in the live window,
+        of the live ones; outside it, of the live and stored ones); otherwise (none there, or
+        query_blend `off`) label 0 and all-zero probabilities.
         """
         self._check_alive()
         pts = checked_query_points(points_world)
