@@ -25,7 +25,7 @@ from dataclasses import dataclass
 import numpy as np
 import taichi as ti
 
-from tisem.blend import sparse_kernel
+from tisem.blend import answer_blend, blend_by_lookup
 from tisem.geometry import MapGeometry
 from tisem.kernels import centroids as kcentroids
 from tisem.kernels import query as kquery
@@ -404,27 +404,15 @@ class LiveWindow:
         if not len(todo):
             return
         res = self._geometry.resolution_m
-        reach = int(np.ceil(radius_m / res))
-        steps = np.arange(-reach, reach + 1)
-        offsets = np.stack(np.meshgrid(steps, steps, steps, indexing="ij"), -1).reshape(-1, 3)
-        pts = local[todo].astype(np.float64)
-        keys = np.floor(pts / res).astype(np.int64)
-        around = keys[:, None, :] + offsets[None, :, :]  # (K, (2 reach + 1)^3, 3)
-        dist = np.linalg.norm((around + 0.5) * res - pts[:, None, :], axis=2)
-        point, slot = np.nonzero(dist < radius_m)
-        near, which = np.unique(around[point, slot], axis=0, return_inverse=True)
-        near_labels = np.zeros(len(near), np.int32)
-        near_probs = np.zeros((len(near), self._fields.C), np.float32)
-        centres = ((near + 0.5) * res).astype(np.float32)
-        self.lookup(centres, np.ones(len(near), bool), near_labels, near_probs)
-        acc = np.zeros((len(todo), self._fields.C))
-        weight = sparse_kernel(dist[point, slot] / radius_m)
-        np.add.at(acc, point, weight[:, None] * near_probs[which.ravel()])
-        sums = acc.sum(axis=1)
-        got = sums > 0
-        labels[todo[got]] = np.argmax(acc[got], axis=1)
-        if probs is not None:
-            probs[todo[got]] = acc[got] / sums[got, None]
+
+        def posterior_of(keys: np.ndarray) -> np.ndarray:
+            out = np.zeros((len(keys), self._fields.C), np.float32)
+            centres = ((keys + 0.5) * res).astype(np.float32)
+            self.lookup(centres, np.ones(len(keys), bool), np.zeros(len(keys), np.int32), out)
+            return out
+
+        acc = blend_by_lookup(local[todo], res, radius_m, posterior_of)
+        answer_blend(acc, todo, labels, probs)
 
     def _stored(self, vox: np.ndarray, centroid_ratio: float) -> tuple[MapSnapshot, np.ndarray]:
         """The stored voxels of local keys `vox`, a row per key: zeros where the store holds

@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from tisem.blend import blended_posterior
+from tisem.blend import answer_blend, blend_by_lookup
 from tisem.io.mapfile import atomic_write, load_map_file, save_map
 from tisem.scan import checked_query_points
 from tisem.snapshot import MapSnapshot
@@ -304,17 +304,8 @@ class TiledMap:
         inside = np.all(np.abs(keys) < _PACK_OFFSET, axis=1)
         finite, keys = finite[inside], keys[inside]
         empty = np.zeros(n, bool)  # points in a voxel seen through (free space)
-        tiles = tile_ids(keys, self.index.tile_vox)
-        for tile in np.unique(tiles, axis=0):
-            at = np.all(tiles == tile, axis=1)
-            snap, packed = self._tile((int(tile[0]), int(tile[1])))
-            if not len(snap):
-                continue
-            wanted = pack_keys(keys[at])
-            pos = np.minimum(np.searchsorted(packed, wanted), len(packed) - 1)
-            found = packed[pos] == wanted
-            rows, target = pos[found], finite[at][found]
-            voxels = take_rows(snap, rows)
+        for at, voxels in self._voxels_of(keys):
+            target = finite[at]
             labels[target] = voxels.point_labels(pts[target])
             empty[target] = voxels.empty()
             if with_probs:
@@ -329,28 +320,34 @@ class TiledMap:
         return labels, probs
 
     def _blend_into(self, pts, todo, radius, labels, probs) -> None:
-        """The blend for the points `todo`, from their tile and the tiles around it (a tile is
-        far wider than the query radius)."""
-        keys = np.floor(pts[todo] / self.resolution_m).astype(np.int64)
+        """The blend for the points `todo` (tisem.blend), from the voxels within reach,
+        whichever tiles hold them."""
+        if len(todo):
+            acc = blend_by_lookup(pts[todo], self.resolution_m, radius, self._posterior_of)
+            answer_blend(acc, todo, labels, probs)
+
+    def _posterior_of(self, keys: np.ndarray) -> np.ndarray:
+        """(K, C) normalised counters of world voxels `keys`, zeros where the map holds none,
+        none with evidence, or empty space."""
+        out = np.zeros((len(keys), self.num_classes))
+        for at, voxels in self._voxels_of(keys):
+            out[at] = voxels.probabilities()
+        return out
+
+    def _voxels_of(self, keys: np.ndarray) -> Iterator[tuple[np.ndarray, MapSnapshot]]:
+        """Per tile the keys fall in: (the positions in `keys` of those the map holds, their
+        voxels in that order). Keys are packed into one int64 and found by a binary search in
+        the tile's sorted keys."""
         tiles = tile_ids(keys, self.index.tile_vox)
         for tile in np.unique(tiles, axis=0):
-            at = todo[np.all(tiles == tile, axis=1)]
-            around = [
-                self.tile((int(tile[0]) + dx, int(tile[1]) + dy))
-                for dx in (-1, 0, 1)
-                for dy in (-1, 0, 1)
-            ]
-            snap = concat_snapshots(around, self.num_classes, self.resolution_m)
-            total = snap.counts.sum(axis=1)
-            usable = (total > 0) & ~snap.empty()
-            centres = (snap.keys[usable] + 0.5) * self.resolution_m
-            posterior = snap.counts[usable] / total[usable, None]
-            acc = blended_posterior(centres, posterior, pts[at], radius)
-            sums = acc.sum(axis=1)
-            got = sums > 0
-            labels[at[got]] = np.argmax(acc[got], axis=1)
-            if probs is not None:
-                probs[at[got]] = acc[got] / sums[got, None]
+            at = np.flatnonzero(np.all(tiles == tile, axis=1))
+            snap, packed = self._tile((int(tile[0]), int(tile[1])))
+            if not len(snap):
+                continue
+            wanted = pack_keys(keys[at])
+            pos = np.minimum(np.searchsorted(packed, wanted), len(packed) - 1)
+            found = packed[pos] == wanted
+            yield at[found], take_rows(snap, pos[found])
 
     def snapshot(
         self, max_voxels: int | None = None, tiles: Iterable[tuple[int, int]] | None = None
