@@ -382,19 +382,23 @@ class LiveWindow:
             out_prob,
         )
         rest = finite & (inside == 0)
+        seen_empty = np.zeros(len(local), bool)
         if len(self.store) and rest.any():
             # the voxel index exactly as the kernel computes it (float32 local * 1/res), so a
             # point on a voxel face finds the same voxel live or stored
             vox = np.floor(local[rest] * np.float32(inv_res)).astype(np.int64)
-            snap, empty = self._stored(vox, centroid_ratio)
+            snap, seen_empty[rest] = self._stored(vox, centroid_ratio)
             labels[rest] = snap.point_labels(local[rest])
             if probs is not None:
                 probs[rest] = snap.probabilities()
-            if blend_radius_m > 0:
-                seen_empty = np.zeros(len(local), bool)
-                seen_empty[rest] = empty
-                todo = np.flatnonzero(rest & (labels == 0) & ~seen_empty)
-                self._blend_beyond(local, todo, blend_radius_m, labels, probs)
+        elif blend_radius_m > 0 and rest.any():
+            # nothing stored: only the live voxels at the window's faces are within reach
+            reach = np.ceil(blend_radius_m * inv_res) + 1
+            vox = np.floor(local * np.float32(inv_res)).astype(np.int64)
+            rest &= np.all(np.abs(vox - st.center_vox) <= st.half_vox + reach, axis=1)
+        if blend_radius_m > 0:
+            todo = np.flatnonzero(rest & (labels == 0) & ~seen_empty)
+            self._blend_beyond(local, todo, blend_radius_m, labels, probs)
 
     def _blend_beyond(self, local, todo, radius_m, labels, probs) -> None:
         """The blend (tisem.blend) for points outside the window whose voxel holds no
