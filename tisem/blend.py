@@ -73,10 +73,20 @@ def blend_by_lookup(
 
 
 def answer_blend(
-    acc: np.ndarray, rows: np.ndarray, labels: np.ndarray, probs: np.ndarray | None
+    points: np.ndarray,
+    rows: np.ndarray,
+    resolution_m: float,
+    radius_m: float,
+    posterior_of: Callable[[np.ndarray], np.ndarray],
+    labels: np.ndarray,
+    probs: np.ndarray | None,
 ) -> None:
-    """Points `rows` take the blend `acc` (one row each) where it holds anything: its argmax
-    and, unless `probs` is None, its normalised values; the others keep their answer (0)."""
+    """Points `rows` of `points` take their blend (`blend_by_lookup`) where it holds
+    anything: its argmax into `labels` and, unless `probs` is None, its normalised values;
+    the others keep their answer (0)."""
+    if not len(rows):
+        return
+    acc = blend_by_lookup(points[rows], resolution_m, radius_m, posterior_of)
     sums = acc.sum(axis=1)
     got = sums > 0
     labels[rows[got]] = np.argmax(acc[got], axis=1)

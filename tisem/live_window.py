@@ -25,7 +25,7 @@ from dataclasses import dataclass
 import numpy as np
 import taichi as ti
 
-from tisem.blend import answer_blend, blend_by_lookup
+from tisem.blend import answer_blend
 from tisem.geometry import MapGeometry
 from tisem.kernels import centroids as kcentroids
 from tisem.kernels import query as kquery
@@ -405,8 +405,6 @@ class LiveWindow:
         evidence: the kernel blends only the points in it, from the live voxels. Here every
         voxel within reach, live or stored, gives its normalised counters (a lookup of its
         centre), so that a map answers between its voxels wherever they are."""
-        if not len(todo):
-            return
         res = self._geometry.resolution_m
 
         def posterior_of(keys: np.ndarray) -> np.ndarray:
@@ -415,8 +413,7 @@ class LiveWindow:
             self.lookup(centres, np.ones(len(keys), bool), np.zeros(len(keys), np.int32), out)
             return out
 
-        acc = blend_by_lookup(local[todo], res, radius_m, posterior_of)
-        answer_blend(acc, todo, labels, probs)
+        answer_blend(local, todo, res, radius_m, posterior_of, labels, probs)
 
     def _stored(self, vox: np.ndarray, centroid_ratio: float) -> tuple[MapSnapshot, np.ndarray]:
         """The stored voxels of local keys `vox`, a row per key: zeros where the store holds

@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from tisem.blend import answer_blend, blend_by_lookup
+from tisem.blend import answer_blend
 from tisem.io.mapfile import atomic_write, load_map_file, save_map
 from tisem.scan import checked_query_points
 from tisem.snapshot import MapSnapshot
@@ -315,16 +315,10 @@ class TiledMap:
             blend = config.get("query_blend", "off") == "missing"
         radius = float(config.get("query_radius_m", 0.0))
         if blend and radius > 0:
+            # (from the voxels within reach, whichever tiles hold them)
             todo = finite[(labels[finite] == 0) & ~empty[finite]]
-            self._blend_into(pts, todo, radius, labels, probs)
+            answer_blend(pts, todo, self.resolution_m, radius, self._posterior_of, labels, probs)
         return labels, probs
-
-    def _blend_into(self, pts, todo, radius, labels, probs) -> None:
-        """The blend for the points `todo` (tisem.blend), from the voxels within reach,
-        whichever tiles hold them."""
-        if len(todo):
-            acc = blend_by_lookup(pts[todo], self.resolution_m, radius, self._posterior_of)
-            answer_blend(acc, todo, labels, probs)
 
     def _posterior_of(self, keys: np.ndarray) -> np.ndarray:
         """(K, C) normalised counters of world voxels `keys`, zeros where the map holds none,

@@ -166,7 +166,7 @@ def map_recording(args: argparse.Namespace) -> int:
     lines = read_losses(reader)
     if lines:
         # notes alone (rosbag2's chunks without CRCs) are how it was read, not a loss
-        intact = set(lines) <= set(reader.report.notes)
+        intact = set(lines) <= notes
         print(
             f"\n{path.name}: "
             + ("read whole, with these notes:" if intact else "not everything could be used:")
